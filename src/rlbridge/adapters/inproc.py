@@ -1,0 +1,190 @@
+"""The in-process bus: the embedded default middleware.
+
+A topic table inside the server process with ROS-shaped types (:mod:`.msgtypes`). It exists so
+the bridge is useful (and testable) without ROS: clients publish and subscribe to each other
+through it, and the CLI's ``topic`` tools work against it.
+
+Delivery is synchronous, in the publisher's thread, in order. The hot path has no per-value
+Python work when publisher and subscriber bind the same field: the batch is handed over as is.
+Only when they bind different fields of one type is each value rebuilt through a full message.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from rlbridge.adapters.base import BindingError, QoS, ValuesCallback, ValueSpec
+from rlbridge.adapters.msgtypes import TypeRegistry, get_path, split_path, with_path
+
+_Convert = Callable[[Sequence[Any]], Sequence[Any]]
+
+
+def _converter(spec_from: ValueSpec, spec_to: ValueSpec, template: dict[str, Any]) -> _Convert:
+    """How a batch bound to one field reaches a subscriber bound to another field."""
+    if spec_from.field == spec_to.field:
+        return lambda values: values
+    src = split_path(spec_from.field) if spec_from.field is not None else None
+    dst = split_path(spec_to.field) if spec_to.field is not None else None
+
+    def message(value: Any) -> dict[str, Any]:
+        return dict(value) if src is None else with_path(template, src, value)
+
+    if dst is None:
+        return lambda values: [message(v) for v in values]
+    return lambda values: [get_path(message(v), dst) for v in values]
+
+
+@dataclass(eq=False)
+class _Subscriber:
+    spec: ValueSpec
+    callback: ValuesCallback
+    topic: _Topic
+    closed: bool = False
+
+    def close(self) -> None:
+        self.topic.remove_subscriber(self)
+
+
+@dataclass(eq=False)
+class _Publisher:
+    spec: ValueSpec
+    topic: _Topic
+    closed: bool = False
+
+    def publish(self, values: Sequence[Any]) -> None:
+        if self.closed:
+            raise RuntimeError(f"publisher on {self.topic.name} is closed")
+        self.topic.deliver(self.spec, values)
+
+    def close(self) -> None:
+        self.topic.remove_publisher(self)
+
+
+@dataclass(eq=False)
+class _Topic:
+    """One topic: its type, its endpoints, and cached field-to-field converters."""
+
+    name: str
+    msg_type: str
+    template: dict[str, Any]
+    bus: InProcessBus
+    subscribers: tuple[_Subscriber, ...] = ()
+    publishers: int = 0
+    converters: dict[tuple[str | None, str | None], _Convert] = field(default_factory=dict)
+
+    def deliver(self, spec: ValueSpec, values: Sequence[Any]) -> None:
+        if not values:
+            return
+        for sub in self.subscribers:  # a tuple: subscribe/close during delivery is safe
+            if sub.closed:
+                continue
+            key = (spec.field, sub.spec.field)
+            convert = self.converters.get(key)
+            if convert is None:
+                convert = self.converters[key] = _converter(spec, sub.spec, self.template)
+            sub.callback(convert(values))
+
+    def remove_subscriber(self, sub: _Subscriber) -> None:
+        with self.bus.lock:
+            if sub.closed:
+                return
+            sub.closed = True
+            self.subscribers = tuple(s for s in self.subscribers if s is not sub)
+            self.bus.forget_if_unused(self)
+
+    def remove_publisher(self, pub: _Publisher) -> None:
+        with self.bus.lock:
+            if pub.closed:
+                return
+            pub.closed = True
+            self.publishers -= 1
+            self.bus.forget_if_unused(self)
+
+
+class InProcessBus:
+    """A :class:`~rlbridge.adapters.base.MiddlewareAdapter` living in the server process."""
+
+    name = "inproc"
+
+    def __init__(self, registry: TypeRegistry | None = None) -> None:
+        self.registry = registry or TypeRegistry()
+        self.lock = threading.Lock()
+        self._topics: dict[str, _Topic] = {}
+        self._closed = False
+
+    def resolve(self, msg_type: str, field: str | None) -> ValueSpec:
+        return self.registry.resolve(msg_type, field)
+
+    def _topic(self, topic: str, spec: ValueSpec) -> _Topic:
+        """Find or create the topic; the caller holds the lock."""
+        if self._closed:
+            raise BindingError("INTERNAL", "the in-process bus is closed")
+        _check_topic_name(topic)
+        existing = self._topics.get(topic)
+        if existing is not None:
+            if existing.msg_type != spec.msg_type:
+                raise BindingError(
+                    "TYPE_CLASH",
+                    f"topic '{topic}' has type {existing.msg_type}, not {spec.msg_type}",
+                )
+            return existing
+        template = self.registry.resolve(spec.msg_type, None).default
+        created = _Topic(topic, spec.msg_type, template, self)
+        self._topics[topic] = created
+        return created
+
+    def create_publisher(self, topic: str, msg_type: str, field: str | None, qos: QoS) -> _Publisher:
+        spec = self.resolve(msg_type, field)
+        with self.lock:
+            t = self._topic(topic, spec)
+            t.publishers += 1
+        return _Publisher(spec, t)
+
+    def subscribe(
+        self, topic: str, msg_type: str, field: str | None, qos: QoS, callback: ValuesCallback
+    ) -> _Subscriber:
+        spec = self.resolve(msg_type, field)
+        with self.lock:
+            t = self._topic(topic, spec)
+            sub = _Subscriber(spec, callback, t)
+            t.subscribers = (*t.subscribers, sub)
+        return sub
+
+    def topics(self) -> list[tuple[str, str]]:
+        with self.lock:
+            return sorted((t.name, t.msg_type) for t in self._topics.values())
+
+    def forget_if_unused(self, topic: _Topic) -> None:
+        """Drop a topic nobody uses any more (ROS forgets it too); the caller holds the lock."""
+        if not topic.subscribers and topic.publishers == 0:
+            self._topics.pop(topic.name, None)
+
+    def close(self) -> None:
+        with self.lock:
+            self._closed = True
+            for t in self._topics.values():
+                for sub in t.subscribers:
+                    sub.closed = True
+                t.subscribers = ()
+            self._topics.clear()
+
+
+def _check_topic_name(topic: str) -> None:
+    """ROS 2 topic name rules, enough to catch typos before they become silent topics."""
+    ok = (
+        topic.startswith("/")
+        and not topic.endswith("/")
+        and "//" not in topic
+        and all(c.isalnum() or c in "/_~{}" for c in topic)
+        and not any(part[:1].isdigit() for part in topic.split("/"))
+    )
+    if len(topic) > 1 and ok:
+        return
+    raise BindingError(
+        "BAD_TOPIC",
+        f"'{topic}' is not a valid topic name: use '/name' with letters, digits, '_' and '/', "
+        "no empty or digit-leading parts",
+    )

@@ -1,0 +1,215 @@
+"""The server's lifetime: bind, serve, shut down in order (uvicorn's shape).
+
+``Server(config).run()`` is what the CLI calls; ``ServerThread`` runs the same server in a
+background thread for tests, benchmarks and examples, with port 0 allowed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import socket
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+from rlbridge.adapters import MiddlewareAdapter, load_adapter
+from rlbridge.server.config import ServerConfig
+from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.registry import SessionRegistry
+from rlbridge.server.session import ServerContext
+from rlbridge.server.tcp import TcpConnection
+from rlbridge.server.udp import UdpEndpoint
+from rlbridge.wire import PacketCodec
+
+log = logging.getLogger("rlbridge.server")
+
+
+class ServerError(RuntimeError):
+    """The server cannot start (port in use, adapter unavailable); the message says why."""
+
+
+@dataclass(frozen=True)
+class BoundAddress:
+    host: str
+    port: int
+    tcp: bool
+    udp: bool
+
+
+def new_event_loop(use_uvloop: bool = True) -> asyncio.AbstractEventLoop:
+    """uvloop when installed and wanted, else asyncio's; chosen per loop, no global policy."""
+    if use_uvloop:
+        try:
+            import uvloop
+        except ImportError:
+            pass
+        else:
+            loop: asyncio.AbstractEventLoop = uvloop.new_event_loop()
+            return loop
+    return asyncio.new_event_loop()
+
+
+class Server:
+    """The bridge server. Owns its listeners, sessions and adapter; ``serve`` returns when stopped."""
+
+    def __init__(self, config: ServerConfig, adapter: MiddlewareAdapter | None = None) -> None:
+        self.config = config
+        self._adapter = adapter
+        self._stop: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.registry: SessionRegistry | None = None
+        self.address: BoundAddress | None = None
+
+    def run(self) -> None:
+        """Serve until SIGINT/SIGTERM; the CLI's entry point."""
+        with asyncio.Runner(loop_factory=lambda: new_event_loop(self.config.use_uvloop)) as r:
+            r.run(self.serve(install_signal_handlers=True))
+
+    def stop(self) -> None:
+        """Ask a running server to shut down; safe from any thread."""
+        loop, stop = self._loop, self._stop
+        if loop is not None and stop is not None:
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(stop.set)
+
+    async def serve(
+        self,
+        *,
+        install_signal_handlers: bool = False,
+        started: Callable[[BoundAddress], None] | None = None,
+    ) -> None:
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._stop = asyncio.Event()
+        cfg = self.config
+        adapter = self._adapter or load_adapter(
+            cfg.adapter, node_name=cfg.node_name, namespace=cfg.namespace,
+            parameters={"use_tcp": cfg.tcp, "use_udp": cfg.udp, "disable_nagle": cfg.nodelay},
+        )
+        ctx = ServerContext(cfg, adapter, PacketCodec(), loop, LoopHandoff(loop))
+        self.registry = registry = SessionRegistry(ctx)
+        tcp_server: asyncio.Server | None = None
+        udp_transport: asyncio.DatagramTransport | None = None
+        try:
+            tcp_server, udp_transport, port = await self._bind(loop, registry)
+            self.address = BoundAddress(cfg.host, port, tcp_server is not None,
+                                        udp_transport is not None)
+            log.info("rlbridge serving on %s:%d (tcp=%s udp=%s nodelay=%s adapter=%s)",
+                     cfg.host, port, cfg.tcp, cfg.udp, cfg.nodelay, adapter.name)
+            if install_signal_handlers:
+                for sig in (signal.SIGINT, signal.SIGTERM):
+                    loop.add_signal_handler(sig, self._stop.set)
+            if started is not None:
+                started(self.address)
+            await self._stop.wait()
+        finally:
+            await self._shutdown(registry, tcp_server, udp_transport)
+            if self._adapter is None:
+                adapter.close()
+            if install_signal_handlers:
+                for sig in (signal.SIGINT, signal.SIGTERM):
+                    loop.remove_signal_handler(sig)
+
+    async def _bind(
+        self, loop: asyncio.AbstractEventLoop, registry: SessionRegistry
+    ) -> tuple[asyncio.Server | None, asyncio.DatagramTransport | None, int]:
+        """TCP and UDP on the same port number; with port 0, retry until both get one."""
+        cfg = self.config
+        last_error: OSError | None = None
+        for _ in range(20 if cfg.port == 0 else 1):
+            tcp_server: asyncio.Server | None = None
+            port = cfg.port
+            try:
+                if cfg.tcp:
+                    tcp_server = await loop.create_server(
+                        lambda: TcpConnection(registry), cfg.host, port, reuse_address=True,
+                        family=socket.AF_INET if ":" not in cfg.host else socket.AF_INET6,
+                    )
+                    port = tcp_server.sockets[0].getsockname()[1]
+                udp_transport: asyncio.DatagramTransport | None = None
+                if cfg.udp:
+                    udp_transport, _ = await loop.create_datagram_endpoint(
+                        lambda: UdpEndpoint(registry), local_addr=(cfg.host, port)
+                    )
+                    port = udp_transport.get_extra_info("sockname")[1]
+                return tcp_server, udp_transport, port
+            except OSError as exc:
+                last_error = exc
+                if tcp_server is not None:
+                    tcp_server.close()
+                    await tcp_server.wait_closed()
+        raise ServerError(f"cannot listen on {cfg.host}:{cfg.port}: {last_error}")
+
+    async def _shutdown(
+        self,
+        registry: SessionRegistry,
+        tcp_server: asyncio.Server | None,
+        udp_transport: asyncio.DatagramTransport | None,
+    ) -> None:
+        """Stop accepting, tell every session, close sockets, with a bound on the wait."""
+        registry.accepting = False
+        if tcp_server is not None:
+            tcp_server.close()
+        for session in registry:
+            session.close("server shutting down", notify=True, code=30)
+        await asyncio.sleep(0)  # let transports flush the goodbyes
+        if udp_transport is not None:
+            udp_transport.close()
+        if tcp_server is not None:
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(tcp_server.wait_closed(), 2.0)
+        log.info("rlbridge stopped")
+
+
+class ServerThread:
+    """A server on a background thread: ``with ServerThread(cfg) as srv: srv.port``."""
+
+    def __init__(self, config: ServerConfig | None = None, adapter: MiddlewareAdapter | None = None,
+                 **overrides: Any) -> None:
+        base = config or ServerConfig(port=0)
+        self.server = Server(base.model_copy(update=overrides) if overrides else base, adapter)
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+
+    @property
+    def port(self) -> int:
+        assert self.server.address is not None, "server not started"
+        return self.server.address.port
+
+    def start(self, timeout: float = 10.0) -> ServerThread:
+        def main() -> None:
+            try:
+                with asyncio.Runner(
+                    loop_factory=lambda: new_event_loop(self.server.config.use_uvloop)
+                ) as runner:
+                    runner.run(self.server.serve(started=lambda _a: self._ready.set()))
+            except BaseException as exc:
+                self._error = exc
+                self._ready.set()
+
+        self._thread = threading.Thread(target=main, name="rlbridge-server", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout):
+            raise ServerError("server did not start in time")
+        if self._error is not None:
+            raise ServerError(str(self._error)) from self._error
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self.server.stop()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+
+    def __enter__(self) -> ServerThread:
+        return self.start()
+
+    def __exit__(self, et: type[BaseException] | None, e: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()

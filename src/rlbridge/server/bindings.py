@@ -1,0 +1,132 @@
+"""Channel bindings: a client channel joined to one middleware publisher or subscription.
+
+``Inbound`` carries client values into the middleware (the thesis's run-time binding
+publisher); ``Outbound`` carries middleware values to the client (its topic listener). Both are
+transport-agnostic: an outbound binding writes to whatever sink its channel chose.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import msgspec
+
+from rlbridge.adapters.base import Publisher, Subscription, ValueSpec
+from rlbridge.server.sinks import PacketSink
+from rlbridge.wire import Batch, Value
+from rlbridge.wire.sequence import SequenceTracker
+
+_SCALARS = (float, int, bool, str)
+
+
+def value_converter(spec: ValueSpec) -> Callable[[list[Any]], list[Any]]:
+    """Validate a list of decoded values against the channel's type, in one msgspec call.
+
+    Whole messages are validated as their Struct and handed on as plain dicts, the adapter's
+    currency. Raises ``msgspec.ValidationError`` naming the offending element.
+    """
+    list_type = list[spec.python_type]  # type: ignore[name-defined]
+    if isinstance(spec.python_type, type) and issubclass(spec.python_type, msgspec.Struct):
+
+        def convert_messages(values: list[Any]) -> list[Any]:
+            result: list[Any] = msgspec.to_builtins(msgspec.convert(values, list_type))
+            return result
+
+        return convert_messages
+
+    def convert_fields(values: list[Any]) -> list[Any]:
+        result: list[Any] = msgspec.convert(values, list_type)
+        return result
+
+    return convert_fields
+
+
+class Inbound:
+    """Client -> middleware. Duplicates and overtaken values (UDP) are dropped and counted."""
+
+    def __init__(self, channel: int, spec: ValueSpec, publisher: Publisher) -> None:
+        self.channel = channel
+        self.spec = spec
+        self._publisher = publisher
+        self._convert = value_converter(spec)
+        self.tracker = SequenceTracker()
+        self.values_in = 0
+        self.bad_values = 0
+
+    def on_value(self, packet: Value) -> None:
+        if self.tracker.accept(packet.seq):
+            self._publish([packet.value])
+
+    def on_batch(self, packet: Batch) -> None:
+        start = self.tracker.accept_run(packet.first_seq, len(packet.values))
+        if start < len(packet.values):
+            self._publish(packet.values[start:] if start else packet.values)
+
+    def _publish(self, values: list[Any]) -> None:
+        try:
+            converted = self._convert(values)
+        except msgspec.ValidationError:
+            self.bad_values += len(values)
+            raise
+        self.values_in += len(converted)
+        self._publisher.publish(converted)
+
+    def close(self) -> None:
+        self._publisher.close()
+
+
+class Outbound:
+    """Middleware -> client. Numbers values per channel; optionally repeats the last k (UDP)."""
+
+    def __init__(
+        self, channel: int, spec: ValueSpec, sink: PacketSink, max_batch: int, redundancy: int
+    ) -> None:
+        self.channel = channel
+        self.spec = spec
+        self.sink = sink
+        self.subscription: Subscription | None = None
+        self._max_batch = max_batch
+        self._seq = 0
+        self._history: deque[tuple[int, Any]] | None = (
+            deque(maxlen=redundancy) if redundancy > 0 else None
+        )
+        self.values_out = 0
+        self.dropped = 0
+
+    def on_values(self, values: Sequence[Any]) -> None:
+        """Called on the loop thread with a batch from the middleware."""
+        n = len(values)
+        if n == 0:
+            return
+        stamp = time.time_ns()
+        seq = self._seq
+        self._seq = seq + n
+        self.values_out += n
+        history = self._history
+        if history is None and n == 1:
+            if not self.sink.send(Value(self.channel, seq, stamp, values[0]), data=True):
+                self.dropped += 1
+            return
+        fresh = list(values)
+        values = fresh
+        stamps = [stamp] * n
+        if history is not None:
+            if history:
+                # Repeat the previous k values in front: one lost datagram loses no value.
+                values = [v for _, v in history] + fresh
+                stamps = [s for s, _ in history] + stamps
+                seq -= len(history)
+            history.extend((stamp, v) for v in fresh)
+        step = self._max_batch
+        for i in range(0, len(values), step):
+            batch = Batch(self.channel, seq + i, stamps[i : i + step], values[i : i + step])
+            if not self.sink.send(batch, data=True):
+                self.dropped += len(batch.values)
+
+    def close(self) -> None:
+        if self.subscription is not None:
+            self.subscription.close()
+            self.subscription = None

@@ -1,0 +1,45 @@
+"""Server configuration: one validated object that the CLI and the Python API both build."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from rlbridge.wire.codec import DEFAULT_MAX_PACKET, MAX_DATAGRAM
+
+
+class ServerConfig(BaseModel):
+    """Everything ``Server`` needs; defaults are safe (loopback, both transports, Nagle on)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    host: str = Field("127.0.0.1", description="Address to bind; 0.0.0.0 only when asked.")
+    port: int = Field(7411, ge=0, le=65535, description="TCP and UDP port (0: pick a free one).")
+    tcp: bool = True
+    udp: bool = True
+    nodelay: bool = Field(False, description="Set TCP_NODELAY on every client socket.")
+    adapter: Literal["inproc", "ros2"] = "inproc"
+    node_name: str = "rlbridge"
+    namespace: str = ""
+    heartbeat_ms: int = Field(200, ge=10, le=60_000)
+    timeout_ms: int = Field(600, ge=20, le=600_000)
+    max_sessions: int = Field(256, ge=1)
+    max_channels: int = Field(256, ge=1, description="Channels per session.")
+    max_packet: int = Field(DEFAULT_MAX_PACKET, ge=1024, le=64 << 20)
+    max_batch: int = Field(4096, ge=1, description="Values per batch packet.")
+    max_write_buffer: int = Field(
+        4 << 20, ge=64 << 10, description="Bytes queued to one TCP client before values drop."
+    )
+    udp_payload: int = Field(
+        1400, ge=256, le=MAX_DATAGRAM, description="Largest UDP datagram the server sends."
+    )
+    use_uvloop: bool = True
+
+    @model_validator(mode="after")
+    def _check(self) -> ServerConfig:
+        if not (self.tcp or self.udp):
+            raise ValueError("enable at least one transport: tcp or udp")
+        if self.timeout_ms <= self.heartbeat_ms:
+            raise ValueError("timeout_ms must be longer than heartbeat_ms")
+        return self

@@ -1,0 +1,313 @@
+"""One client session: its channels, its watchdog, and the packets it may send and receive.
+
+A session is transport-neutral. A TCP connection or a UDP hello creates it; afterwards packets
+reach ``handle`` from either transport (a session may use TCP and UDP channels at once, thesis
+requirement 5) and each channel sends through the sink of the transport it chose. Bad input is
+answered with an error packet naming the problem and the session goes on; only a broken byte
+stream or a dead link ends it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS
+from rlbridge.server.bindings import Inbound, Outbound
+from rlbridge.server.config import ServerConfig
+from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.sinks import PacketSink, UdpSink
+from rlbridge.wire import (
+    Batch,
+    Disconnect,
+    Error,
+    ErrorCode,
+    Heartbeat,
+    Packet,
+    PacketCodec,
+    Stats,
+    TopicAck,
+    TopicClose,
+    TopicConnect,
+    TopicError,
+    Value,
+)
+from rlbridge.wire.link import LinkMonitor, LinkState
+
+log = logging.getLogger("rlbridge.server")
+
+
+@dataclass
+class ServerContext:
+    """What every session shares: settings, middleware, codec, the loop and its hand-off."""
+
+    config: ServerConfig
+    adapter: MiddlewareAdapter
+    codec: PacketCodec
+    loop: asyncio.AbstractEventLoop
+    handoff: LoopHandoff
+    udp_transport: asyncio.DatagramTransport | None = None
+    counters: dict[str, int] = field(default_factory=dict)
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + n
+
+
+class Session:
+    """State and routing for one client; see the module docstring."""
+
+    def __init__(
+        self,
+        ctx: ServerContext,
+        session_id: int,
+        token: int,
+        name: str,
+        on_closed: Callable[[Session], None],
+    ) -> None:
+        self.ctx = ctx
+        self.id = session_id
+        self.token = token
+        self.name = name
+        self._on_closed = on_closed
+        cfg = ctx.config
+        self.link = LinkMonitor(
+            time.monotonic_ns(), cfg.heartbeat_ms * 1_000_000, cfg.timeout_ms * 1_000_000
+        )
+        self.tcp: PacketSink | None = None
+        self.udp: UdpSink | None = None
+        self._close_tcp: Callable[[], None] | None = None
+        self.inbound: dict[int, Inbound] = {}
+        self.outbound: dict[int, Outbound] = {}
+        self.packets_in = 0
+        self.malformed = 0
+        self.errors_sent = 0
+        self.closed = False
+        self._timer: asyncio.TimerHandle | None = None
+        self._arm_timer()
+
+    # -- transports ------------------------------------------------------------------------
+    def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
+        self.tcp = sink
+        self._close_tcp = close
+
+    def attach_udp(self, addr: tuple[str, int]) -> None:
+        """Learn (or refresh) the client's UDP address from a datagram carrying our token."""
+        transport = self.ctx.udp_transport
+        if transport is None:
+            return
+        if self.udp is None:
+            cfg = self.ctx.config
+            self.udp = UdpSink(transport, self.ctx.codec, self.token, addr, cfg.udp_payload)
+        elif self.udp.addr != addr:
+            self.udp.addr = addr
+
+    @property
+    def control(self) -> PacketSink | None:
+        """Control replies go over TCP when the session has it, else over UDP."""
+        return self.tcp if self.tcp is not None else self.udp
+
+    def send_control(self, packet: Packet, via: PacketSink | None = None) -> None:
+        sink = via or self.control
+        if sink is not None:
+            sink.send(packet)
+
+    def error(self, code: ErrorCode, reason: str, channel: int | None = None,
+              via: PacketSink | None = None) -> None:
+        """Tell the client what was wrong with what it sent; the session goes on."""
+        self.errors_sent += 1
+        self.ctx.count("errors_sent")
+        log.debug("session %d (%s): %s: %s", self.id, self.name, code.name, reason)
+        self.send_control(Error(int(code), reason, channel), via)
+
+    # -- packets ---------------------------------------------------------------------------
+    def handle(self, packet: Packet, via: str) -> None:
+        """Dispatch one packet that arrived on transport ``via`` (``"tcp"`` or ``"udp"``)."""
+        if self.closed:
+            return
+        self.packets_in += 1
+        self.link.on_receive(time.monotonic_ns())
+        sink = self.tcp if via == "tcp" else self.udp
+        match packet:
+            case Value(channel=ch):
+                self._data(ch, packet, sink)
+            case Batch(channel=ch):
+                self._data(ch, packet, sink)
+            case Heartbeat():
+                self.link.on_heartbeat(packet, time.monotonic_ns())
+            case TopicConnect():
+                self._connect(packet, sink)
+            case TopicClose(channel=ch):
+                self._close_channel(ch)
+            case Stats():
+                self.send_control(Stats(self.stats()), sink)
+            case Disconnect():
+                self.close("client said goodbye", notify=False)
+            case _:
+                self.error(ErrorCode.UNEXPECTED,
+                           f"a client may not send {type(packet).__name__} here", via=sink)
+
+    def malformed_packet(self, reason: str, via: PacketSink | None) -> None:
+        self.malformed += 1
+        self.ctx.count("malformed")
+        self.error(ErrorCode.MALFORMED, reason, via=via)
+
+    def _data(self, channel: int, packet: Value | Batch, via: PacketSink | None) -> None:
+        binding = self.inbound.get(channel)
+        if binding is None:
+            code = ErrorCode.UNKNOWN_CHANNEL
+            what = "is bound for subscribing" if channel in self.outbound else "is not connected"
+            self.error(code, f"channel {channel} {what}; cannot publish on it", channel, via)
+            return
+        try:
+            if isinstance(packet, Value):
+                binding.on_value(packet)
+            else:
+                binding.on_batch(packet)
+        except msgspec.ValidationError as exc:
+            self.error(ErrorCode.BAD_VALUE,
+                       f"channel {channel} ({binding.spec.msg_type} field "
+                       f"{binding.spec.field or '<whole message>'}): {exc}", channel, via)
+
+    def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
+        cfg = self.ctx.config
+        ch = req.channel
+        refuse: tuple[ErrorCode, str] | None = None
+        if ch in self.inbound or ch in self.outbound:
+            refuse = (ErrorCode.CHANNEL_IN_USE, f"channel {ch} is already connected")
+        elif len(self.inbound) + len(self.outbound) >= cfg.max_channels:
+            refuse = (ErrorCode.LIMIT, f"this session already has {cfg.max_channels} channels, "
+                      "the server's limit")
+        elif req.transport == "tcp" and self.tcp is None:
+            refuse = (ErrorCode.TRANSPORT_DISABLED,
+                      "TCP channel on a session without a TCP connection")
+        elif req.transport == "udp" and self.ctx.udp_transport is None:
+            refuse = (ErrorCode.TRANSPORT_DISABLED, "this server runs without UDP (--no-udp)")
+        if refuse is not None:
+            self.send_control(TopicError(ch, int(refuse[0]), refuse[1]), via)
+            return
+        default_rel = "reliable" if req.transport == "tcp" else "best_effort"
+        qos = QoS(req.reliability or default_rel, req.depth)
+        adapter = self.ctx.adapter
+        try:
+            spec = adapter.resolve(req.msg_type, req.field)
+            if req.direction == "publish":
+                pub = adapter.create_publisher(req.topic, spec.msg_type, req.field, qos)
+                self.inbound[ch] = Inbound(ch, spec, pub)
+            else:
+                out = Outbound(ch, spec, _ChannelSink(self, req.transport), cfg.max_batch,
+                               req.redundancy if req.transport == "udp" else 0)
+                out.subscription = adapter.subscribe(
+                    req.topic, spec.msg_type, req.field, qos, self.ctx.handoff.wrap(out.on_values)
+                )
+                self.outbound[ch] = out
+        except BindingError as exc:
+            code = ErrorCode.__members__.get(exc.code, ErrorCode.INTERNAL)
+            self.send_control(TopicError(ch, int(code), exc.reason), via)
+            return
+        log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
+                 req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
+        self.send_control(TopicAck(ch, spec.msg_type, spec.default), via)
+
+    def _close_channel(self, ch: int) -> None:
+        binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
+            ch, None)
+        if binding is None:
+            self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
+            return
+        binding.close()
+
+    # -- watchdog --------------------------------------------------------------------------
+    def _arm_timer(self) -> None:
+        now = time.monotonic_ns()
+        deadline = self.link.next_deadline(now)
+        loop = self.ctx.loop
+        self._timer = loop.call_at(loop.time() + (deadline - now) / 1e9, self._on_timer)
+
+    def _on_timer(self) -> None:
+        if self.closed:
+            return
+        now = time.monotonic_ns()
+        if self.link.state(now) is LinkState.LOST:
+            self.ctx.count("sessions_timed_out")
+            self.close("watchdog: no packet from the client within "
+                       f"{self.ctx.config.timeout_ms} ms", notify=True)
+            return
+        if self.link.heartbeat_due(now):
+            hb = self.link.make_heartbeat(now)
+            for sink in {id(s): s for s in (self.tcp, self.udp) if s is not None}.values():
+                sink.send(hb)
+        self._arm_timer()
+
+    # -- lifetime --------------------------------------------------------------------------
+    def close(self, reason: str, *, notify: bool = True, code: int = 0) -> None:
+        """Release every binding and transport; idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        if self._timer is not None:
+            self._timer.cancel()
+        if notify:
+            self.send_control(Disconnect(code, reason))
+        for binding in [*self.inbound.values(), *self.outbound.values()]:
+            try:
+                binding.close()
+            except Exception:  # a middleware failing to release must not stop the others
+                log.exception("closing channel %d of session %d", binding.channel, self.id)
+        self.inbound.clear()
+        self.outbound.clear()
+        if self._close_tcp is not None:
+            self._close_tcp()
+        log.info("session %d (%s) closed: %s", self.id, self.name, reason)
+        self._on_closed(self)
+
+    def stats(self) -> dict[str, Any]:
+        now = time.monotonic_ns()
+        link = self.link.stats(now)
+        return {
+            "session": self.id,
+            "name": self.name,
+            "state": link.state.value,
+            "rtt_us": link.rtt_ns / 1000 if link.rtt_ns >= 0 else None,
+            "packets_in": self.packets_in,
+            "malformed": self.malformed,
+            "errors_sent": self.errors_sent,
+            "channels": {
+                **{str(c): {"direction": "publish", "values_in": b.values_in,
+                            "bad_values": b.bad_values, "lost": b.tracker.lost,
+                            "duplicates": b.tracker.duplicates}
+                   for c, b in self.inbound.items()},
+                **{str(c): {"direction": "subscribe", "values_out": b.values_out,
+                            "dropped": b.dropped} for c, b in self.outbound.items()},
+            },
+        }
+
+
+class _ChannelSink:
+    """The sink of a channel's chosen transport, looked up at send time.
+
+    A UDP channel may be connected before the client's first datagram told us its address, and
+    a client's address may change (NAT rebinding); looking the sink up per send handles both.
+    """
+
+    def __init__(self, session: Session, transport: str) -> None:
+        self._session = session
+        self._udp = transport == "udp"
+        self._dropped = 0
+
+    @property
+    def dropped(self) -> int:
+        return self._dropped
+
+    def send(self, packet: Packet, *, data: bool = False) -> bool:
+        s = self._session
+        sink = s.udp if self._udp else s.tcp
+        if sink is None or not sink.send(packet, data=data):
+            self._dropped += 1
+            return False
+        return True

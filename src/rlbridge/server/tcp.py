@@ -1,0 +1,92 @@
+"""The TCP listener's per-connection protocol: bytes to packets to the session, and back."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+from typing import cast
+
+from rlbridge.server.registry import SessionRegistry
+from rlbridge.server.session import Session
+from rlbridge.server.sinks import TcpSink
+from rlbridge.wire import ConnectError, ErrorCode, FrameDecoder, Hello, Malformed, RemoteProtocolError
+
+log = logging.getLogger("rlbridge.server")
+
+
+class TcpConnection(asyncio.Protocol):
+    """One client socket. The first packet must be a hello; then everything goes to its session.
+
+    Packets are decoded whole as soon as their last byte arrives (``data_received``), and every
+    value in them is delivered before the next read: nothing polls (thesis 3.2.2).
+    """
+
+    def __init__(self, registry: SessionRegistry) -> None:
+        self._registry = registry
+        ctx = registry.ctx
+        self._decoder = FrameDecoder(ctx.codec, ctx.config.max_packet)
+        self._transport: asyncio.Transport | None = None
+        self._sink: TcpSink | None = None
+        self._session: Session | None = None
+        self._peer = "?"
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._transport = t = cast(asyncio.Transport, transport)
+        ctx = self._registry.ctx
+        self._peer = str(t.get_extra_info("peername"))
+        sock = t.get_extra_info("socket")
+        if ctx.config.nodelay and sock is not None:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        t.set_write_buffer_limits(high=ctx.config.max_write_buffer)
+        self._sink = TcpSink(t, ctx.codec, ctx.config.max_write_buffer)
+
+    def data_received(self, data: bytes) -> None:
+        try:
+            packets = self._decoder.feed(data)
+        except RemoteProtocolError as exc:
+            self._registry.ctx.count("malformed")
+            self._fatal(exc.code, exc.reason)
+            return
+        for packet in packets:
+            session = self._session
+            if isinstance(packet, Malformed):
+                if session is None:
+                    self._fatal(packet.error.code, packet.error.reason)
+                    return
+                session.malformed_packet(packet.error.reason, self._sink)
+            elif session is not None:
+                session.handle(packet, "tcp")
+            elif isinstance(packet, Hello):
+                self._hello(packet)
+            else:
+                self._fatal(ErrorCode.UNEXPECTED,
+                            f"expected a Hello first, got {type(packet).__name__}")
+                return
+
+    def _hello(self, hello: Hello) -> None:
+        assert self._sink is not None and self._transport is not None
+        result = self._registry.open(hello)
+        if isinstance(result, ConnectError):
+            self._sink.send(result)
+            self._transport.close()
+            return
+        result.attach_tcp(self._sink, self._transport.close)
+        self._session = result
+        log.info("session %d (%s) opened over TCP from %s", result.id, hello.name, self._peer)
+        self._sink.send(self._registry.ack(result))
+
+    def _fatal(self, code: ErrorCode, reason: str) -> None:
+        """The byte stream cannot be trusted any more: say why, then close."""
+        log.warning("closing TCP connection from %s: %s", self._peer, reason)
+        if self._sink is not None and self._transport is not None:
+            self._sink.send(ConnectError(int(code), reason))
+            if self._session is not None:
+                self._session.close(reason, notify=False)
+            self._transport.close()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._session is not None:
+            self._session.close("TCP connection lost" if exc else "TCP connection closed",
+                                notify=False)
+            self._session = None

@@ -1,0 +1,167 @@
+"""Packet types: what the wire carries, as frozen, tagged msgspec Structs.
+
+Every packet body is a MessagePack array whose first element is the packet's integer tag
+(``array_like=True``, ``tag=N``), so decoding picks the class and validates every field in one
+C call: a packet that decodes is well-formed. Field order is the wire order: append new fields
+at the end with defaults, never reorder (docs/protocol.md is the normative description).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+PROTOCOL_VERSION = 1
+
+U16 = Annotated[int, msgspec.Meta(ge=0, le=0xFFFF)]
+U32 = Annotated[int, msgspec.Meta(ge=0, le=0xFFFF_FFFF)]
+U64 = Annotated[int, msgspec.Meta(ge=0)]  # msgspec bounds stop at int64; msgpack caps at 2**64
+I64 = Annotated[int, msgspec.Meta(ge=-(2**63), le=2**63 - 1)]
+Name = Annotated[str, msgspec.Meta(max_length=128)]
+TopicName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
+TypeName = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
+FieldPath = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
+Reason = Annotated[str, msgspec.Meta(max_length=1024)]
+Bytes32 = Annotated[bytes, msgspec.Meta(max_length=64)]
+
+Direction = Literal["subscribe", "publish"]
+Transport = Literal["tcp", "udp"]
+Reliability = Literal["reliable", "best_effort"]
+
+
+class _Packet(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=False):
+    """Base: array-encoded, immutable. Unknown trailing fields are ignored (forward compat)."""
+
+
+class Limits(msgspec.Struct, array_like=True, frozen=True):
+    """What the server accepts; a client that respects these never meets a LIMIT error."""
+
+    max_packet: U32
+    max_channels: U32
+    max_batch: U32
+
+
+class Hello(_Packet, tag=1):
+    """Client -> server, first packet on TCP and on a UDP-only session: who and which version."""
+
+    protocol: U16
+    name: Name
+    auth: Bytes32 = b""
+
+
+class ConnectAck(_Packet, tag=2):
+    """Server -> client: the session exists. ``token`` must be in every UDP datagram."""
+
+    session: U32
+    token: U64
+    heartbeat_ms: U32
+    timeout_ms: U32
+    limits: Limits
+    challenge: Bytes32 = b""
+
+
+class ConnectError(_Packet, tag=3):
+    """Server -> client: no session (version, limit, auth); the server closes after sending it."""
+
+    code: U16
+    reason: Reason
+
+
+class TopicConnect(_Packet, tag=4):
+    """Client -> server: bind channel ``channel`` to a middleware topic, in one direction."""
+
+    channel: U32
+    direction: Direction
+    topic: TopicName
+    msg_type: TypeName
+    field: FieldPath | None = "data"
+    transport: Transport = "tcp"
+    buffer_size: U32 = 1
+    reliability: Reliability | None = None
+    depth: U16 = 10
+    max_age_ms: U32 = 0
+    redundancy: Annotated[int, msgspec.Meta(ge=0, le=16)] = 0
+
+
+class TopicAck(_Packet, tag=5):
+    """Server -> client: the binding exists; ``initial`` is a fresh message's field value."""
+
+    channel: U32
+    msg_type: TypeName
+    initial: Any = None
+
+
+class TopicError(_Packet, tag=6):
+    """Server -> client: the binding was refused; ``reason`` names the problem for a person."""
+
+    channel: U32
+    code: U16
+    reason: Reason
+
+
+class TopicClose(_Packet, tag=7):
+    """Client -> server: unbind a channel; its publisher or listener goes away."""
+
+    channel: U32
+
+
+class Value(_Packet, tag=8):
+    """One value of one channel. ``stamp_ns`` is the sender's CLOCK_REALTIME when written."""
+
+    channel: U32
+    seq: U64
+    stamp_ns: I64
+    value: Any
+
+
+class Batch(_Packet, tag=9):
+    """Many values of one channel, sequence numbers ``first_seq``, ``first_seq + 1``, ..."""
+
+    channel: U32
+    first_seq: U64
+    stamps: list[I64]
+    values: list[Any]
+
+    def __post_init__(self) -> None:
+        if len(self.stamps) != len(self.values):
+            raise ValueError(
+                f"batch has {len(self.values)} values but {len(self.stamps)} stamps"
+            )
+
+
+class Heartbeat(_Packet, tag=10):
+    """Either way, every heartbeat period: liveness, and RTT by echoing the peer's stamp."""
+
+    sent_ns: I64
+    echo_ns: I64 = 0
+
+
+class Disconnect(_Packet, tag=11):
+    """Either way: an orderly goodbye, so the peer need not wait for the watchdog."""
+
+    code: U16 = 0
+    reason: Reason = ""
+
+
+class Error(_Packet, tag=12):
+    """Either way: a packet was refused; the session goes on unless a Disconnect follows."""
+
+    code: U16
+    reason: Reason
+    channel: U32 | None = None
+
+
+class Stats(_Packet, tag=13):
+    """Client -> server asks (``body`` empty); server -> client answers with counters."""
+
+    body: dict[str, Any] = msgspec.field(default_factory=dict)
+
+
+Packet = (
+    Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
+    | Value | Batch | Heartbeat | Disconnect | Error | Stats
+)
+
+#: Packets a value path carries; everything else is control.
+DATA_PACKETS = (Value, Batch)
