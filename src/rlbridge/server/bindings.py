@@ -16,7 +16,7 @@ import msgspec
 
 from rlbridge.adapters.base import Publisher, Subscription, ValueSpec
 from rlbridge.server.sinks import PacketSink
-from rlbridge.wire import Batch, Value
+from rlbridge.wire import Batch, TopicConnect, Value
 from rlbridge.wire.sequence import SequenceTracker
 
 _SCALARS = (float, int, bool, str)
@@ -47,8 +47,11 @@ def value_converter(spec: ValueSpec) -> Callable[[list[Any]], list[Any]]:
 class Inbound:
     """Client -> middleware. Duplicates and overtaken values (UDP) are dropped and counted."""
 
-    def __init__(self, channel: int, spec: ValueSpec, publisher: Publisher) -> None:
+    def __init__(
+        self, channel: int, spec: ValueSpec, publisher: Publisher, request: TopicConnect
+    ) -> None:
         self.channel = channel
+        self.request = request
         self.spec = spec
         self._publisher = publisher
         self._convert = value_converter(spec)
@@ -82,9 +85,16 @@ class Outbound:
     """Middleware -> client. Numbers values per channel; optionally repeats the last k (UDP)."""
 
     def __init__(
-        self, channel: int, spec: ValueSpec, sink: PacketSink, max_batch: int, redundancy: int
+        self,
+        channel: int,
+        spec: ValueSpec,
+        sink: PacketSink,
+        max_batch: int,
+        redundancy: int,
+        request: TopicConnect,
     ) -> None:
         self.channel = channel
+        self.request = request
         self.spec = spec
         self.sink = sink
         self.subscription: Subscription | None = None

@@ -145,7 +145,9 @@ class Session:
             case TopicClose(channel=ch):
                 self._close_channel(ch)
             case Stats():
-                self.send_control(Stats(self.stats()), sink)
+                body = {"session": self.stats(), "server": dict(self.ctx.counters),
+                        "topics": [list(t) for t in self.ctx.adapter.topics()]}
+                self.send_control(Stats(body), sink)
             case Disconnect():
                 self.close("client said goodbye", notify=False)
             case _:
@@ -178,7 +180,12 @@ class Session:
         cfg = self.ctx.config
         ch = req.channel
         refuse: tuple[ErrorCode, str] | None = None
-        if ch in self.inbound or ch in self.outbound:
+        existing = self.inbound.get(ch) or self.outbound.get(ch)
+        if existing is not None and existing.request == req:
+            # A retransmitted request (its ack was lost on UDP): answer it again.
+            self.send_control(TopicAck(ch, existing.spec.msg_type, existing.spec.default), via)
+            return
+        if existing is not None:
             refuse = (ErrorCode.CHANNEL_IN_USE, f"channel {ch} is already connected")
         elif len(self.inbound) + len(self.outbound) >= cfg.max_channels:
             refuse = (ErrorCode.LIMIT, f"this session already has {cfg.max_channels} channels, "
@@ -198,10 +205,10 @@ class Session:
             spec = adapter.resolve(req.msg_type, req.field)
             if req.direction == "publish":
                 pub = adapter.create_publisher(req.topic, spec.msg_type, req.field, qos)
-                self.inbound[ch] = Inbound(ch, spec, pub)
+                self.inbound[ch] = Inbound(ch, spec, pub, req)
             else:
                 out = Outbound(ch, spec, _ChannelSink(self, req.transport), cfg.max_batch,
-                               req.redundancy if req.transport == "udp" else 0)
+                               req.redundancy if req.transport == "udp" else 0, req)
                 out.subscription = adapter.subscribe(
                     req.topic, spec.msg_type, req.field, qos, self.ctx.handoff.wrap(out.on_values)
                 )

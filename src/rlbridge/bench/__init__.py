@@ -1,0 +1,1 @@
+"""Benchmarks behind ``rlbridge bench``: each measures against a baseline in the same run."""

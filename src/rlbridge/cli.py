@@ -1,0 +1,282 @@
+"""The ``rlbridge`` command: each command builds a config and calls the library, nothing more."""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import math
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from typing import Annotated, Any, TypeVar
+
+import typer
+
+from rlbridge._version import __version__
+
+app = typer.Typer(
+    help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+topic_app = typer.Typer(help="Publish, echo, measure and list topics through a running server.",
+                        no_args_is_help=True)
+app.add_typer(topic_app, name="topic")
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+Host = Annotated[str, typer.Option("--host", "-H", help="Bridge server address.")]
+Port = Annotated[int, typer.Option("--port", "-p", help="Bridge server port.")]
+Field = Annotated[str, typer.Option("--field", "-f",
+                                    help="Field path ('data', 'linear.x'); '' = whole message.")]
+TransportOpt = Annotated[str, typer.Option("--transport", "-t", help="udp or tcp.")]
+
+
+def fail(message: str, code: int = 1) -> typer.Exit:
+    """Print one line on stderr and exit non-zero: the CLI's only way to report an error."""
+    typer.echo(f"rlbridge: error: {message}", err=True)
+    return typer.Exit(code)
+
+
+def one_line_errors(fn: F) -> F:
+    """Known failures become one line on stderr; only real bugs keep their traceback."""
+    from rlbridge.adapters import AdapterUnavailable, BindingError
+    from rlbridge.server import ServerError
+    from rlbridge.wire import RlbridgeError
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except (RlbridgeError, ServerError, AdapterUnavailable) as exc:
+            raise fail(str(exc)) from None
+        except BindingError as exc:
+            raise fail(exc.reason) from None
+        except OSError as exc:
+            raise fail(exc.strerror or str(exc)) from None
+        except ValueError as exc:
+            raise fail(str(exc)) from None
+        except KeyboardInterrupt:
+            raise typer.Exit(130) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _transport(value: str) -> str:
+    if value not in ("udp", "tcp"):
+        raise fail(f"--transport must be 'udp' or 'tcp', not '{value}'", 2)
+    return value
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"rlbridge {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main_options(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="Print the version and exit.")] = False,
+    log_level: Annotated[str, typer.Option("--log-level", help="debug, info, warning, error.")]
+    = "warning",
+) -> None:
+    """rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP."""
+    logging.basicConfig(level=log_level.upper(), stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+@app.command()
+@one_line_errors
+def serve(
+    host: Annotated[str, typer.Option(help="Address to bind (0.0.0.0 for all interfaces).")]
+    = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP and UDP port (0: any free port).")] = 7411,
+    tcp: Annotated[bool, typer.Option("--tcp/--no-tcp", help="Accept TCP clients.")] = True,
+    udp: Annotated[bool, typer.Option("--udp/--no-udp", help="Accept UDP clients.")] = True,
+    nodelay: Annotated[bool, typer.Option(help="Disable Nagle's algorithm (TCP_NODELAY).")]
+    = False,
+    adapter: Annotated[str, typer.Option(help="Middleware: inproc (default) or ros2.")]
+    = "inproc",
+    heartbeat_ms: Annotated[int, typer.Option(help="Heartbeat period.")] = 200,
+    timeout_ms: Annotated[int, typer.Option(help="Watchdog: a silent client is dropped after.")]
+    = 600,
+    node_name: Annotated[str, typer.Option(help="ROS 2 node name (adapter ros2).")]
+    = "rlbridge",
+    namespace: Annotated[str, typer.Option(help="ROS 2 namespace (adapter ros2).")] = "",
+) -> None:
+    """Run the bridge server until Ctrl-C / SIGTERM."""
+    from pydantic import ValidationError
+
+    from rlbridge.server import Server, ServerConfig
+
+    try:
+        config = ServerConfig(host=host, port=port, tcp=tcp, udp=udp, nodelay=nodelay,
+                              adapter=adapter, heartbeat_ms=heartbeat_ms, timeout_ms=timeout_ms,
+                              node_name=node_name, namespace=namespace)  # type: ignore[arg-type]
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "config"
+        raise fail(f"{where}: {first['msg']}", 2) from None
+    Server(config).run()
+
+
+def _parse_value(text: str) -> Any:
+    """JSON when it parses (numbers, true, objects), the raw text otherwise (strings)."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+@topic_app.command("pub")
+@one_line_errors
+def topic_pub(
+    topic: str,
+    msg_type: Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_msgs/msg/Float64")],
+    value: Annotated[str, typer.Argument(help="JSON value: 1.5, true, \"text\", {\"x\": 1}")],
+    field: Field = "data",
+    rate: Annotated[float, typer.Option(help="Publish at this rate (Hz); 0 = once.")] = 0.0,
+    count: Annotated[int, typer.Option(help="Number of messages (with --rate).")] = 1,
+    transport: TransportOpt = "udp",
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+) -> None:
+    """Publish VALUE on TOPIC through the bridge."""
+    from rlbridge.csp.bridge import Bridge
+
+    parsed = _parse_value(value)
+    with Bridge.connect(host, port, name="rlbridge-topic-pub") as bridge:
+        out = bridge.publish(topic, msg_type, field or None, transport=_transport(transport))  # type: ignore[arg-type]
+        n = max(1, count) if rate > 0 else 1
+        period = 1.0 / rate if rate > 0 else 0.0
+        start = time.monotonic()
+        for i in range(n):
+            out.write(parsed)
+            if i + 1 < n:
+                time.sleep(max(0.0, start + (i + 1) * period - time.monotonic()))
+        bridge.send(wait=True)
+    typer.echo(f"published {n} message(s) on {topic}")
+
+
+@topic_app.command("echo")
+@one_line_errors
+def topic_echo(
+    topic: str,
+    msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
+    field: Field = "data",
+    count: Annotated[int, typer.Option(help="Exit after this many values (0 = never).")] = 0,
+    transport: TransportOpt = "udp",
+    timeout: Annotated[float, typer.Option(help="Exit with an error after this many seconds "
+                                                "without a value (0 = wait forever).")] = 0.0,
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+) -> None:
+    """Print each value published on TOPIC, one JSON document per line."""
+    from rlbridge.csp.bridge import Bridge
+
+    with Bridge.connect(host, port, name="rlbridge-topic-echo") as bridge:
+        ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
+                              blocking=True, buffer_size=4096)
+        seen = 0
+        while count == 0 or seen < count:
+            try:
+                v = ch.read(timeout=timeout or None)
+            except TimeoutError:
+                raise fail(f"no value on {topic} within {timeout} s") from None
+            typer.echo(json.dumps(v))
+            seen += 1
+
+
+@topic_app.command("hz")
+@one_line_errors
+def topic_hz(
+    topic: str,
+    msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
+    field: Field = "data",
+    window: Annotated[int, typer.Option(help="Messages in the rate window.")] = 10000,
+    duration: Annotated[float, typer.Option(help="Stop after this many seconds (0 = never).")]
+    = 0.0,
+    transport: TransportOpt = "udp",
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+) -> None:
+    """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second)."""
+    from rlbridge.csp.bridge import Bridge
+
+    with Bridge.connect(host, port, name="rlbridge-topic-hz") as bridge:
+        ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
+                              blocking=True, buffer_size=65536)
+        arrivals: list[float] = []
+        end = time.monotonic() + duration if duration > 0 else math.inf
+        next_report = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            try:
+                ch.read(timeout=min(1.0, max(0.01, end - time.monotonic())))
+            except TimeoutError:
+                pass
+            else:
+                arrivals.append(time.monotonic())
+                arrivals.extend(time.monotonic() for _ in ch.read_many(1 << 16))
+                del arrivals[:-window]
+            if time.monotonic() >= next_report:
+                next_report += 1.0
+                typer.echo(format_rate(arrivals))
+        typer.echo(format_rate(arrivals))
+
+
+def format_rate(arrivals: list[float]) -> str:
+    """rostopic-hz-style line from arrival times."""
+    if len(arrivals) < 2:
+        return "no new messages"
+    gaps = [b - a for a, b in zip(arrivals, arrivals[1:], strict=False)]
+    mean = statistics.fmean(gaps)
+    rate = 1.0 / mean if mean > 0 else math.inf
+    std = statistics.pstdev(gaps)
+    return (f"average rate: {rate:.3f}\n\tmin: {min(gaps):.6f}s max: {max(gaps):.6f}s "
+            f"std dev: {std:.6f}s window: {len(arrivals)}")
+
+
+@topic_app.command("list")
+@one_line_errors
+def topic_list(
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+    show_types: Annotated[bool, typer.Option("--show-types", "-t", help="Print types too.")]
+    = False,
+) -> None:
+    """List the topics the server's middleware knows."""
+    from rlbridge.csp.bridge import Bridge
+
+    with Bridge.connect(host, port, name="rlbridge-topic-list") as bridge:
+        for name, msg_type in bridge.server_stats()["topics"]:
+            typer.echo(f"{name} [{msg_type}]" if show_types else name)
+
+
+@app.command()
+@one_line_errors
+def stats(host: Host = "127.0.0.1", port: Port = 7411) -> None:
+    """Print the server's counters (JSON)."""
+    from rlbridge.csp.bridge import Bridge
+
+    with Bridge.connect(host, port, name="rlbridge-stats") as bridge:
+        typer.echo(json.dumps(bridge.server_stats(), indent=2, sort_keys=True))
+
+
+def main() -> None:
+    """Console-script entry point."""
+    from rlbridge.bench.cli import bench_app
+    from rlbridge.demo.cli import register_demo
+
+    app.add_typer(bench_app, name="bench")
+    register_demo(app)
+    try:
+        from rlbridge.netem.cli import netem_app
+    except ImportError:  # the emulator is being built in parallel; the CLI works without it
+        pass
+    else:
+        app.add_typer(netem_app, name="netem")
+    app()

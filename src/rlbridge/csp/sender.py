@@ -1,0 +1,168 @@
+"""The send thread: the only code that writes values to the network.
+
+Theory of operation. Control code writes into outgoing channels, which only store the value in
+a ring buffer (no lock, no system call). This soft-real-time thread drains the rings and does
+the I/O. It wakes for three reasons: an *immediate* channel was written (the channel sets the
+wake event, one futex wake when this thread sleeps), ``Bridge.send()`` asked to flush the shared
+buffer (thesis: ``send through buffer``), or the SDK's own send loop ticks at its configured
+rate (thesis 4.3, figure 5.10). Every value waiting in a channel goes out in one packet per
+channel (a Batch when there are several), TCP frames of all channels coalesced into one
+``sendall``; so the packet rate follows the send loop, not the control loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Protocol
+
+from rlbridge.csp.channel import Doorbell
+from rlbridge.csp.connection import Connection
+from rlbridge.wire import MAX_DATAGRAM, Batch, Packet, Value
+
+log = logging.getLogger("rlbridge.client")
+
+
+class OutgoingSource(Protocol):
+    """What the send thread needs from an outgoing channel."""
+
+    channel_id: int
+    transport: str
+    immediate: bool
+
+    def take(self) -> tuple[int, list[int], list[object]]:
+        """Everything waiting: ``(first_seq, stamps, values)``; empty lists when nothing."""
+        ...
+
+    def pending(self) -> int:
+        """How many values wait (read by the send thread's wake-up predicate)."""
+        ...
+
+
+class SendLoop:
+    """Owns the send thread; started by the Bridge, stopped and joined by ``close``."""
+
+    def __init__(self, conn: Connection, *, rate_hz: float | None, max_batch: int) -> None:
+        if rate_hz is not None and rate_hz <= 0:
+            raise ValueError(f"send loop rate must be positive, got {rate_hz}")
+        self._conn = conn
+        self._period = 1.0 / rate_hz if rate_hz else None
+        self._max_batch = max(1, max_batch)
+        self._sources: tuple[OutgoingSource, ...] = ()
+        #: Rung by immediate channels' writes, only while this thread sleeps.
+        self.doorbell = Doorbell()
+        self._flush_all = False
+        self._flushed = threading.Condition()
+        self._flush_count = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rlbridge-send", daemon=True)
+        self.packets_sent = 0
+        self.values_sent = 0
+        self.send_errors = 0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def add(self, source: OutgoingSource) -> None:
+        self._sources = (*self._sources, source)
+
+    def remove(self, source: OutgoingSource) -> None:
+        self._sources = tuple(s for s in self._sources if s is not source)
+
+    def flush(self, wait: bool = False, timeout: float = 5.0) -> None:
+        """Send every buffered value now (``Bridge.send``); optionally wait until it is out."""
+        with self._flushed:
+            target = self._flush_count + 1
+        self._flush_all = True
+        self.doorbell.ring()
+        if wait:
+            with self._flushed:
+                self._flushed.wait_for(
+                    lambda: self._flush_count >= target or self._stop.is_set(), timeout)
+
+    def _run(self) -> None:
+        period = self._period
+        next_tick = time.monotonic() + period if period else None
+        while not self._stop.is_set():
+            timeout = None if next_tick is None else max(0.0, next_tick - time.monotonic())
+            self.doorbell.wait_for(self._has_work, timeout)
+            flush_all = self._flush_all
+            self._flush_all = False
+            if next_tick is not None and time.monotonic() >= next_tick:
+                flush_all = True
+                next_tick += period  # type: ignore[operator]
+                if next_tick < time.monotonic():  # overrun: skip, do not burst
+                    next_tick = time.monotonic() + period  # type: ignore[operator]
+            try:
+                self._send_pending(flush_all)
+            except OSError as exc:
+                self.send_errors += 1
+                log.warning("send failed: %s", exc)
+            if flush_all:
+                with self._flushed:
+                    self._flush_count += 1
+                    self._flushed.notify_all()
+
+    def _has_work(self) -> bool:
+        return (self._flush_all or self._stop.is_set()
+                or any(s.immediate and s.pending() for s in self._sources))
+
+    def _send_pending(self, flush_all: bool) -> None:
+        conn = self._conn
+        codec = conn.codec
+        frames = bytearray()
+        token = conn.ack.token if conn.ack is not None else 0
+        for src in self._sources:
+            if not (flush_all or src.immediate):
+                continue
+            first_seq, stamps, values = src.take()
+            n = len(values)
+            if n == 0:
+                continue
+            self.values_sent += n
+            for packet in _packets(src.channel_id, first_seq, stamps, values, self._max_batch):
+                self.packets_sent += 1
+                if src.transport == "tcp":
+                    codec.encode_frame_into(packet, frames)
+                else:
+                    self._send_datagram(packet, token)
+        if frames:
+            conn.send_tcp(frames)
+
+    def _send_datagram(self, packet: Packet, token: int) -> None:
+        data = self._conn.codec.encode_datagram(packet, token)
+        if len(data) > 1400 and isinstance(packet, Batch) and len(packet.values) > 1:
+            half = len(packet.values) // 2
+            for part in (
+                Batch(packet.channel, packet.first_seq, packet.stamps[:half],
+                      packet.values[:half]),
+                Batch(packet.channel, packet.first_seq + half, packet.stamps[half:],
+                      packet.values[half:]),
+            ):
+                self._send_datagram(part, token)
+            return
+        if len(data) > MAX_DATAGRAM:
+            log.warning("value on channel %d is too large for a datagram; dropped",
+                        getattr(packet, "channel", -1))
+            return
+        self._conn.send_udp(data)
+
+    def close(self) -> None:
+        """Flush what is waiting, then stop and join the thread."""
+        if self._thread.is_alive():
+            self.flush(wait=True, timeout=2.0)
+        self._stop.set()
+        self.doorbell.ring()
+        if self._thread.is_alive():
+            self._thread.join(5.0)
+
+
+def _packets(channel: int, first_seq: int, stamps: list[int], values: list[object],
+             max_batch: int) -> list[Packet]:
+    if len(values) == 1:
+        return [Value(channel, first_seq, stamps[0], values[0])]
+    return [
+        Batch(channel, first_seq + i, stamps[i : i + max_batch], values[i : i + max_batch])
+        for i in range(0, len(values), max_batch)
+    ]

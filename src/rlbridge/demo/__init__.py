@@ -1,0 +1,1 @@
+"""Demonstrations a newcomer runs first: values flowing through a real server."""
