@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import logging
 import math
@@ -115,8 +116,8 @@ def serve(
 
     try:
         config = ServerConfig(host=host, port=port, tcp=tcp, udp=udp, nodelay=nodelay,
-                              adapter=adapter, heartbeat_ms=heartbeat_ms, timeout_ms=timeout_ms,
-                              node_name=node_name, namespace=namespace)  # type: ignore[arg-type]
+                              adapter=adapter, heartbeat_ms=heartbeat_ms,
+                              timeout_ms=timeout_ms, node_name=node_name, namespace=namespace)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "config"
@@ -232,7 +233,7 @@ def format_rate(arrivals: list[float]) -> str:
     """rostopic-hz-style line from arrival times."""
     if len(arrivals) < 2:
         return "no new messages"
-    gaps = [b - a for a, b in zip(arrivals, arrivals[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(arrivals)]
     mean = statistics.fmean(gaps)
     rate = 1.0 / mean if mean > 0 else math.inf
     std = statistics.pstdev(gaps)

@@ -136,7 +136,9 @@ class InProcessBus:
         self._topics[topic] = created
         return created
 
-    def create_publisher(self, topic: str, msg_type: str, field: str | None, qos: QoS) -> _Publisher:
+    def create_publisher(
+        self, topic: str, msg_type: str, field: str | None, qos: QoS
+    ) -> _Publisher:
         spec = self.resolve(msg_type, field)
         with self.lock:
             t = self._topic(topic, spec)

@@ -16,7 +16,6 @@ import msgspec
 
 from rlbridge.adapters.base import BindingError, ValueSpec
 
-
 I8 = Annotated[int, msgspec.Meta(ge=-(2**7), le=2**7 - 1)]
 I16 = Annotated[int, msgspec.Meta(ge=-(2**15), le=2**15 - 1)]
 I32 = Annotated[int, msgspec.Meta(ge=-(2**31), le=2**31 - 1)]

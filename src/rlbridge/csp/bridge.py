@@ -82,7 +82,8 @@ class Bridge:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
 
         Non-blocking channels return the latest value on every read (or ``initial`` before the
-        first one; with neither, ``NoValueYet``); blocking channels wait for a new value. Raises the server's reason (``UnknownTypeError``, ``NoSuchFieldError``,
+        first one; with neither, ``NoValueYet``); blocking channels wait for a new value.
+        Raises the server's reason (``UnknownTypeError``, ``NoSuchFieldError``,
         ``TypeClashError``) if the binding is refused.
         """
         if buffer_size < 1:
@@ -137,7 +138,7 @@ class Bridge:
         return channel
 
     def send(self, wait: bool = False) -> None:
-        """Flush every buffered outgoing value (the thesis's ``send``); never blocks unless asked."""
+        """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``."""
         if self._conn.closed.is_set():
             raise ConnectionClosed(f"bridge is closed: {self._conn.close_reason}")
         self._sender.flush(wait=wait)
@@ -193,7 +194,8 @@ class Bridge:
         self._sender.close()
         self._conn.close()
         with self._lock:
-            channels = [*self._incoming.values(), *self._outgoing.values()]
+            channels: list[IncomingChannel | OutgoingChannel] = [
+                *self._incoming.values(), *self._outgoing.values()]
             self._incoming.clear()
             self._outgoing.clear()
         for channel in channels:

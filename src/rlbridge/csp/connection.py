@@ -12,6 +12,7 @@ frames never interleave.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import select
 import socket
@@ -142,6 +143,8 @@ class Connection:
                 first = packets[0]
                 break
         sock.settimeout(None)
+        if isinstance(first, Malformed):
+            raise ConnectionFailed(f"server sent an invalid packet: {first.error.reason}")
         ack = self._expect_ack(first)
         self._leftover = packets[1:]
         self.udp = self._udp_socket()
@@ -186,10 +189,9 @@ class Connection:
         udp = self.udp
         if udp is None:
             raise ConnectionClosed("this session has no UDP socket")
-        try:
+        # ICMP port unreachable from an earlier datagram: the watchdog will tell.
+        with contextlib.suppress(ConnectionRefusedError):
             udp.send(data)
-        except ConnectionRefusedError:
-            pass  # ICMP port unreachable from an earlier datagram: the watchdog will tell
 
     def send_control(self, packet: Packet) -> None:
         assert self.ack is not None
@@ -242,10 +244,12 @@ class Connection:
     def _receive_loop(self) -> None:
         decoder = FrameDecoder(self.codec)
         link = self.link
-        assert link is not None and self.ack is not None
+        assert link is not None
+        assert self.ack is not None
         token = self.ack.token
         for packet in self._leftover:
-            self._dispatch(packet)
+            if not isinstance(packet, Malformed):
+                self._dispatch(packet)
         self._leftover = []
         if self.udp is not None and self.control == "tcp":
             self.send_udp_packet(link.make_heartbeat(time.monotonic_ns()))
@@ -371,15 +375,11 @@ class Connection:
     def close(self) -> None:
         """Say goodbye, stop the receive thread, close the sockets; idempotent."""
         if not self.closed.is_set() and self.ack is not None:
-            try:
+            with contextlib.suppress(OSError):
                 self.send_control(Disconnect(0, "client closed"))
-            except OSError:
-                pass
         self._shutdown("closed by the client")
-        try:
+        with contextlib.suppress(OSError):
             self._wake_w.send(b"x")
-        except OSError:
-            pass
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(5.0)
         self._close_sockets()

@@ -55,7 +55,7 @@ def new_event_loop(use_uvloop: bool = True) -> asyncio.AbstractEventLoop:
 
 
 class Server:
-    """The bridge server. Owns its listeners, sessions and adapter; ``serve`` returns when stopped."""
+    """The bridge server: owns listeners, sessions and adapter; ``serve`` returns when stopped."""
 
     def __init__(self, config: ServerConfig, adapter: MiddlewareAdapter | None = None) -> None:
         self.config = config

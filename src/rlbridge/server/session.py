@@ -18,7 +18,7 @@ from typing import Any
 
 import msgspec
 
-from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS
+from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS, Reliability
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
@@ -198,7 +198,7 @@ class Session:
         if refuse is not None:
             self.send_control(TopicError(ch, int(refuse[0]), refuse[1]), via)
             return
-        default_rel = "reliable" if req.transport == "tcp" else "best_effort"
+        default_rel: Reliability = "reliable" if req.transport == "tcp" else "best_effort"
         qos = QoS(req.reliability or default_rel, req.depth)
         adapter = self.ctx.adapter
         try:
@@ -261,7 +261,8 @@ class Session:
             self._timer.cancel()
         if notify:
             self.send_control(Disconnect(code, reason))
-        for binding in [*self.inbound.values(), *self.outbound.values()]:
+        bindings: list[Inbound | Outbound] = [*self.inbound.values(), *self.outbound.values()]
+        for binding in bindings:
             try:
                 binding.close()
             except Exception:  # a middleware failing to release must not stop the others

@@ -10,7 +10,14 @@ from typing import cast
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
-from rlbridge.wire import ConnectError, ErrorCode, FrameDecoder, Hello, Malformed, RemoteProtocolError
+from rlbridge.wire import (
+    ConnectError,
+    ErrorCode,
+    FrameDecoder,
+    Hello,
+    Malformed,
+    RemoteProtocolError,
+)
 
 log = logging.getLogger("rlbridge.server")
 
@@ -65,7 +72,8 @@ class TcpConnection(asyncio.Protocol):
                 return
 
     def _hello(self, hello: Hello) -> None:
-        assert self._sink is not None and self._transport is not None
+        assert self._sink is not None
+        assert self._transport is not None
         result = self._registry.open(hello)
         if isinstance(result, ConnectError):
             self._sink.send(result)

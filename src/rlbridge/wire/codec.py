@@ -44,7 +44,7 @@ class PacketCodec:
 
     def __init__(self) -> None:
         self._encoder = msgspec.msgpack.Encoder()
-        self._decoder = msgspec.msgpack.Decoder(Packet)  # type: ignore[arg-type]
+        self._decoder: msgspec.msgpack.Decoder[Packet] = msgspec.msgpack.Decoder(Packet)
 
     def encode_frame(self, packet: Packet) -> bytes:
         """One TCP frame: header + body."""
@@ -75,6 +75,14 @@ class PacketCodec:
             raise RemoteProtocolError(ErrorCode.MALFORMED, f"invalid packet: {exc}") from None
         except msgspec.DecodeError as exc:
             raise RemoteProtocolError(ErrorCode.MALFORMED, f"not a packet: {exc}") from None
+        except UnicodeDecodeError as exc:  # msgspec raises it for a str that is not UTF-8
+            raise RemoteProtocolError(
+                ErrorCode.MALFORMED, f"not a packet: a string is not valid UTF-8 ({exc.reason})"
+            ) from None
+        except RecursionError:  # msgspec's guard against arrays nested without bound
+            raise RemoteProtocolError(
+                ErrorCode.MALFORMED, "not a packet: values nested too deeply"
+            ) from None
 
     def decode_datagram(self, data: bytes) -> tuple[int, int, Packet]:
         """``(flags, token, packet)`` of one datagram; any error is about this datagram only."""
@@ -157,7 +165,10 @@ class FrameDecoder:
                 try:
                     out.append(self._codec.decode_body(view[pos + hsize : end]))
                 except RemoteProtocolError as exc:
-                    out.append(Malformed(exc))
+                    # A fresh error: the caught one's traceback and context hold a view of
+                    # ``buf``, which would make the ``del buf[:pos]`` below (and every later
+                    # ``feed``) fail with BufferError.
+                    out.append(Malformed(RemoteProtocolError(exc.code, exc.reason)))
                 pos = end
         finally:
             view.release()

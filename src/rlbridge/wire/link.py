@@ -12,12 +12,12 @@ arms one timer for it, and calls :meth:`poll` when it fires; tests move a fake c
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 
 from rlbridge.wire.packets import Heartbeat
 
 
-class LinkState(str, Enum):
+class LinkState(StrEnum):
     """What control code can branch on without knowing the protocol."""
 
     CONNECTED = "connected"

@@ -34,7 +34,7 @@ class _Packet(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_field
     """Base: array-encoded, immutable. Unknown trailing fields are ignored (forward compat)."""
 
 
-class Limits(msgspec.Struct, array_like=True, frozen=True):
+class Limits(_Packet, frozen=True):
     """What the server accepts; a client that respects these never meets a LIMIT error."""
 
     max_packet: U32
@@ -42,7 +42,7 @@ class Limits(msgspec.Struct, array_like=True, frozen=True):
     max_batch: U32
 
 
-class Hello(_Packet, tag=1):
+class Hello(_Packet, tag=1, frozen=True):
     """Client -> server, first packet on TCP and on a UDP-only session: who and which version."""
 
     protocol: U16
@@ -50,7 +50,7 @@ class Hello(_Packet, tag=1):
     auth: Bytes32 = b""
 
 
-class ConnectAck(_Packet, tag=2):
+class ConnectAck(_Packet, tag=2, frozen=True):
     """Server -> client: the session exists. ``token`` must be in every UDP datagram."""
 
     session: U32
@@ -61,14 +61,14 @@ class ConnectAck(_Packet, tag=2):
     challenge: Bytes32 = b""
 
 
-class ConnectError(_Packet, tag=3):
+class ConnectError(_Packet, tag=3, frozen=True):
     """Server -> client: no session (version, limit, auth); the server closes after sending it."""
 
     code: U16
     reason: Reason
 
 
-class TopicConnect(_Packet, tag=4):
+class TopicConnect(_Packet, tag=4, frozen=True):
     """Client -> server: bind channel ``channel`` to a middleware topic, in one direction."""
 
     channel: U32
@@ -84,7 +84,7 @@ class TopicConnect(_Packet, tag=4):
     redundancy: Annotated[int, msgspec.Meta(ge=0, le=16)] = 0
 
 
-class TopicAck(_Packet, tag=5):
+class TopicAck(_Packet, tag=5, frozen=True):
     """Server -> client: the binding exists; ``initial`` is a fresh message's field value."""
 
     channel: U32
@@ -92,7 +92,7 @@ class TopicAck(_Packet, tag=5):
     initial: Any = None
 
 
-class TopicError(_Packet, tag=6):
+class TopicError(_Packet, tag=6, frozen=True):
     """Server -> client: the binding was refused; ``reason`` names the problem for a person."""
 
     channel: U32
@@ -100,13 +100,13 @@ class TopicError(_Packet, tag=6):
     reason: Reason
 
 
-class TopicClose(_Packet, tag=7):
+class TopicClose(_Packet, tag=7, frozen=True):
     """Client -> server: unbind a channel; its publisher or listener goes away."""
 
     channel: U32
 
 
-class Value(_Packet, tag=8):
+class Value(_Packet, tag=8, frozen=True):
     """One value of one channel. ``stamp_ns`` is the sender's CLOCK_REALTIME when written."""
 
     channel: U32
@@ -115,7 +115,7 @@ class Value(_Packet, tag=8):
     value: Any
 
 
-class Batch(_Packet, tag=9):
+class Batch(_Packet, tag=9, frozen=True):
     """Many values of one channel, sequence numbers ``first_seq``, ``first_seq + 1``, ..."""
 
     channel: U32
@@ -130,21 +130,21 @@ class Batch(_Packet, tag=9):
             )
 
 
-class Heartbeat(_Packet, tag=10):
+class Heartbeat(_Packet, tag=10, frozen=True):
     """Either way, every heartbeat period: liveness, and RTT by echoing the peer's stamp."""
 
     sent_ns: I64
     echo_ns: I64 = 0
 
 
-class Disconnect(_Packet, tag=11):
+class Disconnect(_Packet, tag=11, frozen=True):
     """Either way: an orderly goodbye, so the peer need not wait for the watchdog."""
 
     code: U16 = 0
     reason: Reason = ""
 
 
-class Error(_Packet, tag=12):
+class Error(_Packet, tag=12, frozen=True):
     """Either way: a packet was refused; the session goes on unless a Disconnect follows."""
 
     code: U16
@@ -152,7 +152,7 @@ class Error(_Packet, tag=12):
     channel: U32 | None = None
 
 
-class Stats(_Packet, tag=13):
+class Stats(_Packet, tag=13, frozen=True):
     """Client -> server asks (``body`` empty); server -> client answers with counters."""
 
     body: dict[str, Any] = msgspec.field(default_factory=dict)

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# The test command (README): install what the tests need, lint, type-check, run the tests.
+# Works on a fresh machine with only Python 3.11, pip and apt. Extra args go to pytest.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+# System tools for the network-emulator and stress tests. Without root they are skipped,
+# and the tests that need them skip with the reason printed.
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  need=()
+  command -v ip >/dev/null 2>&1 || need+=(iproute2)
+  command -v nft >/dev/null 2>&1 || need+=(nftables)
+  command -v stress >/dev/null 2>&1 || need+=(stress)
+  if [ "${#need[@]}" -gt 0 ]; then
+    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null
+  fi
+fi
+
+python3 -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".[test,ros2,compare]"
+
+.venv/bin/ruff check src tests
+.venv/bin/mypy --strict src
+# pytest exits 5 when it collected no test: with `set -e` that fails the run, as it should.
+.venv/bin/python -m pytest "$@"

@@ -1,0 +1,552 @@
+"""CSP channels with the semantics of the thesis (section 3.4.1), in a Go/trio vocabulary.
+
+Three kinds, chosen by the constructor:
+
+* ``Channel()`` (``buffer_size=0``): a blocking rendezvous. ``write`` returns only once
+  a reader has taken the value; ``read`` waits for a writer. Any number of threads on
+  either end; lock-based, because waiting is its purpose.
+* ``Channel(n)`` (``blocking=True``): the writer never blocks, it overwrites the oldest
+  value when the buffer is full (counted in ``overwritten``); the reader waits when the
+  buffer is empty.
+* ``Channel(n, blocking=False, initial=...)``: neither side blocks; a reader with nothing
+  new gets the most recent value again (or ``initial``; with neither, :class:`NoValueYet`).
+
+Buffered channels are the hard-real-time path. They are one-to-one (one writer thread and
+one reader thread at a time, as in CSP): writes and reads are a lock-free :class:`SpscRing`
+operation, with no lock, no system call and no allocation in steady state. Two threads
+using the same end at the same moment would lose values silently, so each end carries a
+one-element token list: ``list.pop``/``list.append`` are atomic, and an overlapping second
+user finds the list empty and gets :class:`ChannelMisuseError` (about 60 ns per call).
+
+Waking a blocked reader is the only place where a write may make a system call. A reader
+that finds the buffer empty registers in a :class:`Doorbell` (under its lock) and
+re-checks the buffer before sleeping; the writer stores the value, then reads the
+doorbell's ``waiting`` count and rings (lock + futex wake) only when it is non-zero. Store
+then check on one side and register then check on the other cannot both miss under
+sequential consistency, which the GIL provides. ``threading.Condition.notify`` alone would
+take a lock on every write, even with nobody waiting. Non-blocking channels never have a
+waiting reader, so they never ring. Several channels may share a doorbell so that one
+consumer (the SDK's send thread) can sleep until any of them is written.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Final, Generic, TypeVar
+
+from rlbridge.csp.errors import (
+    ChannelClosed,
+    ChannelMisuseError,
+    NoValueYet,
+    RealTimeWarning,
+    WouldBlock,
+)
+from rlbridge.csp.process import current_process
+from rlbridge.csp.ring import EMPTY, SpscRing
+
+T = TypeVar("T")
+
+
+class _Missing(enum.Enum):
+    MISSING = "MISSING"
+
+
+_MISSING: Final = _Missing.MISSING
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelStatistics:
+    """A snapshot of a channel's counters; exact when the channel is quiet.
+
+    ``written == read + overwritten + dropped + buffered`` once no call is in progress.
+    ``stale_reads`` counts non-blocking reads that repeated the latest value;
+    ``hrt_blocking_reads`` counts reads by a hard-real-time process that had to wait.
+    """
+
+    buffered: int
+    overwritten: int
+    dropped: int
+    written: int
+    read: int
+    waiting_readers: int
+    waiting_writers: int
+    closed: bool
+    stale_reads: int = 0
+    hrt_blocking_reads: int = 0
+
+
+class Doorbell:
+    """Lets a consumer sleep until a producer signals, without producers taking a lock.
+
+    Producers call :meth:`ring` only when :attr:`waiting` is non-zero; consumers call
+    :meth:`wait_for` with a predicate that reads the lock-free state. ``waiting`` is
+    written under the lock only and is public so that the check costs one attribute read.
+    """
+
+    __slots__ = ("_cond", "waiting")
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        self.waiting = 0
+
+    def ring(self) -> None:
+        """Wake every thread blocked in :meth:`wait_for` (a futex wake: a system call)."""
+        with self._cond:
+            self._cond.notify_all()
+
+    def wait_for(self, predicate: Callable[[], object], timeout: float | None = None) -> bool:
+        """Block until ``predicate()`` is true or ``timeout`` passes; return its last value."""
+        with self._cond:
+            self.waiting += 1  # registered before the predicate re-checks the state
+            try:
+                return bool(self._cond.wait_for(predicate, timeout))
+            finally:
+                self.waiting -= 1
+
+
+class Channel(Generic[T]):
+    """A CSP channel; see the module docstring for the three kinds."""
+
+    __slots__ = (
+        "_bell",
+        "_blocking",
+        "_closed",
+        "_hrt_blocking_reads",
+        "_hrt_warned",
+        "_initial",
+        "_name",
+        "_read_token",
+        "_ring",
+        "_rv",
+        "_stale_reads",
+        "_waiting_readers",
+        "_write_token",
+    )
+
+    def __init__(
+        self,
+        buffer_size: int = 0,
+        *,
+        blocking: bool = True,
+        initial: T | _Missing = _MISSING,
+        name: str | None = None,
+        doorbell: Doorbell | None = None,
+    ) -> None:
+        if buffer_size < 0:
+            raise ValueError(f"buffer_size must be >= 0, got {buffer_size}")
+        if buffer_size == 0 and not blocking:
+            raise ValueError("a non-blocking channel needs buffer_size >= 1 (thesis 3.4.1)")
+        if initial is not _MISSING and blocking:
+            raise ValueError("initial= only applies to non-blocking channels")
+        self._name: Final = name if name is not None else f"channel@{id(self):#x}"
+        self._blocking: Final = blocking
+        self._initial: Final = initial
+        self._bell: Final = doorbell if doorbell is not None else Doorbell()
+        self._ring: Final[SpscRing[T]] = SpscRing(max(buffer_size, 1))
+        self._rv: Final[_Rendezvous[T] | None] = _Rendezvous(self) if buffer_size == 0 else None
+        self._closed = False
+        self._write_token: Final[list[None]] = [None]
+        self._read_token: Final[list[None]] = [None]
+        self._waiting_readers = 0
+        self._stale_reads = 0
+        self._hrt_blocking_reads = 0
+        self._hrt_warned = False
+
+    @property
+    def name(self) -> str:
+        """The name used in errors, warnings and statistics."""
+        return self._name
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
+    # -- writing ----------------------------------------------------------------------
+
+    def write(self, value: T, timeout: float | None = None) -> None:
+        """Write ``value``; blocks only on a rendezvous channel (until a reader takes it).
+
+        Raises :class:`ChannelClosed` after ``close()``, :class:`TimeoutError` when a
+        rendezvous write is not taken within ``timeout`` seconds (the value is withdrawn).
+        """
+        rv = self._rv
+        if rv is not None:
+            rv.write(value, timeout)
+            return
+        if self._closed:
+            raise ChannelClosed(self._name)
+        token = self._write_token
+        try:
+            token.pop()
+        except IndexError:
+            raise ChannelMisuseError(self._name, "writer") from None
+        try:
+            self._ring.push_overwrite(value)
+        finally:
+            token.append(None)
+        bell = self._bell
+        if bell.waiting:
+            bell.ring()
+
+    def try_write(self, value: T) -> None:
+        """Write without waiting; a rendezvous needs a reader already blocked in ``read``.
+
+        Raises :class:`WouldBlock` when that reader is missing. Buffered channels always
+        accept, so for them this is :meth:`write`.
+        """
+        rv = self._rv
+        if rv is not None:
+            rv.try_write(value)
+        else:
+            self.write(value)
+
+    def deliver_many(self, values: Sequence[T]) -> None:
+        """Bulk write for a feeding thread (the SDK's receive thread); one wake-up per batch.
+
+        Same overwrite policy as :meth:`write`; on a rendezvous channel each value is a
+        blocking write.
+        """
+        rv = self._rv
+        if rv is not None:
+            for value in values:
+                rv.write(value, None)
+            return
+        if self._closed:
+            raise ChannelClosed(self._name)
+        token = self._write_token
+        try:
+            token.pop()
+        except IndexError:
+            raise ChannelMisuseError(self._name, "writer") from None
+        try:
+            self._ring.push_many(values, overwrite=True)
+        finally:
+            token.append(None)
+        bell = self._bell
+        if bell.waiting:
+            bell.ring()
+
+    # -- reading ----------------------------------------------------------------------
+
+    def read(self, timeout: float | None = None) -> T:
+        """Read one value, waiting on rendezvous and blocking buffered channels.
+
+        Raises :class:`TimeoutError` after ``timeout`` seconds, :class:`ChannelClosed`
+        once the channel is closed and drained, and :class:`NoValueYet` from a
+        non-blocking channel that never had a value.
+        """
+        rv = self._rv
+        if rv is not None:
+            return rv.read(timeout)
+        token = self._read_token
+        try:
+            token.pop()
+        except IndexError:
+            raise ChannelMisuseError(self._name, "reader") from None
+        try:
+            value = self._ring.pop()
+            if value is not EMPTY:
+                return value
+            if not self._blocking:
+                return self._latest()
+            return self._wait_and_pop(timeout)
+        finally:
+            token.append(None)
+
+    def try_read(self) -> T:
+        """Read without waiting; raises :class:`WouldBlock` when a wait would be needed."""
+        rv = self._rv
+        if rv is not None:
+            return rv.try_read()
+        if not self._blocking:
+            return self.read()
+        token = self._read_token
+        try:
+            token.pop()
+        except IndexError:
+            raise ChannelMisuseError(self._name, "reader") from None
+        try:
+            value = self._ring.pop()
+            if value is not EMPTY:
+                return value
+            if self._closed:
+                raise ChannelClosed(self._name)
+            raise WouldBlock(self._name, "try_read")
+        finally:
+            token.append(None)
+
+    def read_many(self, max_items: int | None = None) -> list[T]:
+        """Take every new value (up to ``max_items``) without waiting, for batch consumers.
+
+        Returns ``[]`` when nothing is new (a non-blocking channel does not repeat its
+        latest value here); raises :class:`ChannelClosed` once closed and drained.
+        """
+        rv = self._rv
+        if rv is not None:
+            return rv.read_many()
+        token = self._read_token
+        try:
+            token.pop()
+        except IndexError:
+            raise ChannelMisuseError(self._name, "reader") from None
+        try:
+            values = self._ring.pop_many(max_items)
+        finally:
+            token.append(None)
+        if not values and self._closed:
+            raise ChannelClosed(self._name)
+        return values
+
+    def _latest(self) -> T:
+        """Non-blocking read with nothing new: repeat the most recent value."""
+        if self._closed:
+            raise ChannelClosed(self._name)
+        value = self._ring.peek_latest()
+        if value is EMPTY:
+            initial = self._initial
+            if initial is _MISSING:
+                raise NoValueYet(self._name)
+            value = initial
+        self._stale_reads += 1
+        return value
+
+    def _readable(self) -> bool:
+        return len(self._ring) > 0 or self._closed
+
+    def _wait_and_pop(self, timeout: float | None) -> T:
+        """Slow path of a blocking buffered read: the buffer was empty."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        self._note_blocking_read()
+        while True:
+            if self._closed:
+                value = self._ring.pop()  # a write may have landed just before close
+                if value is EMPTY:
+                    raise ChannelClosed(self._name)
+                return value
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                raise TimeoutError(f"read on channel {self._name!r} timed out after {timeout}s")
+            self._waiting_readers += 1
+            try:
+                self._bell.wait_for(self._readable, remaining)
+            finally:
+                self._waiting_readers -= 1
+            value = self._ring.pop()
+            if value is not EMPTY:
+                return value
+
+    def _note_blocking_read(self) -> None:
+        """Count (and warn once about) a hard-real-time process about to wait here.
+
+        That is the thesis's "naive receive" (section 5.3.1): the HRT loop becomes
+        synchronised with the arrival of messages and its jitter grows to one period.
+        """
+        info = current_process()
+        if info is None or not info.hrt:
+            return
+        self._hrt_blocking_reads += 1
+        if not self._hrt_warned:
+            self._hrt_warned = True
+            warnings.warn(
+                RealTimeWarning(
+                    f"hard-real-time process {info.name!r} blocked reading channel "
+                    f"{self._name!r}; read HRT inputs from a non-blocking channel, or move "
+                    "the blocking read to a lower-priority process (thesis 5.2.1)"
+                ),
+                stacklevel=4,
+            )
+
+    # -- lifetime and statistics -------------------------------------------------------
+
+    def close(self) -> None:
+        """Close the channel: refuse writes, wake every blocked party with ChannelClosed.
+
+        Buffered values stay readable; a rendezvous offer made by ``try_write`` that no
+        reader took yet is discarded and counted in ``dropped``.
+        """
+        self._closed = True
+        if self._rv is not None:
+            self._rv.close()
+        self._bell.ring()
+
+    def statistics(self) -> ChannelStatistics:
+        """Return a snapshot of the counters (taken without stopping either side)."""
+        rv = self._rv
+        if rv is not None:
+            return rv.statistics(self._hrt_blocking_reads)
+        ring = self._ring
+        return ChannelStatistics(
+            buffered=len(ring),
+            overwritten=ring.overwritten,
+            dropped=ring.dropped,
+            written=ring.written,
+            read=ring.popped,
+            waiting_readers=self._waiting_readers,
+            waiting_writers=0,
+            closed=self._closed,
+            stale_reads=self._stale_reads,
+            hrt_blocking_reads=self._hrt_blocking_reads,
+        )
+
+    def __repr__(self) -> str:
+        kind = "rendezvous" if self._rv else ("blocking" if self._blocking else "non-blocking")
+        return f"<Channel {self._name!r} {kind} capacity={self._ring.capacity}>"
+
+
+class _Rendezvous(Generic[T]):
+    """The unbuffered channel: one pending offer, handed over under a lock."""
+
+    __slots__ = (
+        "_chan",
+        "_closed",
+        "_has_offer",
+        "_lock",
+        "_offer",
+        "_offer_owned",
+        "_offer_seq",
+        "_read",
+        "_readers",
+        "_taken",
+        "_taken_seq",
+        "_waiting_readers",
+        "_waiting_writers",
+        "_writers",
+        "_written",
+        "dropped",
+    )
+
+    def __init__(self, chan: Channel[T]) -> None:
+        self._chan = chan
+        self._closed = False  # set under _lock, so closing and withdrawing are one step
+        self._lock = threading.Lock()
+        self._readers = threading.Condition(self._lock)  # wait for an offer
+        self._writers = threading.Condition(self._lock)  # wait for the offer slot
+        self._taken = threading.Condition(self._lock)  # offer owner waits for the taker
+        self._offer: T | None = None
+        self._has_offer = False
+        self._offer_owned = False
+        self._offer_seq = 0
+        self._taken_seq = 0
+        self._waiting_readers = 0
+        self._waiting_writers = 0
+        self._written = 0
+        self._read = 0
+        self.dropped = 0
+
+    def write(self, value: T, timeout: float | None) -> None:
+        name = self._chan.name
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            if self._closed:
+                raise ChannelClosed(name)
+            self._waiting_writers += 1
+            try:
+                while self._has_offer:  # another writer's offer is pending
+                    self._wait(self._writers, deadline, name)
+                self._offer_seq += 1
+                seq = self._offer_seq
+                self._offer, self._has_offer, self._offer_owned = value, True, True
+                self._readers.notify()
+                while self._taken_seq < seq:
+                    try:
+                        self._wait(self._taken, deadline, name)
+                    except TimeoutError:
+                        self._withdraw()
+                        raise
+                self._written += 1
+            finally:
+                self._waiting_writers -= 1
+
+    def try_write(self, value: T) -> None:
+        with self._lock:
+            if self._closed:
+                raise ChannelClosed(self._chan.name)
+            if self._has_offer or self._waiting_readers == 0:
+                raise WouldBlock(self._chan.name, "try_write")
+            # A waiting reader re-checks for an offer before giving up, so it takes this.
+            self._offer_seq += 1
+            self._offer, self._has_offer, self._offer_owned = value, True, False
+            self._written += 1
+            self._readers.notify()
+
+    def read(self, timeout: float | None) -> T:
+        name = self._chan.name
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            self._waiting_readers += 1
+            try:
+                if not self._has_offer and not self._closed:
+                    self._chan._note_blocking_read()
+                while not self._has_offer:
+                    self._wait(self._readers, deadline, name)
+                return self._take()
+            finally:
+                self._waiting_readers -= 1
+
+    def try_read(self) -> T:
+        with self._lock:
+            if self._has_offer:
+                return self._take()
+            if self._closed:
+                raise ChannelClosed(self._chan.name)
+            raise WouldBlock(self._chan.name, "try_read")
+
+    def read_many(self) -> list[T]:
+        try:
+            return [self.try_read()]
+        except WouldBlock:
+            return []
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            if self._has_offer and not self._offer_owned:
+                self.dropped += 1
+            self._has_offer, self._offer = False, None
+            for cond in (self._readers, self._writers, self._taken):
+                cond.notify_all()
+
+    def statistics(self, hrt_blocking_reads: int) -> ChannelStatistics:
+        with self._lock:
+            return ChannelStatistics(
+                buffered=int(self._has_offer and not self._offer_owned),
+                overwritten=0,
+                dropped=self.dropped,
+                written=self._written,
+                read=self._read,
+                waiting_readers=self._waiting_readers,
+                waiting_writers=self._waiting_writers,
+                closed=self._closed,
+                hrt_blocking_reads=hrt_blocking_reads,
+            )
+
+    def _take(self) -> T:
+        value: T = self._offer  # type: ignore[assignment]  # _has_offer guarantees a T
+        self._offer, self._has_offer = None, False
+        self._taken_seq = self._offer_seq
+        self._read += 1
+        self._taken.notify()
+        self._writers.notify()
+        return value
+
+    def _withdraw(self) -> None:
+        self._offer, self._has_offer = None, False
+        self._writers.notify()
+
+    def _wait(self, cond: threading.Condition, deadline: float | None, name: str) -> None:
+        """One wait step; raises on close or timeout. Called with the lock held."""
+        if self._closed:
+            raise ChannelClosed(name)
+        if deadline is None:
+            cond.wait()
+            return
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise TimeoutError(f"rendezvous on channel {name!r} timed out")
+        cond.wait(remaining)

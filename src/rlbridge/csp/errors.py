@@ -1,0 +1,69 @@
+"""Exceptions and warnings of the CSP layer.
+
+They separate "you misused the API" (:class:`ChannelMisuseError`, :class:`ValueError` from
+constructors) from "the channel was closed" (:class:`ChannelClosed`) and from "nothing
+is there right now" (:class:`WouldBlock`, :class:`NoValueYet`), and every one names
+the channel so the message tells a person which wire to look at.
+"""
+
+from __future__ import annotations
+
+
+class ChannelError(Exception):
+    """Base class of every channel error; ``channel`` is the channel's name."""
+
+    def __init__(self, channel: str, message: str) -> None:
+        super().__init__(message)
+        self.channel = channel
+
+
+class ChannelClosed(ChannelError):  # noqa: N818  trio/Go vocabulary, as specified
+    """The channel was closed with ``close()``.
+
+    Raised by writes after the close, by reads once a closed channel has no buffered
+    value left, and in every party that was blocked on the channel when it closed.
+    """
+
+    def __init__(self, channel: str) -> None:
+        super().__init__(channel, f"channel {channel!r} is closed")
+
+
+class WouldBlock(ChannelError):  # noqa: N818  trio vocabulary
+    """A ``try_*`` twin could not complete without waiting."""
+
+    def __init__(self, channel: str, operation: str) -> None:
+        super().__init__(channel, f"{operation} on channel {channel!r} would block")
+        self.operation = operation
+
+
+class NoValueYet(ChannelError, LookupError):  # noqa: N818  reads as a condition
+    """A non-blocking channel without ``initial`` was read before any value arrived."""
+
+    def __init__(self, channel: str) -> None:
+        super().__init__(
+            channel,
+            f"non-blocking channel {channel!r} has never received a value and has no "
+            "initial value; pass initial=... to Channel() or write before reading",
+        )
+
+
+class ChannelMisuseError(ChannelError, RuntimeError):
+    """Two threads used the same end of a one-to-one buffered channel at the same time.
+
+    The buffered channels are lock-free single-producer/single-consumer rings; two
+    concurrent writers (or readers) would lose or duplicate values without a trace,
+    so the overlap is detected and refused instead.
+    """
+
+    def __init__(self, channel: str, end: str) -> None:
+        super().__init__(
+            channel,
+            f"two threads used the {end} end of buffered channel {channel!r} concurrently; "
+            f"a buffered channel has exactly one {end} at a time (use one channel per "
+            "writer, or an MpscRing to fan several writers in)",
+        )
+        self.end = end
+
+
+class RealTimeWarning(RuntimeWarning):
+    """A hard-real-time rule could not be honoured (blocking read, no RT scheduling)."""
