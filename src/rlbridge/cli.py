@@ -185,11 +185,31 @@ def topic_echo(
         seen = 0
         while count == 0 or seen < count:
             try:
-                v = ch.read(timeout=timeout or None)
+                v = _read_while_open(bridge, ch, timeout or None)
             except TimeoutError:
                 raise fail(f"no value on {topic} within {timeout} s") from None
             typer.echo(json.dumps(v))
             seen += 1
+
+
+def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
+    """A blocking read that gives up once the session ends (the server stopped or closed it).
+
+    Waits in short slices: a closed session never delivers again, and nothing else would wake
+    a reader blocked without a timeout.
+    """
+    from rlbridge.csp.connection import ConnectionClosed
+
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        left = 0.25 if deadline is None else min(0.25, deadline - time.monotonic())
+        if left <= 0:
+            raise TimeoutError
+        try:
+            return ch.read(timeout=left)
+        except TimeoutError:
+            if bridge.closed:
+                raise ConnectionClosed(bridge.close_reason) from None
 
 
 @topic_app.command("hz")
@@ -218,7 +238,10 @@ def topic_hz(
             try:
                 ch.read(timeout=min(1.0, max(0.01, end - time.monotonic())))
             except TimeoutError:
-                pass
+                if bridge.closed:
+                    from rlbridge.csp.connection import ConnectionClosed
+
+                    raise ConnectionClosed(bridge.close_reason) from None
             else:
                 arrivals.append(time.monotonic())
                 arrivals.extend(time.monotonic() for _ in ch.read_many(1 << 16))
@@ -281,3 +304,7 @@ def main() -> None:
     else:
         app.add_typer(netem_app, name="netem")
     app()
+
+
+if __name__ == "__main__":
+    main()

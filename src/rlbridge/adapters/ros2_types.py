@@ -75,6 +75,7 @@ _INT_RANGES: Mapping[str, tuple[int, int]] = {
     "unsigned long long": (0, 2**64 - 1),
     "octet": (0, 2**8 - 1),
 }
+_INT64_MAX = 2**63 - 1
 _FLOATS = frozenset({"float", "double", "long double"})
 _CHARS = frozenset({"char", "wchar"})
 
@@ -132,6 +133,14 @@ def _msgspec_checker(python_type: Any) -> _Check:
             raise ValueError(str(exc)) from None
 
     return check
+
+
+def _int_meta(low: int, high: int) -> msgspec.Meta:
+    """Range constraints for msgspec, which cannot express bounds beyond int64 (uint64's top):
+    those values pass msgspec and are refused by the adapter's own check at publish time."""
+    if high > _INT64_MAX:
+        return msgspec.Meta(ge=low)
+    return msgspec.Meta(ge=low, le=high)
 
 
 def _to_list(value: Any) -> list[Any]:
@@ -363,7 +372,7 @@ class MessageCatalog:
                 char = Annotated[str, msgspec.Meta(min_length=1, max_length=1)]
                 return char, _msgspec_checker(char), None, None, None
             low, high = _INT_RANGES[kind]
-            ranged = Annotated[int, msgspec.Meta(ge=low, le=high)]
+            ranged = Annotated[int, _int_meta(low, high)]
             if kind == "octet":
                 return ranged, _int_checker(low, high), _int_to_octet, _octet_to_int, None
             return ranged, _int_checker(low, high), None, None, None

@@ -11,3 +11,34 @@ bench_app = typer.Typer(help="Measure rlbridge next to a baseline from the same 
                         no_args_is_help=True)
 
 Out = Annotated[Path, typer.Option("--out", help="Markdown file the figures are written to.")]
+
+
+@bench_app.command("jitter")
+def jitter(
+    suite: Annotated[str, typer.Option(help="patterns (thesis 5.3) or gil (docs/gil.md).")]
+    = "patterns",
+    cycles: Annotated[int, typer.Option(help="Deadlines per run.")] = 5000,
+    period_us: Annotated[int, typer.Option("--period-us", help="Loop period.")] = 1000,
+    repeats: Annotated[int, typer.Option(help="Rounds; figures are medians over them.")] = 3,
+    stress: Annotated[bool, typer.Option(help="Run `stress --cpu 2 --io 2 --hdd 1` meanwhile.")]
+    = False,
+    publish_hz: Annotated[float, typer.Option(help="Rate of the set-point publisher.")] = 100.0,
+    only: Annotated[str, typer.Option(help="Comma-separated scenarios (plus the reference).")]
+    = "",
+    priority: Annotated[bool, typer.Option("--rt/--no-rt",
+                                           help="PriParallel priorities for the loop.")] = True,
+    out: Out = Path("docs/jitter.md"),
+    plot: Annotated[Path, typer.Option(help="PNG of the jitter per cycle.")]
+    = Path("docs/jitter.png"),
+) -> None:
+    """HRT loop jitter per coupling pattern, next to a reference loop from the same run."""
+    import sys
+
+    from rlbridge.bench.jitter import JitterConfig, command_line, run
+
+    if suite not in ("patterns", "gil"):
+        raise typer.BadParameter("--suite must be 'patterns' or 'gil'")
+    run(JitterConfig(suite=suite, cycles=cycles, period=period_us / 1e6,  # type: ignore[arg-type]
+                     repeats=repeats, stress=stress, publish_hz=publish_hz,
+                     only=tuple(s for s in only.split(",") if s), priority=priority, out=out,
+                     plot=plot, command=command_line(sys.argv[1:])), typer.echo)

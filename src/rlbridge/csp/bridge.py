@@ -61,7 +61,11 @@ class Bridge:
         conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
                           control=control, timeout=timeout)
         ack = conn.open()
-        sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch)
+        try:
+            sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch)
+        except BaseException:
+            conn.close()  # e.g. a bad send rate: do not leak the session and its thread
+            raise
         bridge = cls(conn, sender)
         sender.start()
         return bridge
@@ -154,11 +158,26 @@ class Bridge:
         if not self._conn.closed.is_set():
             self._conn.send_control(TopicClose(channel.channel_id))
 
+    @property
+    def send_rate_hz(self) -> float | None:
+        """Rate of the SDK's send loop (``Bridge.connect(send_rate_hz=...)``), or ``None``."""
+        return self._sender.rate_hz
+
     # -- link ------------------------------------------------------------------------------
     @property
     def link_state(self) -> LinkState:
         """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks."""
         return self._conn.link_state
+
+    @property
+    def closed(self) -> bool:
+        """True once the session has ended: closed here, by the server, or the socket broke."""
+        return self._conn.closed.is_set()
+
+    @property
+    def close_reason(self) -> str:
+        """Why the session ended (``""`` while it is open)."""
+        return self._conn.close_reason
 
     def on_link_change(self, callback: Callable[[LinkState], None]) -> None:
         """Call ``callback(state)`` from the receive thread when the link state changes."""

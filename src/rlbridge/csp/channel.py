@@ -112,21 +112,9 @@ class Doorbell:
 class Channel(Generic[T]):
     """A CSP channel; see the module docstring for the three kinds."""
 
-    __slots__ = (
-        "_bell",
-        "_blocking",
-        "_closed",
-        "_hrt_blocking_reads",
-        "_hrt_warned",
-        "_initial",
-        "_name",
-        "_read_token",
-        "_ring",
-        "_rv",
-        "_stale_reads",
-        "_waiting_readers",
-        "_write_token",
-    )
+    __slots__ = ("_bell", "_blocking", "_closed", "_hrt_blocking_reads", "_hrt_warned",
+                 "_initial", "_name", "_read_token", "_ring", "_rv", "_stale_reads",
+                 "_waiting_readers", "_write_token")  # fmt: skip
 
     def __init__(
         self,
@@ -148,13 +136,11 @@ class Channel(Generic[T]):
         self._initial: Final = initial
         self._bell: Final = doorbell if doorbell is not None else Doorbell()
         self._ring: Final[SpscRing[T]] = SpscRing(max(buffer_size, 1))
-        self._rv: Final[_Rendezvous[T] | None] = _Rendezvous(self) if buffer_size == 0 else None
+        self._rv: Final = _Rendezvous[T](self._name) if buffer_size == 0 else None
         self._closed = False
         self._write_token: Final[list[None]] = [None]
         self._read_token: Final[list[None]] = [None]
-        self._waiting_readers = 0
-        self._stale_reads = 0
-        self._hrt_blocking_reads = 0
+        self._waiting_readers = self._stale_reads = self._hrt_blocking_reads = 0
         self._hrt_warned = False
 
     @property
@@ -166,8 +152,6 @@ class Channel(Generic[T]):
     def closed(self) -> bool:
         """Whether :meth:`close` was called."""
         return self._closed
-
-    # -- writing ----------------------------------------------------------------------
 
     def write(self, value: T, timeout: float | None = None) -> None:
         """Write ``value``; blocks only on a rendezvous channel (until a reader takes it).
@@ -195,44 +179,34 @@ class Channel(Generic[T]):
             bell.ring()
 
     def try_write(self, value: T) -> None:
-        """Write without waiting; a rendezvous needs a reader already blocked in ``read``.
+        """Write without waiting: a rendezvous needs a reader already blocked in ``read``.
 
-        Raises :class:`WouldBlock` when that reader is missing. Buffered channels always
+        Raises :class:`WouldBlock` when that reader is missing; buffered channels always
         accept, so for them this is :meth:`write`.
         """
-        rv = self._rv
-        if rv is not None:
-            rv.try_write(value)
+        if self._rv is not None:
+            self._rv.try_write(value)
         else:
             self.write(value)
 
     def deliver_many(self, values: Sequence[T]) -> None:
         """Bulk write for a feeding thread (the SDK's receive thread); one wake-up per batch.
 
-        Same overwrite policy as :meth:`write`; on a rendezvous channel each value is a
-        blocking write.
+        Same overwrite policy as :meth:`write`; on a rendezvous each value is a write.
         """
-        rv = self._rv
-        if rv is not None:
+        if self._rv is not None:
             for value in values:
-                rv.write(value, None)
+                self._rv.write(value, None)
             return
         if self._closed:
             raise ChannelClosed(self._name)
-        token = self._write_token
-        try:
-            token.pop()
-        except IndexError:
-            raise ChannelMisuseError(self._name, "writer") from None
+        token = self._claim(self._write_token, "writer")
         try:
             self._ring.push_many(values, overwrite=True)
         finally:
             token.append(None)
-        bell = self._bell
-        if bell.waiting:
-            bell.ring()
-
-    # -- reading ----------------------------------------------------------------------
+        if self._bell.waiting:
+            self._bell.ring()
 
     def read(self, timeout: float | None = None) -> T:
         """Read one value, waiting on rendezvous and blocking buffered channels.
@@ -243,7 +217,7 @@ class Channel(Generic[T]):
         """
         rv = self._rv
         if rv is not None:
-            return rv.read(timeout)
+            return rv.read(timeout, self._note_blocking_read)
         token = self._read_token
         try:
             token.pop()
@@ -261,25 +235,12 @@ class Channel(Generic[T]):
 
     def try_read(self) -> T:
         """Read without waiting; raises :class:`WouldBlock` when a wait would be needed."""
-        rv = self._rv
-        if rv is not None:
-            return rv.try_read()
-        if not self._blocking:
-            return self.read()
-        token = self._read_token
+        if self._rv is not None:
+            return self._rv.try_read()
         try:
-            token.pop()
-        except IndexError:
-            raise ChannelMisuseError(self._name, "reader") from None
-        try:
-            value = self._ring.pop()
-            if value is not EMPTY:
-                return value
-            if self._closed:
-                raise ChannelClosed(self._name)
-            raise WouldBlock(self._name, "try_read")
-        finally:
-            token.append(None)
+            return self.read(timeout=0.0)
+        except TimeoutError:
+            raise WouldBlock(self._name, "try_read") from None
 
     def read_many(self, max_items: int | None = None) -> list[T]:
         """Take every new value (up to ``max_items``) without waiting, for batch consumers.
@@ -287,14 +248,12 @@ class Channel(Generic[T]):
         Returns ``[]`` when nothing is new (a non-blocking channel does not repeat its
         latest value here); raises :class:`ChannelClosed` once closed and drained.
         """
-        rv = self._rv
-        if rv is not None:
-            return rv.read_many()
-        token = self._read_token
-        try:
-            token.pop()
-        except IndexError:
-            raise ChannelMisuseError(self._name, "reader") from None
+        if self._rv is not None:
+            try:
+                return [self._rv.try_read()]
+            except WouldBlock:
+                return []
+        token = self._claim(self._read_token, "reader")
         try:
             values = self._ring.pop_many(max_items)
         finally:
@@ -303,16 +262,60 @@ class Channel(Generic[T]):
             raise ChannelClosed(self._name)
         return values
 
+    def close(self) -> None:
+        """Refuse further writes and wake every blocked party with :class:`ChannelClosed`.
+
+        Buffered values stay readable; a rendezvous offer made by ``try_write`` that no
+        reader took yet is discarded and counted in ``dropped``.
+        """
+        self._closed = True
+        if self._rv is not None:
+            self._rv.close()
+        self._bell.ring()
+
+    def statistics(self) -> ChannelStatistics:
+        """Return a snapshot of the counters (taken without stopping either side)."""
+        if self._rv is not None:
+            return self._rv.statistics(self._closed, self._hrt_blocking_reads)
+        ring = self._ring
+        return ChannelStatistics(
+            buffered=len(ring),
+            overwritten=ring.overwritten,
+            dropped=ring.dropped,
+            written=ring.written,
+            read=ring.popped,
+            waiting_readers=self._waiting_readers,
+            waiting_writers=0,
+            closed=self._closed,
+            stale_reads=self._stale_reads,
+            hrt_blocking_reads=self._hrt_blocking_reads,
+        )
+
+    def __len__(self) -> int:
+        """Values ready to read now (for a consumer's doorbell predicate); lock-free."""
+        return len(self._ring) if self._rv is None else int(self._rv.has_offer)
+
+    def __repr__(self) -> str:
+        kind = "rendezvous" if self._rv else ("blocking" if self._blocking else "non-blocking")
+        return f"<Channel {self._name!r} {kind} capacity={self._ring.capacity}>"
+
+    def _claim(self, token: list[None], end: str) -> list[None]:
+        """Take an end's token (batch paths; the per-value paths inline this)."""
+        try:
+            token.pop()
+        except IndexError:
+            raise ChannelMisuseError(self._name, end) from None
+        return token
+
     def _latest(self) -> T:
         """Non-blocking read with nothing new: repeat the most recent value."""
         if self._closed:
             raise ChannelClosed(self._name)
         value = self._ring.peek_latest()
         if value is EMPTY:
-            initial = self._initial
-            if initial is _MISSING:
+            if self._initial is _MISSING:
                 raise NoValueYet(self._name)
-            value = initial
+            value = self._initial
         self._stale_reads += 1
         return value
 
@@ -322,7 +325,7 @@ class Channel(Generic[T]):
     def _wait_and_pop(self, timeout: float | None) -> T:
         """Slow path of a blocking buffered read: the buffer was empty."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        self._note_blocking_read()
+        noted = False
         while True:
             if self._closed:
                 value = self._ring.pop()  # a write may have landed just before close
@@ -332,6 +335,9 @@ class Channel(Generic[T]):
             remaining = None if deadline is None else deadline - time.monotonic()
             if remaining is not None and remaining <= 0:
                 raise TimeoutError(f"read on channel {self._name!r} timed out after {timeout}s")
+            if not noted:
+                noted = True
+                self._note_blocking_read()
             self._waiting_readers += 1
             try:
                 self._bell.wait_for(self._readable, remaining)
@@ -342,7 +348,7 @@ class Channel(Generic[T]):
                 return value
 
     def _note_blocking_read(self) -> None:
-        """Count (and warn once about) a hard-real-time process about to wait here.
+        """Count, and warn once about, a hard-real-time process about to wait here.
 
         That is the thesis's "naive receive" (section 5.3.1): the HRT loop becomes
         synchronised with the arrival of messages and its jitter grows to one period.
@@ -359,194 +365,122 @@ class Channel(Generic[T]):
                     f"{self._name!r}; read HRT inputs from a non-blocking channel, or move "
                     "the blocking read to a lower-priority process (thesis 5.2.1)"
                 ),
-                stacklevel=4,
+                stacklevel=4,  # _note <- _wait_and_pop or _Rendezvous.read <- read <- caller
             )
-
-    # -- lifetime and statistics -------------------------------------------------------
-
-    def close(self) -> None:
-        """Close the channel: refuse writes, wake every blocked party with ChannelClosed.
-
-        Buffered values stay readable; a rendezvous offer made by ``try_write`` that no
-        reader took yet is discarded and counted in ``dropped``.
-        """
-        self._closed = True
-        if self._rv is not None:
-            self._rv.close()
-        self._bell.ring()
-
-    def statistics(self) -> ChannelStatistics:
-        """Return a snapshot of the counters (taken without stopping either side)."""
-        rv = self._rv
-        if rv is not None:
-            return rv.statistics(self._hrt_blocking_reads)
-        ring = self._ring
-        return ChannelStatistics(
-            buffered=len(ring),
-            overwritten=ring.overwritten,
-            dropped=ring.dropped,
-            written=ring.written,
-            read=ring.popped,
-            waiting_readers=self._waiting_readers,
-            waiting_writers=0,
-            closed=self._closed,
-            stale_reads=self._stale_reads,
-            hrt_blocking_reads=self._hrt_blocking_reads,
-        )
-
-    def __repr__(self) -> str:
-        kind = "rendezvous" if self._rv else ("blocking" if self._blocking else "non-blocking")
-        return f"<Channel {self._name!r} {kind} capacity={self._ring.capacity}>"
 
 
 class _Rendezvous(Generic[T]):
-    """The unbuffered channel: one pending offer, handed over under a lock."""
+    """The unbuffered channel: at most one pending offer, handed over under one lock.
 
-    __slots__ = (
-        "_chan",
-        "_closed",
-        "_has_offer",
-        "_lock",
-        "_offer",
-        "_offer_owned",
-        "_offer_seq",
-        "_read",
-        "_readers",
-        "_taken",
-        "_taken_seq",
-        "_waiting_readers",
-        "_waiting_writers",
-        "_writers",
-        "_written",
-        "dropped",
-    )
+    Every state change notifies all waiters, who re-check their own condition: simple to
+    reason about, and a spurious wake-up is cheap next to the wait it interrupts.
+    """
 
-    def __init__(self, chan: Channel[T]) -> None:
-        self._chan = chan
-        self._closed = False  # set under _lock, so closing and withdrawing are one step
-        self._lock = threading.Lock()
-        self._readers = threading.Condition(self._lock)  # wait for an offer
-        self._writers = threading.Condition(self._lock)  # wait for the offer slot
-        self._taken = threading.Condition(self._lock)  # offer owner waits for the taker
+    __slots__ = ("_closed", "_cond", "_name", "_offer", "_owned", "_seq", "_taken",
+                 "dropped", "has_offer", "read_count", "waiting_readers", "waiting_writers",
+                 "written")  # fmt: skip
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+        self._cond = threading.Condition(threading.Lock())
+        self._closed = False  # set under the lock: closing and withdrawing are one step
         self._offer: T | None = None
-        self._has_offer = False
-        self._offer_owned = False
-        self._offer_seq = 0
-        self._taken_seq = 0
-        self._waiting_readers = 0
-        self._waiting_writers = 0
-        self._written = 0
-        self._read = 0
-        self.dropped = 0
+        self.has_offer = False
+        self._owned = False  # a blocked writer owns the offer (False: made by try_write)
+        self._seq = self._taken = 0  # offers made; sequence number of the last one taken
+        self.waiting_readers = self.waiting_writers = 0
+        self.written = self.read_count = self.dropped = 0
 
     def write(self, value: T, timeout: float | None) -> None:
-        name = self._chan.name
         deadline = None if timeout is None else time.monotonic() + timeout
-        with self._lock:
+        with self._cond:
             if self._closed:
-                raise ChannelClosed(name)
-            self._waiting_writers += 1
+                raise ChannelClosed(self._name)
+            self.waiting_writers += 1
             try:
-                while self._has_offer:  # another writer's offer is pending
-                    self._wait(self._writers, deadline, name)
-                self._offer_seq += 1
-                seq = self._offer_seq
-                self._offer, self._has_offer, self._offer_owned = value, True, True
-                self._readers.notify()
-                while self._taken_seq < seq:
-                    try:
-                        self._wait(self._taken, deadline, name)
-                    except TimeoutError:
-                        self._withdraw()
-                        raise
-                self._written += 1
+                self._wait_while(lambda: self.has_offer, deadline)  # another writer's turn
+                self._seq += 1
+                seq = self._seq
+                self._offer, self.has_offer, self._owned = value, True, True
+                self._cond.notify_all()
+                try:
+                    self._wait_while(lambda: self._taken < seq, deadline)
+                except TimeoutError:  # not taken: withdraw (close withdraws by itself)
+                    self._offer, self.has_offer = None, False
+                    self._cond.notify_all()
+                    raise
+                self.written += 1
             finally:
-                self._waiting_writers -= 1
+                self.waiting_writers -= 1
 
     def try_write(self, value: T) -> None:
-        with self._lock:
+        with self._cond:
             if self._closed:
-                raise ChannelClosed(self._chan.name)
-            if self._has_offer or self._waiting_readers == 0:
-                raise WouldBlock(self._chan.name, "try_write")
-            # A waiting reader re-checks for an offer before giving up, so it takes this.
-            self._offer_seq += 1
-            self._offer, self._has_offer, self._offer_owned = value, True, False
-            self._written += 1
-            self._readers.notify()
+                raise ChannelClosed(self._name)
+            if self.has_offer or self.waiting_readers == 0:
+                raise WouldBlock(self._name, "try_write")
+            # A blocked reader re-checks for an offer before it gives up: it takes this.
+            self._seq += 1
+            self._offer, self.has_offer, self._owned = value, True, False
+            self.written += 1
+            self._cond.notify_all()
 
-    def read(self, timeout: float | None) -> T:
-        name = self._chan.name
+    def read(self, timeout: float | None, on_block: Callable[[], None]) -> T:
         deadline = None if timeout is None else time.monotonic() + timeout
-        with self._lock:
-            self._waiting_readers += 1
+        with self._cond:
+            self.waiting_readers += 1
             try:
-                if not self._has_offer and not self._closed:
-                    self._chan._note_blocking_read()
-                while not self._has_offer:
-                    self._wait(self._readers, deadline, name)
+                if not self.has_offer and not self._closed:
+                    on_block()
+                self._wait_while(lambda: not self.has_offer, deadline)
                 return self._take()
             finally:
-                self._waiting_readers -= 1
+                self.waiting_readers -= 1
 
     def try_read(self) -> T:
-        with self._lock:
-            if self._has_offer:
+        with self._cond:
+            if self.has_offer:
                 return self._take()
             if self._closed:
-                raise ChannelClosed(self._chan.name)
-            raise WouldBlock(self._chan.name, "try_read")
-
-    def read_many(self) -> list[T]:
-        try:
-            return [self.try_read()]
-        except WouldBlock:
-            return []
+                raise ChannelClosed(self._name)
+            raise WouldBlock(self._name, "try_read")
 
     def close(self) -> None:
-        with self._lock:
+        with self._cond:
             self._closed = True
-            if self._has_offer and not self._offer_owned:
-                self.dropped += 1
-            self._has_offer, self._offer = False, None
-            for cond in (self._readers, self._writers, self._taken):
-                cond.notify_all()
+            if self.has_offer and not self._owned:
+                self.dropped += 1  # try_write's value: its writer has already returned
+            self._offer, self.has_offer = None, False
+            self._cond.notify_all()
 
-    def statistics(self, hrt_blocking_reads: int) -> ChannelStatistics:
-        with self._lock:
+    def statistics(self, closed: bool, hrt_blocking_reads: int) -> ChannelStatistics:
+        with self._cond:
             return ChannelStatistics(
-                buffered=int(self._has_offer and not self._offer_owned),
+                buffered=int(self.has_offer and not self._owned),
                 overwritten=0,
                 dropped=self.dropped,
-                written=self._written,
-                read=self._read,
-                waiting_readers=self._waiting_readers,
-                waiting_writers=self._waiting_writers,
-                closed=self._closed,
+                written=self.written,
+                read=self.read_count,
+                waiting_readers=self.waiting_readers,
+                waiting_writers=self.waiting_writers,
+                closed=closed,
                 hrt_blocking_reads=hrt_blocking_reads,
             )
 
     def _take(self) -> T:
-        value: T = self._offer  # type: ignore[assignment]  # _has_offer guarantees a T
-        self._offer, self._has_offer = None, False
-        self._taken_seq = self._offer_seq
-        self._read += 1
-        self._taken.notify()
-        self._writers.notify()
+        value: T = self._offer  # type: ignore[assignment]  # has_offer: it is a T
+        self._offer, self.has_offer = None, False
+        self._taken = self._seq
+        self.read_count += 1
+        self._cond.notify_all()
         return value
 
-    def _withdraw(self) -> None:
-        self._offer, self._has_offer = None, False
-        self._writers.notify()
-
-    def _wait(self, cond: threading.Condition, deadline: float | None, name: str) -> None:
-        """One wait step; raises on close or timeout. Called with the lock held."""
-        if self._closed:
-            raise ChannelClosed(name)
-        if deadline is None:
-            cond.wait()
-            return
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise TimeoutError(f"rendezvous on channel {name!r} timed out")
-        cond.wait(remaining)
+    def _wait_while(self, busy: Callable[[], bool], deadline: float | None) -> None:
+        """Wait (lock held) while ``busy()``; raise on close or once the deadline passed."""
+        while busy():
+            if self._closed:
+                raise ChannelClosed(self._name)
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                raise TimeoutError(f"rendezvous on channel {self._name!r} timed out")
+            self._cond.wait(remaining)

@@ -17,7 +17,7 @@ class ChannelError(Exception):
         self.channel = channel
 
 
-class ChannelClosed(ChannelError):  # noqa: N818  trio/Go vocabulary, as specified
+class ChannelClosed(ChannelError):
     """The channel was closed with ``close()``.
 
     Raised by writes after the close, by reads once a closed channel has no buffered
@@ -28,7 +28,7 @@ class ChannelClosed(ChannelError):  # noqa: N818  trio/Go vocabulary, as specifi
         super().__init__(channel, f"channel {channel!r} is closed")
 
 
-class WouldBlock(ChannelError):  # noqa: N818  trio vocabulary
+class WouldBlock(ChannelError):
     """A ``try_*`` twin could not complete without waiting."""
 
     def __init__(self, channel: str, operation: str) -> None:
@@ -36,7 +36,7 @@ class WouldBlock(ChannelError):  # noqa: N818  trio vocabulary
         self.operation = operation
 
 
-class NoValueYet(ChannelError, LookupError):  # noqa: N818  reads as a condition
+class NoValueYet(ChannelError, LookupError):
     """A non-blocking channel without ``initial`` was read before any value arrived."""
 
     def __init__(self, channel: str) -> None:

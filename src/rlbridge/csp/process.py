@@ -260,20 +260,11 @@ class Parallel(Process):
 
     def execute(self, scope: RunScope) -> None:
         inner = scope.marked(self.hrt)
-        errors: list[BaseException] = []  # list.append is atomic: no lock needed
-        placements: list[_Placement | None] = [None] * len(self.children)
-        ready = [threading.Event() for _ in self.children]
+        run = _Siblings(len(self.children))
         threads = [
             threading.Thread(
                 target=self._child_main,
-                kwargs={
-                    "rank": rank,
-                    "child": child,
-                    "scope": inner,
-                    "errors": errors,
-                    "placements": placements,
-                    "ready": ready[rank],
-                },
+                args=(rank, child, inner, run),
                 name=f"csp:{self.name}/{child.name}",
             )
             for rank, child in enumerate(self.children)
@@ -281,9 +272,9 @@ class Parallel(Process):
         try:
             for thread in threads:
                 thread.start()
-            for event in ready:
+            for event in run.ready:
                 event.wait()
-            self._placed(placements)
+            self._placed(run.placements)
             for thread in threads:
                 thread.join()
         except BaseException:  # e.g. KeyboardInterrupt in the owner: stop, then join
@@ -292,27 +283,19 @@ class Parallel(Process):
                 if thread.ident is not None:
                     thread.join()
             raise
-        if errors:
-            raise BaseExceptionGroup(f"{len(errors)} process(es) of {self.name!r} failed", errors)
+        if run.errors:
+            raise BaseExceptionGroup(f"{len(run.errors)} process(es) of {self.name!r} failed",
+                                     run.errors)  # fmt: skip
 
-    def _child_main(
-        self,
-        *,
-        rank: int,
-        child: Process,
-        scope: RunScope,
-        errors: list[BaseException],
-        placements: list[_Placement | None],
-        ready: threading.Event,
-    ) -> None:
+    def _child_main(self, rank: int, child: Process, scope: RunScope, run: _Siblings) -> None:
         try:
             try:
-                placements[rank] = self._place(rank, threading.get_native_id())
+                run.placements[rank] = self._place(rank, threading.get_native_id())
             finally:
-                ready.set()
+                run.ready[rank].set()
             child.execute(scope)
         except BaseException as exc:  # collected, re-raised by the owner as a group
-            errors.append(exc)
+            run.errors.append(exc)  # list.append is atomic: no lock needed
             scope.stop.set()
 
     def _place(self, rank: int, tid: int) -> _Placement | None:
@@ -331,6 +314,17 @@ class _Placement:
     mechanism: Literal["realtime", "nice", "none"]
     value: int
     reason: str
+
+
+class _Siblings:
+    """What the child threads of one parallel execution share with their owner."""
+
+    __slots__ = ("errors", "placements", "ready")
+
+    def __init__(self, count: int) -> None:
+        self.errors: list[BaseException] = []
+        self.placements: list[_Placement | None] = [None] * count
+        self.ready = [threading.Event() for _ in range(count)]
 
 
 class PriParallel(Parallel):

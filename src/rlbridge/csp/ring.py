@@ -23,7 +23,8 @@ only if ``_claim <= t + capacity``. Otherwise every sequence below
 in ``overwritten`` and retries. The consumer therefore sees a strictly increasing
 subsequence of what was written, never a duplicate or a reordering. Loss is decided
 and counted by the consumer, so the counters are exact: once both sides are quiet,
-``written == popped + overwritten + len(ring)`` (plus ``dropped`` refused by ``push``).
+``written == popped + overwritten + len(ring)`` (values refused by a full ``push`` were
+never written; they are counted in ``dropped``).
 ``push_overwrite`` returns ``True`` when the ring looked full, which means "the oldest
 unread value was displaced" except in one race: if the consumer was in the middle of
 taking exactly that value, it may still get it. Trust the counters, not the flag.
@@ -35,7 +36,10 @@ runs no Python code is atomic and all threads see operations in one global order
 (sequential consistency, because every switch goes through the GIL's mutex). The ring
 uses only such operations: ``list[i]`` load/store and attribute load/store on a
 ``__slots__`` instance. Decrementing the replaced slot value may run a ``__del__``,
-but only after the store completed.
+but only after the store completed. (CPython 3.11 in fact hands the GIL over only at
+function entries, backward jumps and calls, so a switch *inside* these methods needs a
+``__del__``, a trace function or a free-threaded build; the design does not rely on
+that implementation detail, and the tests force switches at every line.)
 
 On a free-threaded build (3.13t) each of those operations is still atomic (PEP 703
 keeps list items and attributes thread-safe), but CPython documents no memory model

@@ -23,6 +23,9 @@ from rlbridge.wire import MAX_DATAGRAM, Batch, Packet, Value
 
 log = logging.getLogger("rlbridge.client")
 
+#: Largest datagram the send thread makes from a batch (fits a 1500-byte Ethernet MTU).
+DATAGRAM_BUDGET = 1400
+
 
 class OutgoingSource(Protocol):
     """What the send thread needs from an outgoing channel."""
@@ -47,6 +50,7 @@ class SendLoop:
         if rate_hz is not None and rate_hz <= 0:
             raise ValueError(f"send loop rate must be positive, got {rate_hz}")
         self._conn = conn
+        self.rate_hz = rate_hz
         self._period = 1.0 / rate_hz if rate_hz else None
         self._max_batch = max(1, max_batch)
         self._sources: tuple[OutgoingSource, ...] = ()
@@ -132,15 +136,16 @@ class SendLoop:
 
     def _send_datagram(self, packet: Packet, token: int) -> None:
         data = self._conn.codec.encode_datagram(packet, token)
-        if len(data) > 1400 and isinstance(packet, Batch) and len(packet.values) > 1:
-            half = len(packet.values) // 2
-            for part in (
-                Batch(packet.channel, packet.first_seq, packet.stamps[:half],
-                      packet.values[:half]),
-                Batch(packet.channel, packet.first_seq + half, packet.stamps[half:],
-                      packet.values[half:]),
-            ):
-                self._send_datagram(part, token)
+        n = len(packet.values) if isinstance(packet, Batch) else 1
+        if len(data) > DATAGRAM_BUDGET and n > 1:
+            # Chunk length estimated from the encoded size once (halving would re-encode the
+            # whole batch at every level); a chunk that still does not fit is split again.
+            assert isinstance(packet, Batch)
+            per = max(1, min(n // 2, n * (DATAGRAM_BUDGET - 64) // len(data)))
+            for i in range(0, n, per):
+                self._send_datagram(Batch(packet.channel, packet.first_seq + i,
+                                          packet.stamps[i : i + per],
+                                          packet.values[i : i + per]), token)
             return
         if len(data) > MAX_DATAGRAM:
             log.warning("value on channel %d is too large for a datagram; dropped",
@@ -162,6 +167,9 @@ def _packets(channel: int, first_seq: int, stamps: list[int], values: list[objec
              max_batch: int) -> list[Packet]:
     if len(values) == 1:
         return [Value(channel, first_seq, stamps[0], values[0])]
+    if max_batch == 1:  # one value per packet: a Value is what a batch of one means
+        return [Value(channel, first_seq + i, s, v)
+                for i, (s, v) in enumerate(zip(stamps, values, strict=True))]
     return [
         Batch(channel, first_seq + i, stamps[i : i + max_batch], values[i : i + max_batch])
         for i in range(0, len(values), max_batch)

@@ -1,52 +1,95 @@
-"""``rlbridge demo``: a server, a publisher and a subscriber in one command."""
+"""``rlbridge demo``: the thesis's pan-tilt camera (section 3.1), simulated, over a real bridge.
+
+The command only turns options into a :class:`~rlbridge.demo.run.DemoOptions` and calls
+:func:`~rlbridge.demo.run.run_demo`; the library does the rest.
+"""
 
 from __future__ import annotations
 
-import math
-import time
-from typing import Annotated
+import sys
+from pathlib import Path
+from typing import Annotated, Literal
 
 import typer
+
+from rlbridge.demo.plot import DEFAULT_NAME
+
+ROLES = ("all", "bridge", "controller")
+DEFAULT_PORT = 7411
 
 
 def register_demo(app: typer.Typer) -> None:
     """Add the ``demo`` command to the main app."""
+    from rlbridge.cli import fail, one_line_errors
 
     @app.command()
+    @one_line_errors
     def demo(
-        seconds: Annotated[float, typer.Option(help="How long to run.")] = 5.0,
-        rate: Annotated[float, typer.Option(help="Set-point rate (Hz).")] = 100.0,
+        seconds: Annotated[float, typer.Option(
+            help="How long to run (0: until Ctrl-C / SIGTERM).")] = 5.0,
+        role: Annotated[str, typer.Option(
+            help="all: both sides in one process; bridge: server + vision node (middleware "
+                 "side); controller: the embedded loop controller.")] = "all",
+        host: Annotated[str, typer.Option(
+            "--host", "-H", help="bridge/all: address to bind; controller: server to reach.")]
+        = "127.0.0.1",
+        port: Annotated[int | None, typer.Option(
+            "--port", "-p", help=f"Server port [all: any free port, else {DEFAULT_PORT}].")]
+        = None,
+        adapter: Annotated[str, typer.Option(
+            help="Middleware of the bridge side: inproc or ros2.")] = "inproc",
+        dashboard: Annotated[bool, typer.Option(
+            "--dashboard/--no-dashboard",
+            help="Live terminal view (only on a terminal; else one line a second).")] = True,
+        plot: Annotated[Path, typer.Option(
+            help="PNG of set-points, angles and tracking error (a directory: "
+                 f"DIR/{DEFAULT_NAME}).")] = Path(DEFAULT_NAME),
+        no_plot: Annotated[bool, typer.Option("--no-plot", help="Do not write the plot.")]
+        = False,
+        report: Annotated[Path | None, typer.Option(
+            help="Write the results as JSON to this file.")] = None,
+        dropout_at: Annotated[float, typer.Option(
+            help="The vision node loses the target at this time (s) ...")] = 2.0,
+        dropout_for: Annotated[float, typer.Option(
+            help="... for this long (s; 0: never), so the controller holds position.")] = 0.5,
+        namespace: Annotated[str, typer.Option(help="Topic namespace.")] = "/pan_tilt",
+        connect_timeout: Annotated[float, typer.Option(
+            help="controller: keep trying to reach the server this long (s).")] = 30.0,
+        lost_exit: Annotated[float, typer.Option(
+            help="controller: exit with status 3 after the link was lost this long (s).")]
+        = 2.0,
     ) -> None:
-        """Start a bridge server and two clients; watch a set-point stream cross it over UDP."""
-        from rlbridge.csp.bridge import Bridge
-        from rlbridge.server import ServerThread
+        """Pan-tilt camera demo: a 1 kHz loop controller tracks a 30 Hz vision node's set-points.
 
-        with ServerThread() as server:
-            typer.echo(f"bridge server on 127.0.0.1:{server.port} (in-process bus)")
-            with Bridge.connect("127.0.0.1", server.port, name="demo-controller") as ctl, \
-                    Bridge.connect("127.0.0.1", server.port, name="demo-vision") as vision:
-                setpoint_in = ctl.subscribe("/demo/setpoint", "std_msgs/msg/Float64",
-                                            transport="udp", initial=0.0)
-                status_in = ctl.subscribe("/demo/status", "std_msgs/msg/String",
-                                          transport="tcp", blocking=True, buffer_size=16)
-                setpoint_out = vision.publish("/demo/setpoint", "std_msgs/msg/Float64",
-                                              transport="udp")
-                status_out = vision.publish("/demo/status", "std_msgs/msg/String",
-                                            transport="tcp")
-                status_out.write("tracking")
-                typer.echo(f"status over TCP: {status_in.read(timeout=5.0)!r}")
-                period = 1.0 / rate
-                start = time.monotonic()
-                n = int(seconds * rate)
-                for i in range(n):
-                    setpoint_out.write(math.sin(2 * math.pi * 0.5 * i * period))
-                    time.sleep(max(0.0, start + (i + 1) * period - time.monotonic()))
-                    if i % int(rate / 2 or 1) == 0:
-                        value = setpoint_in.read()
-                        typer.echo(f"t={i * period:5.2f}s  set-point read by controller: "
-                                   f"{value:+.3f}  (age {setpoint_in.age_ns / 1e6:.2f} ms, "
-                                   f"link {ctl.link_state.value})")
-                time.sleep(0.05)
-                stats = setpoint_in.statistics()
-                typer.echo(f"sent {n} set-points at {rate:g} Hz over UDP; controller channel: "
-                           f"{stats.written} arrived, {setpoint_in.lost} lost")
+        The controller reads set-points from non-blocking UDP channels, sends its angles back
+        sub-sampled to 50 Hz and its state (idle, tracking, safe, lost-link) over TCP. The
+        vision node follows a target on a Lissajous path, losing it for a moment halfway.
+        """
+        from rlbridge.demo.run import DemoOptions, run_demo
+        from rlbridge.demo.vision import Dropout
+
+        if role not in ROLES:
+            raise fail(f"--role must be one of {', '.join(ROLES)}, not '{role}'", 2)
+        if adapter not in ("inproc", "ros2"):
+            raise fail(f"--adapter must be inproc or ros2, not '{adapter}'", 2)
+        if seconds < 0:
+            raise fail("--seconds must be >= 0", 2)
+        chosen: Literal["all", "bridge", "controller"] = role  # type: ignore[assignment]
+        middleware: Literal["inproc", "ros2"] = adapter  # type: ignore[assignment]
+        options = DemoOptions(
+            role=chosen,
+            seconds=seconds,
+            host=host,
+            port=port if port is not None else (0 if role == "all" else DEFAULT_PORT),
+            adapter=middleware,
+            namespace=namespace,
+            dropout=Dropout(dropout_at, dropout_for),
+            dashboard=dashboard and sys.stdout.isatty(),
+            plot=None if no_plot or role == "controller" else plot,
+            report=report,
+            connect_timeout=connect_timeout,
+            lost_exit=lost_exit,
+        )
+        result = run_demo(options, sys.stdout)
+        if result.exit_code:
+            raise typer.Exit(result.exit_code)

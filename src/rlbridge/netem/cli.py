@@ -24,6 +24,13 @@ from rlbridge.netem.stats import DirectionStats, LinkStats
 
 MAX_DURATION_S = 3600.0
 
+RT_PRIORITY_OPTION = typer.Option(
+    help="Run the relay SCHED_FIFO at this priority (1-99; 0 = normal scheduling). "
+    "Keeps the emulated delay accurate on a busy machine.",
+    min=0,
+    max=99,
+)
+
 netem_app = typer.Typer(
     help=(
         "Emulate delay and loss between two network namespaces without the netem qdisc "
@@ -57,7 +64,7 @@ def _format_direction(name: str, s: DirectionStats) -> str:
         f"  {name}: received {s.received}, delivered {s.delivered}, "
         f"dropped {s.dropped_loss} (loss) + {s.dropped_queue} (queue), "
         f"write errors {s.write_errors}, relay lateness mean {s.late_mean_us:.0f} us "
-        f"max {s.late_max_us:.0f} us"
+        f"max {s.late_max_us:.0f} us, >1 ms {s.late_over_1ms} packets"
     )
 
 
@@ -91,6 +98,7 @@ def shell(
         ),
     ] = 60.0,
     mtu: Annotated[int, typer.Option(help="MTU of the link.", min=68, max=65535)] = 1500,
+    rt_priority: Annotated[int, RT_PRIORITY_OPTION] = 0,
 ) -> None:
     """Bring up two namespaces joined by an impaired link, wait, then tear it all down.
 
@@ -102,7 +110,14 @@ def shell(
         with (
             sigterm_raises(),
             EmulatedLink(
-                delay, loss, jitter, seed, direction.value, mtu=mtu, max_lifetime_s=duration + 30.0
+                delay,
+                loss,
+                jitter,
+                seed,
+                direction.value,
+                mtu=mtu,
+                max_lifetime_s=duration + 30.0,
+                relay_rt_priority=rt_priority or None,
             ) as link,
         ):
             typer.echo(
@@ -123,7 +138,7 @@ def shell(
             except Terminated:
                 how = "terminated"
             typer.echo(f"{how}; tearing down\n{_format_stats(link.stats())}")
-    except (NetnsError, RelayError, OSError, ValueError) as exc:
+    except (NetnsError, RelayError, OSError, RuntimeError, ValueError) as exc:
         raise _fail(str(exc)) from None
 
 
@@ -132,19 +147,35 @@ def calibrate(
     *,
     count: Annotated[int, typer.Option(help="Pings per measurement.", min=10, max=100_000)] = 1000,
     payload: Annotated[int, typer.Option(help="UDP payload bytes.", min=4, max=1472)] = 32,
+    delay: Annotated[
+        float, typer.Option(help="One-way delay in ms to emulate while measuring.", min=0.0)
+    ] = 0.0,
+    interval: Annotated[
+        float, typer.Option(help="Pause between pings in ms (10 = the thesis's 100 Hz).", min=0.0)
+    ] = 0.0,
+    rt_priority: Annotated[int, RT_PRIORITY_OPTION] = 0,
 ) -> None:
-    """Measure what the relay itself adds to a UDP round trip (no impairment)."""
+    """Measure what the relay itself adds to a UDP round trip (beyond 2 x --delay)."""
     _require_emulator()
     try:
-        with sigterm_raises(), EmulatedLink(max_lifetime_s=600.0) as link:
-            result = measure_overhead(link, count=count, payload=payload)
-    except (NetnsError, RelayError, OSError, ValueError) as exc:
+        with (
+            sigterm_raises(),
+            EmulatedLink(
+                delay, max_lifetime_s=600.0, relay_rt_priority=rt_priority or None
+            ) as link,
+        ):
+            result = measure_overhead(
+                link, count=count, payload=payload, interval_s=interval / 1000.0
+            )
+    except (NetnsError, RelayError, OSError, RuntimeError, ValueError) as exc:
         raise _fail(str(exc)) from None
+    excess = result.added_median_us - 2000.0 * delay
     typer.echo(
-        f"UDP ping-pong, {payload}-byte payload, one thread drives both ends\n"
+        f"UDP echo, {count} pings of {payload} bytes every {interval:g} ms, "
+        f"delay {delay:g} ms each way\n"
         f"  through the link:  {result.link}\n"
-        f"  loopback in ns A:  {result.loopback}\n"
-        f"  added by the relay (two hops): median {result.added_median_us:.0f} us\n"
+        f"  loopback in ns A:  {result.loopback}   (same echo, no relay)\n"
+        f"  added by the relay (two hops, beyond 2 x delay): median {excess:.0f} us\n"
         f"  relay lateness after release time: mean {result.relay_late_mean_us:.0f} us, "
         f"max {result.relay_late_max_us:.0f} us"
     )
@@ -164,9 +195,9 @@ def cleanup(
     except NetnsError as exc:
         raise _fail(str(exc)) from None
     for ns in removed:
-        left = f", processes left running: {list(ns.remaining_pids)}" if ns.remaining_pids else ""
-        if kill_processes:
-            left = ""
+        left = ""
+        if ns.remaining_pids and not kill_processes:
+            left = f", processes left running: {list(ns.remaining_pids)}"
         typer.echo(f"removed {ns.name} (owner pid {ns.owner_pid} is gone){left}")
     if not removed:
         typer.echo("no stale rlb-* namespaces")

@@ -97,6 +97,7 @@ class EmulatedLink:
         max_lifetime_s: float = 3600.0,
         handle_sigterm: bool = True,
         relay_cpus: frozenset[int] | None = None,
+        relay_rt_priority: int | None = None,
     ) -> None:
         if (a_to_b is None) != (b_to_a is None):
             raise ValueError("give both a_to_b and b_to_a, or neither")
@@ -124,6 +125,9 @@ class EmulatedLink:
         self._max_lifetime_s = max_lifetime_s
         self._handle_sigterm = handle_sigterm
         self._relay_cpus = relay_cpus
+        if relay_rt_priority is not None and not 1 <= relay_rt_priority <= 99:
+            raise ValueError(f"relay_rt_priority must be in [1, 99], got {relay_rt_priority}")
+        self._relay_rt_priority = relay_rt_priority
         self._stack: ExitStack | None = None
         self._relay: RelayProcess | None = None
         self._children: list[subprocess.Popen[Any]] = []
@@ -171,6 +175,7 @@ class EmulatedLink:
                 b_to_a=self._impairments[1],
                 max_lifetime_s=self._max_lifetime_s,
                 cpus=self._relay_cpus,
+                rt_priority=self._relay_rt_priority,
             )
             fds.clear()  # RelayProcess.start owns (and closes here) the descriptors now
             stack.callback(relay.stop)

@@ -1,26 +1,34 @@
-"""Measure a link: UDP ping-pong RTTs and the relay's own overhead.
+"""Measure a link: UDP round trips and the relay's own overhead.
 
-Both sockets live in this process and are driven by one thread, so one clock times both
-ends and no echo server (and no extra process wake-up) is involved::
+Two harnesses:
 
-    t0  sock_a.sendto(seq) --link--> sock_b.recvfrom
-        sock_b.sendto(seq) --link--> sock_a.recv     t1     rtt = t1 - t0
+* :func:`udp_ping_pong` drives both sockets from one thread, so one clock times both
+  ends (used by the tests for one-way delays)::
 
-The same function run on two sockets on ``lo`` inside namespace A gives the reference
-(the kernel and Python cost of the harness itself); the difference is what the relay
-adds.  This mirrors the thesis's "reference measurement" (figure A.2), which it
-subtracted from the latencies measured with netem.
+      t0  sock_a.sendto(seq) --link--> sock_b.recvfrom
+          sock_b.sendto(seq) --link--> sock_a.recv     t1     rtt = t1 - t0
+
+* :func:`udp_ping` against an echo *process* (:func:`echo_process`), which is how real
+  programs talk: every hop wakes up a process.  :func:`measure_overhead` runs it twice,
+  through the link to an echo in namespace B and over ``lo`` to an echo in namespace A.
+  Both paths pay the same process wake-ups; the difference is what the relay adds (two
+  relay hops per round trip).  This mirrors the thesis's "reference measurement"
+  (figure A.2), which it compared with the latencies measured under netem.
 """
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import statistics
 import struct
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
-from rlbridge.netem.link import EmulatedLink
+from rlbridge.netem.link import EmulatedLink, Side
 
 _SEQ = struct.Struct("!I")
 
@@ -61,18 +69,22 @@ def udp_ping_pong(
     payload: int = 32,
     interval_s: float = 0.0,
     timeout_s: float = 1.0,
+    budget_s: float = 120.0,
 ) -> list[float]:
-    """RTTs (seconds) of ``count`` pings from ``sock_a`` to bound ``sock_b`` and back.
+    """RTTs (seconds) of up to ``count`` pings from ``sock_a`` to bound ``sock_b`` and back.
 
     Lost pings are left out; stale answers to earlier (timed-out) pings are skipped by
-    sequence number.  Runtime is bounded by ``count * (interval_s + 2 * timeout_s)``.
+    sequence number.  Stops early once ``budget_s`` has passed.
     """
     if payload < _SEQ.size:
         raise ValueError(f"payload must be at least {_SEQ.size} bytes")
     target = sock_b.getsockname()
     padding = bytes(payload - _SEQ.size)
     rtts: list[float] = []
+    give_up = time.monotonic() + budget_s
     for seq in range(count):
+        if time.monotonic() > give_up:
+            break
         message = _SEQ.pack(seq) + padding
         start = time.perf_counter()
         sock_a.sendto(message, target)
@@ -102,6 +114,88 @@ def _receive_seq(sock: socket.socket, seq: int, timeout_s: float) -> tuple[str, 
     return None
 
 
+def udp_ping(
+    sock: socket.socket,
+    target: tuple[str, int],
+    *,
+    count: int,
+    payload: int = 32,
+    interval_s: float = 0.0,
+    timeout_s: float = 1.0,
+    budget_s: float = 120.0,
+) -> list[float]:
+    """RTTs (seconds) of up to ``count`` pings from ``sock`` to an echo at ``target``.
+
+    Lost pings are left out.  Stops early once ``budget_s`` has passed, so a dead echo
+    costs at most that long, not ``count * timeout_s``.
+    """
+    if payload < _SEQ.size:
+        raise ValueError(f"payload must be at least {_SEQ.size} bytes")
+    padding = bytes(payload - _SEQ.size)
+    rtts: list[float] = []
+    give_up = time.monotonic() + budget_s
+    for seq in range(count):
+        if time.monotonic() > give_up:
+            break
+        start = time.perf_counter()
+        sock.sendto(_SEQ.pack(seq) + padding, target)
+        if _receive_seq(sock, seq, timeout_s) is not None:
+            rtts.append(time.perf_counter() - start)
+        if interval_s > 0.0:
+            time.sleep(interval_s)
+    return rtts
+
+
+_ECHO_SCRIPT = """
+import select, socket, sys, time
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.bind((sys.argv[1], 0))
+print(s.getsockname()[1], flush=True)
+deadline = time.monotonic() + float(sys.argv[2])
+while (left := deadline - time.monotonic()) > 0:
+    ready, _, _ = select.select([s, sys.stdin], [], [], left)
+    if sys.stdin in ready:
+        break  # EOF: the parent is done with us (or died)
+    if s in ready:
+        data, peer = s.recvfrom(65536)
+        s.sendto(data, peer)
+"""
+
+
+@contextlib.contextmanager
+def echo_process(
+    link: EmulatedLink, side: Side, host: str, *, max_lifetime_s: float = 600.0
+) -> Iterator[tuple[str, int]]:
+    """A UDP echo process in ``side``'s namespace bound to ``host``; yields its address.
+
+    The process lives until the block ends (its stdin is closed), at most
+    ``max_lifetime_s``; the link terminates it on close in any case.
+    """
+    proc = link.popen_in(
+        side,
+        [sys.executable, "-c", _ECHO_SCRIPT, host, repr(max_lifetime_s)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        if not line.strip().isdigit():
+            raise RuntimeError(f"echo process in namespace {side} did not start: {line!r}")
+        yield host, int(line)
+    finally:
+        if proc.stdin is not None:
+            proc.stdin.close()
+        try:
+            proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+
 @dataclass(frozen=True)
 class Overhead:
     """What the relay adds to a round trip, measured against ``lo`` in namespace A."""
@@ -117,40 +211,35 @@ class Overhead:
         return self.link.median_us - self.loopback.median_us
 
 
-def measure_overhead(link: EmulatedLink, *, count: int = 1000, payload: int = 32) -> Overhead:
-    """Ping-pong through the (clean) link and over ``lo`` in namespace A, and compare.
+def measure_overhead(
+    link: EmulatedLink, *, count: int = 1000, payload: int = 32, interval_s: float = 0.0
+) -> Overhead:
+    """Ping an echo process through the link and one over ``lo`` in namespace A; compare.
 
-    The link's impairments are left as they are; call it on a link with none for the
-    relay's own overhead.
+    The link's impairments are left as they are: on a clean link the difference is the
+    relay's own overhead; with a delay ``d`` it is ``2 d`` plus that overhead.  The mean
+    relay lateness covers the packets of this measurement, the maximum the link's life.
     """
     with (
-        link.open_socket("a") as a,
-        link.open_socket("b") as b,
-        link.open_socket("a") as lo_a,
-        link.open_socket("a") as lo_b,
+        echo_process(link, "b", link.addr_b) as far,
+        echo_process(link, "a", "127.0.0.1") as near,
+        link.open_socket("a") as through,
+        link.open_socket("a") as loop,
     ):
-        a.bind((link.addr_a, 0))
-        b.bind((link.addr_b, 0))
-        lo_a.bind(("127.0.0.1", 0))
-        lo_b.bind(("127.0.0.1", 0))
+        through.bind((link.addr_a, 0))
+        loop.bind(("127.0.0.1", 0))
         before = link.stats()
-        through = udp_ping_pong(a, b, count=count, payload=payload)
+        rtts_link = udp_ping(through, far, count=count, payload=payload, interval_s=interval_s)
         after = link.stats()
-        loopback = udp_ping_pong(lo_a, lo_b, count=count, payload=payload)
-    late_max = max(after.a_to_b.late_max_us, after.b_to_a.late_max_us)
-    delivered = (after.a_to_b.delivered - before.a_to_b.delivered) + (
-        after.b_to_a.delivered - before.b_to_a.delivered
-    )
+        rtts_lo = udp_ping(loop, near, count=count, payload=payload, interval_s=interval_s)
+    pairs = ((before.a_to_b, after.a_to_b), (before.b_to_a, after.b_to_a))
+    delivered = sum(new.delivered - old.delivered for old, new in pairs)
     late_sum = sum(
-        s_after.late_mean_us * s_after.delivered - s_before.late_mean_us * s_before.delivered
-        for s_before, s_after in (
-            (before.a_to_b, after.a_to_b),
-            (before.b_to_a, after.b_to_a),
-        )
+        new.late_mean_us * new.delivered - old.late_mean_us * old.delivered for old, new in pairs
     )
     return Overhead(
-        link=summarize(through, count),
-        loopback=summarize(loopback, count),
+        link=summarize(rtts_link, count),
+        loopback=summarize(rtts_lo, count),
         relay_late_mean_us=late_sum / delivered if delivered else 0.0,
-        relay_late_max_us=late_max,
+        relay_late_max_us=max(after.a_to_b.late_max_us, after.b_to_a.late_max_us),
     )

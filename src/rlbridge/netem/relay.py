@@ -187,6 +187,7 @@ def _parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--b-to-a", required=True, help="Impairment as JSON")
     parser.add_argument("--max-lifetime", type=float, required=True)
     parser.add_argument("--cpus", default="", help="comma-separated CPUs to pin to")
+    parser.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority")
     return parser.parse_args(argv)
 
 
@@ -199,6 +200,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     _reduce_timer_slack()
     if args.cpus:
         os.sched_setaffinity(0, {int(cpu) for cpu in args.cpus.split(",")})
+    if args.rt_priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
+        except PermissionError:
+            print("relay: not permitted to use SCHED_FIFO (needs CAP_SYS_NICE)", file=sys.stderr)
+            return 2
     a_to_b = msgspec.json.decode(args.a_to_b, type=Impairment)
     b_to_a = msgspec.json.decode(args.b_to_a, type=Impairment)
     models = (

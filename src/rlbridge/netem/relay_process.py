@@ -58,6 +58,7 @@ class RelayProcess:
         b_to_a: Impairment,
         max_lifetime_s: float,
         cpus: frozenset[int] | None = None,
+        rt_priority: int | None = None,
         start_timeout_s: float = 15.0,
         request_timeout_s: float = 5.0,
     ) -> None:
@@ -67,6 +68,7 @@ class RelayProcess:
         self._initial = (a_to_b, b_to_a)
         self._max_lifetime_s = max_lifetime_s
         self._cpus = cpus
+        self._rt_priority = rt_priority
         self._start_timeout_s = start_timeout_s
         self._request_timeout_s = request_timeout_s
         self._lock = threading.Lock()
@@ -96,6 +98,8 @@ class RelayProcess:
             ]  # fmt: skip
             if self._cpus:
                 argv += ["--cpus", ",".join(str(cpu) for cpu in sorted(self._cpus))]
+            if self._rt_priority:
+                argv += ["--rt-priority", str(self._rt_priority)]
             self._proc = subprocess.Popen(
                 argv,
                 pass_fds=(self._tun_a, self._tun_b, child.fileno()),

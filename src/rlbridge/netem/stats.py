@@ -4,7 +4,9 @@ The relay process owns a mutable :class:`DirectionCounters` per direction and se
 immutable :class:`DirectionStats` snapshots over the control channel when asked.
 ``late_*`` measure the relay itself: how long after its scheduled release time a packet
 was actually written to the receiving TUN (timer wake-up plus Python overhead).  That is
-the part of the measured latency the emulator adds on top of the configured delay.
+the part of the measured latency the emulator adds on top of the configured delay.  A
+benchmark should check them (for instance ``late_over_1ms == 0``) before trusting a run
+on a busy machine: a late relay looks exactly like a slow network.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ class DirectionStats(msgspec.Struct, frozen=True, kw_only=True):
     in_flight: int = 0
     late_max_us: float = 0.0
     late_mean_us: float = 0.0
+    late_over_100us: int = 0
+    late_over_1ms: int = 0
+    late_over_10ms: int = 0
 
     @property
     def dropped(self) -> int:
@@ -43,6 +48,9 @@ class LinkStats(msgspec.Struct, frozen=True, kw_only=True):
 
     a_to_b: DirectionStats
     b_to_a: DirectionStats
+
+
+_LATE_THRESHOLDS_S = (100e-6, 1e-3, 10e-3)
 
 
 class DirectionCounters:
@@ -59,6 +67,7 @@ class DirectionCounters:
         self.in_flight = 0
         self._late_max = 0.0
         self._late_sum = 0.0
+        self._late_over = [0, 0, 0]  # > 100 us, > 1 ms, > 10 ms
 
     def on_received(self, size: int) -> None:
         """A packet was read from the sending TUN."""
@@ -86,6 +95,9 @@ class DirectionCounters:
         self.bytes_delivered += size
         self._late_sum += late_s
         self._late_max = max(self._late_max, late_s)
+        for i, threshold in enumerate(_LATE_THRESHOLDS_S):
+            if late_s > threshold:
+                self._late_over[i] += 1
 
     def snapshot(self) -> DirectionStats:
         """An immutable copy, with lateness in microseconds."""
@@ -101,4 +113,7 @@ class DirectionCounters:
             in_flight=self.in_flight,
             late_max_us=self._late_max * 1e6,
             late_mean_us=mean * 1e6,
+            late_over_100us=self._late_over[0],
+            late_over_1ms=self._late_over[1],
+            late_over_10ms=self._late_over[2],
         )

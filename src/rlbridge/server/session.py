@@ -31,6 +31,7 @@ from rlbridge.wire import (
     Heartbeat,
     Packet,
     PacketCodec,
+    RemoteProtocolError,
     Stats,
     TopicAck,
     TopicClose,
@@ -41,6 +42,8 @@ from rlbridge.wire import (
 from rlbridge.wire.link import LinkMonitor, LinkState
 
 log = logging.getLogger("rlbridge.server")
+
+TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
 
 
 @dataclass
@@ -154,10 +157,15 @@ class Session:
                 self.error(ErrorCode.UNEXPECTED,
                            f"a client may not send {type(packet).__name__} here", via=sink)
 
-    def malformed_packet(self, reason: str, via: PacketSink | None) -> None:
+    def malformed_packet(self, error: RemoteProtocolError, via: PacketSink | None) -> None:
+        """Answer a packet that did not decode; a broken topic-connect gets its TopicError."""
         self.malformed += 1
         self.ctx.count("malformed")
-        self.error(ErrorCode.MALFORMED, reason, via=via)
+        if error.tag == TOPIC_CONNECT_TAG and error.channel is not None:
+            self.send_control(TopicError(error.channel, int(ErrorCode.MALFORMED), error.reason),
+                              via)
+            return
+        self.error(ErrorCode.MALFORMED, error.reason, error.channel, via=via)
 
     def _data(self, channel: int, packet: Value | Batch, via: PacketSink | None) -> None:
         binding = self.inbound.get(channel)

@@ -5,6 +5,12 @@ appends frames to the transport's buffer and refuses (counts) data once a slow c
 ``max_write_buffer`` bytes pile up, so one stalled reader cannot grow the server's memory. The
 UDP sink sends one datagram per packet to the client's last seen address, splitting batches that
 would exceed the datagram budget.
+
+The TCP sink corks value frames: those written while the loop handles one burst of input are
+gathered in one buffer and handed to the transport once, at the end of the loop iteration
+(``call_soon``), so a burst of a hundred one-value packets costs one ``send`` system call, not a
+hundred. Control frames (acks, errors, heartbeats, goodbyes) flush what is corked and go out at
+once, so the order on the stream is the order of ``send`` calls and a close never loses them.
 """
 
 from __future__ import annotations
@@ -25,12 +31,16 @@ class PacketSink(Protocol):
 
 
 class TcpSink:
-    """Frames into one TCP transport."""
+    """Frames into one TCP transport; value frames corked per loop iteration (module doc)."""
 
-    def __init__(self, transport: asyncio.Transport, codec: PacketCodec, max_buffer: int) -> None:
+    def __init__(self, transport: asyncio.Transport, codec: PacketCodec, max_buffer: int,
+                 loop: asyncio.AbstractEventLoop | None = None) -> None:
         self._transport = transport
         self._codec = codec
         self._max_buffer = max_buffer
+        self._loop = loop
+        self._corked = bytearray()
+        self._corked_frames = 0
         self._dropped = 0
 
     @property
@@ -42,11 +52,30 @@ class TcpSink:
         if transport.is_closing():
             self._dropped += data
             return False
-        if data and transport.get_write_buffer_size() > self._max_buffer:
+        corked = self._corked
+        if data and transport.get_write_buffer_size() + len(corked) > self._max_buffer:
             self._dropped += 1
             return False
-        transport.write(self._codec.encode_frame(packet))
+        if not data or self._loop is None:
+            self.flush()
+            transport.write(self._codec.encode_frame(packet))
+            return True
+        if not corked:
+            self._loop.call_soon(self.flush)
+        self._codec.encode_frame_into(packet, corked)
+        self._corked_frames += 1
         return True
+
+    def flush(self) -> None:
+        """Hand the corked frames to the transport (which owns the buffer from then on)."""
+        corked = self._corked
+        if corked:
+            self._corked = bytearray()
+            frames, self._corked_frames = self._corked_frames, 0
+            if self._transport.is_closing():
+                self._dropped += frames
+            else:
+                self._transport.write(corked)
 
 
 class UdpSink:
@@ -77,22 +106,28 @@ class UdpSink:
             return False
         datagram = self._codec.encode_datagram(packet, self._token)
         if len(datagram) > self._max_payload and isinstance(packet, Batch):
-            return self._split(packet)
+            return self._split(packet, len(datagram))
         if len(datagram) > self._max_payload and data:
             self._dropped += 1  # a single value larger than a datagram: refuse, counted
             return False
         self._transport.sendto(datagram, self.addr)
         return True
 
-    def _split(self, batch: Batch) -> bool:
+    def _split(self, batch: Batch, size: int) -> bool:
+        """Send ``batch`` (encoded: ``size`` bytes) as consecutive batches that fit.
+
+        The chunk length is estimated from the encoded size once, instead of halving and
+        re-encoding the whole batch at every level; a chunk that still does not fit (values of
+        very different sizes) is split again the same way.
+        """
         n = len(batch.values)
         if n <= 1:
             self._dropped += n
             return False
-        half = n // 2
-        first = Batch(batch.channel, batch.first_seq, batch.stamps[:half], batch.values[:half])
-        rest = Batch(
-            batch.channel, batch.first_seq + half, batch.stamps[half:], batch.values[half:]
-        )
-        ok_first = self.send(first, data=True)
-        return self.send(rest, data=True) and ok_first
+        per = max(1, min(n // 2, n * (self._max_payload - 64) // size))
+        ok = True
+        for i in range(0, n, per):
+            part = Batch(batch.channel, batch.first_seq + i, batch.stamps[i : i + per],
+                         batch.values[i : i + per])
+            ok = self.send(part, data=True) and ok
+        return ok

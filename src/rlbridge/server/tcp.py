@@ -12,6 +12,7 @@ from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
 from rlbridge.wire import (
     ConnectError,
+    Error,
     ErrorCode,
     FrameDecoder,
     Hello,
@@ -43,10 +44,12 @@ class TcpConnection(asyncio.Protocol):
         ctx = self._registry.ctx
         self._peer = str(t.get_extra_info("peername"))
         sock = t.get_extra_info("socket")
-        if ctx.config.nodelay and sock is not None:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if sock is not None:
+            # Set either way: asyncio and uvloop turn Nagle off on every TCP transport, so
+            # without --nodelay it has to be turned back on to mean what the option says.
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, int(ctx.config.nodelay))
         t.set_write_buffer_limits(high=ctx.config.max_write_buffer)
-        self._sink = TcpSink(t, ctx.codec, ctx.config.max_write_buffer)
+        self._sink = TcpSink(t, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
 
     def data_received(self, data: bytes) -> None:
         try:
@@ -61,7 +64,7 @@ class TcpConnection(asyncio.Protocol):
                 if session is None:
                     self._fatal(packet.error.code, packet.error.reason)
                     return
-                session.malformed_packet(packet.error.reason, self._sink)
+                session.malformed_packet(packet.error, self._sink)
             elif session is not None:
                 session.handle(packet, "tcp")
             elif isinstance(packet, Hello):
@@ -85,13 +88,20 @@ class TcpConnection(asyncio.Protocol):
         self._sink.send(self._registry.ack(result))
 
     def _fatal(self, code: ErrorCode, reason: str) -> None:
-        """The byte stream cannot be trusted any more: say why, then close."""
+        """The byte stream cannot be trusted any more: say why, then close.
+
+        Before a session exists the answer is a ConnectError ("no session"); inside a session
+        it is an Error with the code, then a Disconnect, so the client's SDK reports the reason.
+        """
         log.warning("closing TCP connection from %s: %s", self._peer, reason)
-        if self._sink is not None and self._transport is not None:
+        if self._sink is None or self._transport is None:
+            return
+        if self._session is None:
             self._sink.send(ConnectError(int(code), reason))
-            if self._session is not None:
-                self._session.close(reason, notify=False)
-            self._transport.close()
+        else:
+            self._sink.send(Error(int(code), reason))
+            self._session.close(reason, notify=True, code=int(code))
+        self._transport.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self._session is not None:

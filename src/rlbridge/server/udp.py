@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import socket
 from typing import cast
 
 from rlbridge.server.registry import SessionRegistry
@@ -11,6 +13,9 @@ from rlbridge.server.sinks import UdpSink
 from rlbridge.wire import ConnectError, Hello, RemoteProtocolError
 
 log = logging.getLogger("rlbridge.server")
+
+#: Bytes of queued datagrams the server asks the kernel for (see ``connection_made``).
+RECEIVE_BUFFER = 4 << 20
 
 
 class UdpEndpoint(asyncio.DatagramProtocol):
@@ -33,6 +38,13 @@ class UdpEndpoint(asyncio.DatagramProtocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = cast(asyncio.DatagramTransport, transport)
         self._registry.ctx.udp_transport = self._transport
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            # Every client's datagrams queue here while the loop is busy; the default buffer
+            # (~200 KiB, under 100 full datagrams) drops a single client's burst. The kernel
+            # caps the request at net.core.rmem_max; drops that remain show as sequence gaps.
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         ctx = self._registry.ctx
@@ -41,6 +53,10 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         except RemoteProtocolError as exc:
             ctx.count("udp_malformed")
             log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            # A live token proves the sender is the client: tell it what was wrong.
+            known = self._registry.by_token(exc.token) if exc.token else None
+            if known is not None and known.udp is not None:
+                known.malformed_packet(exc, known.udp)
             return
         if token == 0:
             if isinstance(packet, Hello):

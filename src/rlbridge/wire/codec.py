@@ -70,6 +70,13 @@ class PacketCodec:
     def decode_body(self, body: bytes | memoryview) -> Packet:
         """Decode one packet body; raise a non-fatal :class:`RemoteProtocolError` if invalid."""
         try:
+            return self._decode(body)
+        except RemoteProtocolError as exc:
+            exc.tag, exc.channel = _salvage(body)
+            raise
+
+    def _decode(self, body: bytes | memoryview) -> Packet:
+        try:
             return self._decoder.decode(body)
         except msgspec.ValidationError as exc:
             raise RemoteProtocolError(ErrorCode.MALFORMED, f"invalid packet: {exc}") from None
@@ -94,7 +101,23 @@ class PacketCodec:
             )
         magic, version, flags, token = DATAGRAM_HEADER.unpack_from(data)
         check_header(magic, version)
-        return flags, token, self.decode_body(memoryview(data)[DATAGRAM_HEADER.size :])
+        try:
+            return flags, token, self.decode_body(memoryview(data)[DATAGRAM_HEADER.size :])
+        except RemoteProtocolError as exc:
+            exc.token = token
+            raise
+
+
+def _salvage(body: bytes | memoryview) -> tuple[int | None, int | None]:
+    """Tag and channel of an invalid body, if it is at least ``[int, int, ...]``."""
+    try:
+        raw = msgspec.msgpack.decode(body)
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):
+        return None, None
+    if (isinstance(raw, list) and len(raw) >= 2 and type(raw[0]) is int
+            and type(raw[1]) is int and 0 <= raw[1] <= 0xFFFF_FFFF):
+        return raw[0], raw[1]
+    return None, None
 
 
 def check_header(magic: bytes, version: int) -> None:

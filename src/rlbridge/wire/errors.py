@@ -53,6 +53,13 @@ class RemoteProtocolError(RlbridgeError):
         self.code = code
         self.reason = reason
         self.fatal = fatal
+        #: What could be salvaged from an invalid body: its tag and channel id (when the body
+        #: is at least a MessagePack array starting with two integers), so a refused
+        #: topic-connect can still be answered with a TopicError for its channel.
+        self.tag: int | None = None
+        self.channel: int | None = None
+        #: The session token of a datagram whose header was valid but whose body was not.
+        self.token: int | None = None
 
 
 class RemoteError(RlbridgeError):

@@ -102,9 +102,9 @@ class LinkMonitor:
         """The earliest time at which :meth:`state` or :meth:`heartbeat_due` can change."""
         degraded_at = self._last_rx + (self.heartbeat_ns * 3) // 2
         lost_at = self._last_rx + self.timeout_ns
-        candidates = [self._next_tx, lost_at]
-        if degraded_at > now_ns:
-            candidates.append(degraded_at)
+        # A threshold already crossed changes nothing any more: a lost link waits for the next
+        # heartbeat, not for ``now`` (which would make the caller's timer spin).
+        candidates = [self._next_tx, *(t for t in (degraded_at, lost_at) if t > now_ns)]
         return max(now_ns, min(candidates))
 
     def stats(self, now_ns: int) -> LinkStats:

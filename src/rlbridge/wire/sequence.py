@@ -43,6 +43,8 @@ class SequenceTracker:
         Returns ``count`` when the whole batch is old. Values before the index were delivered
         already (duplicates) or overtaken (stale); the rest are new and in order.
         """
+        if count <= 0:  # an empty batch delivers nothing and must not move ``highest``
+            return 0
         last = first_seq + count - 1
         highest = self.highest
         if last <= highest:

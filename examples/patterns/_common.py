@@ -1,0 +1,62 @@
+"""Shared plumbing of the pattern examples: arguments, a publisher process, a summary line.
+
+Start a server first (``rlbridge serve``), then run any example with ``--host/--port``. The
+receive examples need someone publishing ``/example/setpoint``; ``--publish`` (on by default)
+starts one in a *separate process* (so it does not share this interpreter's GIL) for as long as
+the example runs, and stops it at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+
+from rlbridge.csp.patterns import Coupling
+
+F64 = "std_msgs/msg/Float64"
+SETPOINT = "/example/setpoint"
+OUTPUT = "/example/output"
+
+
+def parser(description: str) -> argparse.ArgumentParser:
+    """The arguments every example takes."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--host", default="127.0.0.1", help="bridge server address")
+    p.add_argument("--port", type=int, default=7411, help="bridge server port")
+    p.add_argument("--cycles", type=int, default=2000, help="loop deadlines to run (bounded)")
+    p.add_argument("--period-us", type=int, default=1000, help="loop period")
+    return p
+
+
+@contextlib.contextmanager
+def publisher(host: str, port: int, seconds: float, enabled: bool = True,
+              rate: float = 100.0) -> Iterator[None]:
+    """A sine on SETPOINT at ``rate`` from a separate process, killed on exit."""
+    if not enabled:
+        yield
+        return
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rlbridge.bench.jitter", "publisher", "--host", host,
+         "--port", str(port), "--topic", SETPOINT, "--rate", str(rate),
+         "--seconds", str(seconds)], start_new_session=True)
+    try:
+        yield
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(10)
+
+
+def report(coupling: Coupling) -> None:
+    """One line of what the loop saw, then the channels' counters."""
+    stats = coupling.stats()
+    print(f"{coupling.name}: {coupling.loop.released} releases, {stats.missed} missed; "
+          f"lateness p50 {stats.p50_ns / 1e3:.0f} us, p99 {stats.p99_ns / 1e3:.0f} us, "
+          f"max {stats.max_ns / 1e3:.0f} us")
+    for role, channel in coupling.channels.items():
+        print(f"  {role}: {channel.statistics()}")

@@ -1,0 +1,40 @@
+"""For comparison: the HRT loop reads a *blocking* bridge channel (do not do this).
+
+The loop runs when a message arrives, not when its timer says: most releases are missed and
+the rest are late by up to one period. rlbridge reports it with a RealTimeWarning and the
+channel's ``hrt_blocking_reads`` counter.
+
+    rlbridge serve &  python examples/patterns/receive_naive.py --port 7411
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from _common import F64, SETPOINT, parser, publisher, report
+
+from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.patterns import realtime_switch_interval, receive_naive
+
+
+def main() -> None:
+    p = parser(__doc__ or "")
+    p.add_argument("--no-publish", dest="publish", action="store_false",
+                   help="without a publisher the loop blocks in its first read until Ctrl-C")
+    args = p.parse_args()
+    realtime_switch_interval()
+
+    def control(setpoint: Any) -> None:
+        del setpoint
+
+    seconds = args.cycles * args.period_us / 1e6 + 5
+    with publisher(args.host, args.port, seconds, args.publish), \
+            Bridge.connect(args.host, args.port, nodelay=True) as bridge:
+        coupling = receive_naive(bridge, SETPOINT, F64, control,
+                                 period=args.period_us / 1e6, cycles=args.cycles)
+        coupling.run()
+        report(coupling)
+
+
+if __name__ == "__main__":
+    main()

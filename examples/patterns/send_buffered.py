@@ -1,0 +1,34 @@
+"""Thesis figure 5.5: every value, in order, sent by a lower-priority process.
+
+    rlbridge serve &  rlbridge topic hz /example/output std_msgs/msg/Float64 --duration 5 &
+    python examples/patterns/send_buffered.py --port 7411
+"""
+
+from __future__ import annotations
+
+import math
+
+from _common import F64, OUTPUT, parser, report
+
+from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.patterns import realtime_switch_interval, send_buffered
+
+
+def main() -> None:
+    args = parser(__doc__ or "").parse_args()
+    realtime_switch_interval()
+    k = [0]
+
+    def control() -> float:
+        k[0] += 1
+        return math.sin(k[0] * args.period_us / 1e6)
+
+    with Bridge.connect(args.host, args.port, nodelay=True) as bridge:
+        coupling = send_buffered(bridge, OUTPUT, F64, control, period=args.period_us / 1e6,
+                                 cycles=args.cycles)
+        coupling.run()
+        report(coupling)
+
+
+if __name__ == "__main__":
+    main()

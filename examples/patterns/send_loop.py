@@ -1,0 +1,37 @@
+"""Thesis figure 5.10: the SDK's own send loop sends the buffered values at a fixed rate.
+
+    rlbridge serve &  rlbridge topic hz /example/output std_msgs/msg/Float64 --duration 5 &
+    python examples/patterns/send_loop.py --port 7411 --send-rate 100
+"""
+
+from __future__ import annotations
+
+import math
+
+from _common import F64, OUTPUT, parser, report
+
+from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.patterns import realtime_switch_interval, send_loop
+
+
+def main() -> None:
+    p = parser(__doc__ or "")
+    p.add_argument("--send-rate", type=float, default=100.0, help="SDK send loop rate (Hz)")
+    args = p.parse_args()
+    realtime_switch_interval()
+    k = [0]
+
+    def control() -> float:
+        k[0] += 1
+        return math.sin(k[0] * args.period_us / 1e6)
+
+    with Bridge.connect(args.host, args.port, nodelay=True,
+                        send_rate_hz=args.send_rate) as bridge:
+        coupling = send_loop(bridge, OUTPUT, F64, control, period=args.period_us / 1e6,
+                             cycles=args.cycles)
+        coupling.run()
+        report(coupling)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,36 @@
+"""Thesis figure 5.6: a lower-priority timed process sends the latest value at a lower rate.
+
+    rlbridge serve &  rlbridge topic hz /example/output std_msgs/msg/Float64 --duration 5 &
+    python examples/patterns/send_sampled.py --port 7411 --rate 50
+"""
+
+from __future__ import annotations
+
+import math
+
+from _common import F64, OUTPUT, parser, report
+
+from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.patterns import realtime_switch_interval, send_sampled
+
+
+def main() -> None:
+    p = parser(__doc__ or "")
+    p.add_argument("--rate", type=float, default=100.0, help="send rate of the sampler (Hz)")
+    args = p.parse_args()
+    realtime_switch_interval()
+    k = [0]
+
+    def control() -> float:
+        k[0] += 1
+        return math.sin(k[0] * args.period_us / 1e6)
+
+    with Bridge.connect(args.host, args.port, nodelay=True) as bridge:
+        coupling = send_sampled(bridge, OUTPUT, F64, control, rate_hz=args.rate,
+                                period=args.period_us / 1e6, cycles=args.cycles)
+        coupling.run()
+        report(coupling)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,201 @@
+"""The relay loop with socket pairs standing in for the TUN devices (no root needed).
+
+A ``SOCK_DGRAM`` unix socket pair behaves like a TUN descriptor for the relay: one
+``read`` is one packet, one ``write`` is one packet.  The relay runs in a thread here;
+in production it is a process of its own.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import pytest
+
+from rlbridge.netem import control
+from rlbridge.netem.impairment import Impairment, PathModel
+from rlbridge.netem.relay import Relay
+
+pytestmark = pytest.mark.timeout(30)
+
+
+@dataclass
+class Harness:
+    app_a: socket.socket
+    app_b: socket.socket
+    ctrl: socket.socket
+    thread: threading.Thread
+
+    def request(self, message: control.Request) -> control.Reply:
+        self.ctrl.send(control.encode(message))
+        return control.decode_reply(self.ctrl.recv(control.MAX_MESSAGE_BYTES))
+
+
+MakeRelay = Callable[..., Harness]
+
+
+@pytest.fixture
+def make_relay() -> Iterator[MakeRelay]:
+    opened: list[socket.socket] = []
+    controls: list[socket.socket] = []
+    threads: list[threading.Thread] = []
+
+    def make(a_to_b: Impairment, b_to_a: Impairment, lifetime_s: float = 20.0) -> Harness:
+        app_a, relay_a = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        app_b, relay_b = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        ctrl, relay_ctrl = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        opened.extend([app_a, relay_a, app_b, relay_b, ctrl, relay_ctrl])
+        controls.append(ctrl)
+        for sock in (relay_a, relay_b):
+            sock.setblocking(False)
+        for sock in (app_a, app_b, ctrl):
+            sock.settimeout(5.0)
+        relay = Relay(
+            tun_a=relay_a.fileno(),
+            tun_b=relay_b.fileno(),
+            ctrl=relay_ctrl,
+            models=(
+                PathModel(a_to_b, seed=1, name="a_to_b"),
+                PathModel(b_to_a, seed=1, name="b_to_a"),
+            ),
+            deadline=time.monotonic() + lifetime_s,
+        )
+        thread = threading.Thread(target=relay.run, daemon=True)
+        thread.start()
+        threads.append(thread)
+        harness = Harness(app_a, app_b, ctrl, thread)
+        assert isinstance(control.decode_reply(ctrl.recv(control.MAX_MESSAGE_BYTES)), control.Ready)
+        return harness
+
+    yield make
+    for sock in controls:
+        sock.close()  # EOF stops a relay that is still running
+    for thread in threads:
+        thread.join(timeout=5.0)
+        assert not thread.is_alive()
+    for sock in opened:
+        sock.close()
+
+
+def test_delays_one_direction_and_keeps_order(make_relay: MakeRelay) -> None:
+    h = make_relay(Impairment(delay_ms=20.0), Impairment())
+    sent_at = []
+    for seq in range(10):
+        sent_at.append(time.monotonic())
+        h.app_a.send(struct.pack("!I", seq))
+    for seq in range(10):
+        data = h.app_b.recv(100)
+        arrived = time.monotonic()
+        assert struct.unpack("!I", data)[0] == seq
+        assert arrived - sent_at[seq] >= 0.020  # never early: strict lower bound
+        assert arrived - sent_at[seq] < 1.0  # generous upper bound
+    start = time.monotonic()
+    h.app_b.send(b"back")
+    assert h.app_a.recv(100) == b"back"
+    assert time.monotonic() - start < 0.5  # the other direction is clean
+
+    reply = h.request(control.GetStats())
+    assert isinstance(reply, control.StatsReply)
+    assert reply.stats.a_to_b.received == reply.stats.a_to_b.delivered == 10
+    assert reply.stats.a_to_b.bytes_delivered == 40
+    assert reply.stats.b_to_a.delivered == 1
+    assert reply.stats.a_to_b.in_flight == 0
+
+
+def test_loss_is_counted_and_matches_the_model(make_relay: MakeRelay) -> None:
+    imp = Impairment(loss_pct=30.0)
+    h = make_relay(imp, Impairment())
+    for seq in range(200):
+        h.app_a.send(struct.pack("!I", seq))
+        if seq % 20 == 19:
+            time.sleep(0.002)  # stay well within the socket pair's buffer
+    expected_model = PathModel(imp, seed=1, name="a_to_b")
+    expected_lost = {
+        seq for seq in range(200) if not isinstance(expected_model.admit(0.0, 4), float)
+    }
+    deadline = time.monotonic() + 5.0
+    while True:
+        reply = h.request(control.GetStats())
+        assert isinstance(reply, control.StatsReply)
+        if reply.stats.a_to_b.received == 200 or time.monotonic() > deadline:
+            break
+        time.sleep(0.01)
+    assert reply.stats.a_to_b.dropped_loss == len(expected_lost)
+    h.app_b.setblocking(False)
+    got = set()
+    while True:
+        try:
+            got.add(struct.unpack("!I", h.app_b.recv(100))[0])
+        except BlockingIOError:
+            break
+    assert got == set(range(200)) - expected_lost
+
+
+def test_set_impairments_applies_to_new_packets(make_relay: MakeRelay) -> None:
+    h = make_relay(Impairment(), Impairment())
+    start = time.monotonic()
+    h.app_a.send(b"fast")
+    assert h.app_b.recv(100) == b"fast"
+    fast = time.monotonic() - start
+    assert isinstance(
+        h.request(control.SetImpairments(a_to_b=Impairment(delay_ms=30.0), b_to_a=Impairment())),
+        control.Ok,
+    )
+    start = time.monotonic()
+    h.app_a.send(b"slow")
+    assert h.app_b.recv(100) == b"slow"
+    assert time.monotonic() - start >= 0.030
+    assert fast < 0.5
+
+
+def test_stop_request_ends_the_loop(make_relay: MakeRelay) -> None:
+    h = make_relay(Impairment(), Impairment())
+    assert isinstance(h.request(control.Stop()), control.Ok)
+    h.thread.join(timeout=2.0)
+    assert not h.thread.is_alive()
+
+
+def test_control_eof_ends_the_loop(make_relay: MakeRelay) -> None:
+    h = make_relay(Impairment(), Impairment())
+    h.ctrl.close()
+    h.thread.join(timeout=2.0)
+    assert not h.thread.is_alive()
+
+
+def test_deadline_ends_the_loop_even_with_packets_pending(make_relay: MakeRelay) -> None:
+    h = make_relay(Impairment(delay_ms=10_000.0), Impairment(), lifetime_s=0.3)
+    h.app_a.send(b"never delivered")
+    h.thread.join(timeout=3.0)
+    assert not h.thread.is_alive()
+
+
+def test_bad_request_gets_a_failed_reply(make_relay: MakeRelay) -> None:
+    h = make_relay(Impairment(), Impairment())
+    h.ctrl.send(b'{"type": "Explode"}')
+    reply = control.decode_reply(h.ctrl.recv(control.MAX_MESSAGE_BYTES))
+    assert isinstance(reply, control.Failed)
+    assert "bad request" in reply.message
+    assert h.thread.is_alive()
+
+
+def test_write_errors_are_counted(make_relay: MakeRelay) -> None:
+    h = make_relay(Impairment(), Impairment())
+    h.app_b.shutdown(socket.SHUT_RDWR)  # B's "TUN" can no longer take packets
+    os.set_blocking(h.app_a.fileno(), True)
+    h.app_a.send(b"x")
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline:
+        reply = h.request(control.GetStats())
+        assert isinstance(reply, control.StatsReply)
+        if reply.stats.a_to_b.received:
+            break
+        time.sleep(0.01)
+    assert isinstance(reply, control.StatsReply)
+    stats = reply.stats.a_to_b
+    assert stats.received == 1
+    assert stats.delivered + stats.write_errors == 1

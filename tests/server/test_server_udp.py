@@ -1,0 +1,180 @@
+"""UDP on a live server: UDP-only sessions, tokens, dropped datagrams, the watchdog."""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Callable
+from typing import Any
+
+from rlbridge.csp.bridge import Bridge
+from rlbridge.server import ServerThread
+from rlbridge.wire import (
+    DATAGRAM_HEADER,
+    MAGIC,
+    PROTOCOL_VERSION,
+    ConnectAck,
+    Disconnect,
+    ErrorCode,
+    Heartbeat,
+    Hello,
+    Stats,
+    TopicAck,
+    TopicConnect,
+    TopicError,
+    Value,
+)
+from rlbridge.wire.link import LinkState
+
+F64 = "std_msgs/msg/Float64"
+
+
+def test_udp_only_session(raw_udp: Callable[..., Any], raw_tcp: Callable[..., Any]) -> None:
+    client = raw_udp()
+    ack = client.hello("udp-only")
+    assert ack.token != 0
+    client.send(TopicConnect(1, "subscribe", "/udp/only", F64, transport="udp"))
+    assert client.expect(TopicAck) == TopicAck(1, F64, 0.0)
+    client.send(Stats())
+    body = client.expect(Stats).body
+    assert body["session"]["session"] == ack.session
+    assert body["session"]["name"] == "udp-only"
+
+    publisher = raw_tcp()
+    publisher.hello()
+    publisher.send(TopicConnect(7, "publish", "/udp/only", F64, transport="tcp"))
+    publisher.expect(TopicAck)
+    publisher.send(Value(7, 0, 0, 2.5))
+    token, value = client.recv_datagram()
+    while isinstance(value, Heartbeat):
+        token, value = client.recv_datagram()
+    assert token == ack.token
+    assert isinstance(value, Value)
+    assert (value.channel, value.value) == (1, 2.5)
+
+
+def test_tcp_channel_on_a_udp_only_session_is_refused(raw_udp: Callable[..., Any]) -> None:
+    client = raw_udp()
+    client.hello()
+    client.send(TopicConnect(1, "subscribe", "/udp/tcp", F64, transport="tcp"))
+    err = client.expect(TopicError)
+    assert err.code == ErrorCode.TRANSPORT_DISABLED
+    assert "without a TCP connection" in err.reason
+    client.send(TopicConnect(2, "subscribe", "/udp/tcp", F64, transport="udp"))
+    assert client.expect(TopicAck).channel == 2
+
+
+def test_retransmitted_hello_gets_the_same_session(raw_udp: Callable[..., Any]) -> None:
+    client = raw_udp()
+    first = client.hello("twice")
+    client.send(Hello(PROTOCOL_VERSION, "twice"), token=0)
+    again = client.expect(ConnectAck)
+    assert (again.session, again.token) == (first.session, first.token)
+    client.send(Stats())
+    assert client.expect(Stats).body["server"]["sessions_opened"] == 1
+    # Another socket (another address) with the same name is another client.
+    other = raw_udp()
+    assert other.hello("twice").session != first.session
+
+
+def test_hello_after_the_session_closed_gets_a_new_one(raw_udp: Callable[..., Any]) -> None:
+    client = raw_udp()
+    first = client.hello("again")
+    client.send(Disconnect(0, "bye"))
+    second = client.hello("again")
+    assert second.session != first.session
+    assert second.token != first.token
+
+
+def test_wrong_tokens_are_dropped_counted_and_never_answered(
+    raw_udp: Callable[..., Any], raw_tcp: Callable[..., Any]
+) -> None:
+    live = raw_udp()
+    live_ack = live.hello("live")
+    stranger = raw_udp()
+    bogus = [t for t in (secrets.randbits(64) for _ in range(10)) if t not in (0, live_ack.token)]
+    for token in bogus[:4]:
+        stranger.send(Stats(), token=token)
+        stranger.send(TopicConnect(1, "subscribe", "/x", F64, transport="udp"), token=token)
+    # Token 0 with anything but a hello: dropped and counted too.
+    stranger.send(Stats(), token=0)
+    # Garbage: counted as malformed, not answered.
+    stranger.send_bytes(b"not a datagram at all")
+    stranger.send_bytes(DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, 5) + b"\xc1")
+    # The first datagram the stranger ever gets is the answer to its hello: nothing before it.
+    stranger.send(Hello(PROTOCOL_VERSION, "stranger"), token=0)
+    token, first = stranger.recv_datagram()
+    assert isinstance(first, ConnectAck), f"the server answered a bad datagram: {first!r}"
+    assert token == first.token
+
+    watcher = raw_tcp()
+    watcher.hello()
+    counters = watcher.stats()["server"]
+    assert counters["udp_bad_token"] == 8
+    assert counters["udp_no_token"] == 1
+    assert counters["udp_malformed"] == 2
+    assert counters["sessions_opened"] == 3  # live, stranger, watcher: nothing else
+
+
+def test_token_of_a_closed_session_is_dead(raw_udp: Callable[..., Any]) -> None:
+    client = raw_udp()
+    ack = client.hello()
+    client.send(Disconnect(0, "bye"))
+    # From a fresh socket, so that nothing the old session sent can be mistaken for an answer.
+    probe = raw_udp()
+    probe.send(Stats(), token=ack.token)  # the old token is refused now
+    probe.send(Hello(PROTOCOL_VERSION, "probe"), token=0)
+    _token, first = probe.recv_datagram()
+    assert isinstance(first, ConnectAck), first
+    probe.token = first.token
+    probe.send(Stats())
+    assert probe.expect(Stats).body["server"]["udp_bad_token"] == 1
+
+
+def test_watchdog_drops_a_silent_udp_session(make_server: Callable[..., ServerThread],
+                                             raw_udp: Callable[..., Any]) -> None:
+    srv = make_server(heartbeat_ms=50, timeout_ms=500)
+    # An SDK client that sends heartbeats stays connected all the while.
+    with Bridge.connect("127.0.0.1", srv.port, name="alive", timeout=10) as alive:
+        silent = raw_udp(srv.port)
+        ack = silent.hello("silent")
+        assert ack.timeout_ms == 500
+        packets = []
+        while True:
+            packet = silent.recv(skip=())
+            packets.append(packet)
+            if not isinstance(packet, Heartbeat):
+                break
+        bye = packets[-1]
+        assert isinstance(bye, Disconnect), packets
+        assert "watchdog" in bye.reason
+        assert "500 ms" in bye.reason
+        assert len(packets) >= 2, "the server sent no heartbeat before giving up"
+        stats = alive.server_stats()
+        assert stats["server"]["sessions_timed_out"] == 1
+        assert stats["session"]["name"] == "alive"
+        assert alive.link_state is not LinkState.LOST
+        # The dead session's token is gone.
+        silent.send(Stats(), token=ack.token)
+        silent.send(Hello(PROTOCOL_VERSION, "back"), token=0)
+        assert isinstance(silent.recv_datagram()[1], ConnectAck)
+
+
+def test_watchdog_drops_a_silent_tcp_session(make_server: Callable[..., ServerThread],
+                                             raw_tcp: Callable[..., Any]) -> None:
+    srv = make_server(heartbeat_ms=50, timeout_ms=300)
+    silent = raw_tcp(srv.port)
+    silent.hello()
+    got = silent.wait_closed()
+    assert isinstance(got[-1], Disconnect), got
+    assert "watchdog" in got[-1].reason
+
+
+def test_udp_disabled_server_refuses_udp_channels(make_server: Callable[..., ServerThread],
+                                                 raw_tcp: Callable[..., Any]) -> None:
+    srv = make_server(udp=False)
+    client = raw_tcp(srv.port)
+    client.hello()
+    client.send(TopicConnect(1, "subscribe", "/no/udp", F64, transport="udp"))
+    err = client.expect(TopicError)
+    assert err.code == ErrorCode.TRANSPORT_DISABLED
+    assert "--no-udp" in err.reason
