@@ -22,6 +22,7 @@ Without rclpy it prints why and exits with status 0, so scripts that try every e
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import math
@@ -51,7 +52,7 @@ except ImportError as exc:
 AXES = ("pan", "tilt")
 
 
-class VisionNode(Node):  # type: ignore[misc]  # rclpy ships no type information
+class VisionNode(Node):  # type: ignore[misc,unused-ignore]  # Any where rclpy is missing
     """30 Hz set-points out; angles, status and diagnostics in."""
 
     def __init__(self, context: Context, args: argparse.Namespace) -> None:
@@ -102,10 +103,8 @@ class VisionNode(Node):  # type: ignore[misc]  # rclpy ships no type information
         print(f"t={self.now():6.2f}s controller status: {msg.data}", flush=True)
 
     def on_diagnostics(self, msg: Any) -> None:
-        try:
+        with contextlib.suppress(ValueError):  # not JSON: not our controller; ignore it
             self.diagnostics = json.loads(msg.data)
-        except ValueError:
-            pass
 
     def line(self) -> str:
         d = self.diagnostics

@@ -13,14 +13,13 @@ from typing import Any
 from _common import F64, SETPOINT, parser, publisher, report
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.patterns import realtime_switch_interval, receive_blocking
+from rlbridge.csp.patterns import receive_blocking
 
 
 def main() -> None:
     p = parser(__doc__ or "")
     p.add_argument("--no-publish", dest="publish", action="store_false")
     args = p.parse_args()
-    realtime_switch_interval()
     seen: list[float] = []
 
     def check(value: Any) -> float:  # runs in the lower-priority process

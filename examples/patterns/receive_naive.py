@@ -14,7 +14,7 @@ from typing import Any
 from _common import F64, SETPOINT, parser, publisher, report
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.patterns import realtime_switch_interval, receive_naive
+from rlbridge.csp.patterns import receive_naive
 
 
 def main() -> None:
@@ -22,7 +22,6 @@ def main() -> None:
     p.add_argument("--no-publish", dest="publish", action="store_false",
                    help="without a publisher the loop blocks in its first read until Ctrl-C")
     args = p.parse_args()
-    realtime_switch_interval()
 
     def control(setpoint: Any) -> None:
         del setpoint

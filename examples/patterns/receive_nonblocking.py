@@ -10,14 +10,13 @@ from typing import Any
 from _common import F64, SETPOINT, parser, publisher, report
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.patterns import realtime_switch_interval, receive_nonblocking
+from rlbridge.csp.patterns import receive_nonblocking
 
 
 def main() -> None:
     p = parser(__doc__ or "")
     p.add_argument("--no-publish", dest="publish", action="store_false")
     args = p.parse_args()
-    realtime_switch_interval()
     state = {"y": 0.0}
 
     def control(setpoint: Any) -> None:  # a first-order filter stands in for a controller

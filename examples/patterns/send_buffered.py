@@ -11,12 +11,11 @@ import math
 from _common import F64, OUTPUT, parser, report
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.patterns import realtime_switch_interval, send_buffered
+from rlbridge.csp.patterns import send_buffered
 
 
 def main() -> None:
     args = parser(__doc__ or "").parse_args()
-    realtime_switch_interval()
     k = [0]
 
     def control() -> float:

@@ -11,14 +11,13 @@ import math
 from _common import F64, OUTPUT, parser, report
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.patterns import realtime_switch_interval, send_sampled
+from rlbridge.csp.patterns import send_sampled
 
 
 def main() -> None:
     p = parser(__doc__ or "")
     p.add_argument("--rate", type=float, default=100.0, help="send rate of the sampler (Hz)")
     args = p.parse_args()
-    realtime_switch_interval()
     k = [0]
 
     def control() -> float:

@@ -288,3 +288,17 @@ def test_adapters_come_and_go_without_leaking(ros_env: int) -> None:
             adapter.create_publisher("/rlb_churn", FLOAT64, "data", QoS()).publish([1.0])
     assert fds() <= before_fds + 2
     assert threading.active_count() == before_threads
+
+
+def test_rebinding_right_after_close_sees_no_stale_type(
+    make: Callable[..., Any], unique_topic: Callable[[str], str]
+) -> None:
+    """rclpy destroys a closed endpoint only when the executor next wakes; the graph still
+    shows it for a moment. That must not turn into a false TYPE_CLASH or a stale topics()."""
+    adapter = make()
+    for i in range(30):
+        name = unique_topic(f"rebind{i}")
+        adapter.create_publisher(name, FLOAT64, "data", QoS()).close()
+        adapter.subscribe(name, INT8, "data", QoS(), Collector()).close()
+        adapter.create_publisher(name, "std_msgs/msg/String", "data", QoS()).close()
+        assert name not in dict(adapter.topics())

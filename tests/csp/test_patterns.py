@@ -33,6 +33,14 @@ pytestmark = pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.csp.error
 _topics = itertools.count()
 
 
+@pytest.fixture(autouse=True)
+def _restore_switch_interval() -> Iterator[None]:
+    """Bridge.connect shortens the process-wide GIL switch interval; undo it per test."""
+    before = sys.getswitchinterval()
+    yield
+    sys.setswitchinterval(before)
+
+
 @pytest.fixture(scope="module")
 def port() -> Iterator[int]:
     with ServerThread(ServerConfig(port=0)) as srv:
@@ -150,6 +158,18 @@ def test_realtime_switch_interval_sets_and_returns_previous() -> None:
             patterns.realtime_switch_interval(0)
     finally:
         sys.setswitchinterval(before)
+
+
+def test_bridge_connect_shortens_the_switch_interval_never_lengthens(port: int) -> None:
+    sys.setswitchinterval(0.005)
+    with Bridge.connect("127.0.0.1", port):
+        assert sys.getswitchinterval() == pytest.approx(patterns.DEFAULT_SWITCH_INTERVAL)
+    sys.setswitchinterval(0.0001)
+    with Bridge.connect("127.0.0.1", port):
+        assert sys.getswitchinterval() == pytest.approx(0.0001)
+    sys.setswitchinterval(0.005)
+    with Bridge.connect("127.0.0.1", port, switch_interval=None):
+        assert sys.getswitchinterval() == pytest.approx(0.005)
 
 
 # -- receive ------------------------------------------------------------------------------------

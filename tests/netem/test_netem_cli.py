@@ -7,7 +7,9 @@ import re
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar, cast
 
 import pytest
 from typer.testing import CliRunner
@@ -19,7 +21,12 @@ from rlbridge.netem.netns import list_namespaces
 
 pytestmark = pytest.mark.timeout(60)
 
-needs_emulator = pytest.mark.usefixtures("_require_emulator")
+F = TypeVar("F", bound=Callable[..., None])
+
+
+def needs_emulator(test: F) -> F:
+    """Mark a test as needing real namespaces; it skips with the reason when unavailable."""
+    return cast(F, pytest.mark.netem(pytest.mark.usefixtures("_require_emulator")(test)))
 
 
 @pytest.fixture(scope="module")

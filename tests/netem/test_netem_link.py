@@ -156,6 +156,25 @@ def test_seeded_loss_is_counted_by_relay_and_seen_by_receiver(udp_pair: UdpPair)
     assert received == set(range(count)) - lost
 
 
+def test_flood_every_packet_is_accounted_for(udp_pair: UdpPair) -> None:
+    """Relay counters plus kernel TUN drops add up to what was sent, even when flooded."""
+    count = 5000
+    with EmulatedLink() as link:
+        a, b = udp_pair(link)
+        b.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 16 << 20)
+        for _ in range(count):
+            a.sendto(bytes(64), b.getsockname())
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            stats = link.stats()
+            dropped_a, _ = link.kernel_drops()
+            if stats.a_to_b.received + dropped_a >= count and stats.a_to_b.in_flight == 0:
+                break
+            time.sleep(0.05)
+    assert stats.a_to_b.received + dropped_a == count
+    assert stats.a_to_b.delivered == stats.a_to_b.received
+
+
 def test_tcp_works_and_survives_loss() -> None:
     payload = os.urandom(150_000)
     with EmulatedLink(delay_ms=1.0, seed=3) as link:
@@ -185,6 +204,24 @@ def test_tcp_works_and_survives_loss() -> None:
     assert hashlib.sha256(b"".join(chunks)).digest() == hashlib.sha256(payload).digest()
     dropped = stats.a_to_b.dropped_loss + stats.b_to_a.dropped_loss
     assert dropped > 0, "the link should have dropped segments that TCP then retransmitted"
+
+
+def test_rate_limit_and_realtime_relay(udp_pair: UdpPair) -> None:
+    with EmulatedLink(relay_rt_priority=10) as link:
+        assert link.relay_pid is not None
+        assert os.sched_getscheduler(link.relay_pid) == os.SCHED_FIFO
+        a, b = udp_pair(link)
+        # 1000-byte datagrams are 1028-byte packets: 8224 bits, about 10.3 ms at 800 kbit/s.
+        link.set_impairments(Impairment(rate_kbit=800.0), Impairment())
+        assert link.impairments[0].rate_kbit == 800.0
+        start = time.monotonic()
+        for _ in range(20):
+            a.sendto(bytes(1000), b.getsockname())
+        for _ in range(20):
+            b.recv(2000)
+        elapsed = time.monotonic() - start
+    assert elapsed >= 20 * 8224 / 800_000 - 1e-3  # serialisation of all twenty, never faster
+    assert elapsed < 2.0
 
 
 def test_mtu_is_enforced_and_fragments_cross(udp_pair: UdpPair) -> None:

@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import pytest
 
 from rlbridge.netem import control
-from rlbridge.netem.impairment import Impairment, PathModel
+from rlbridge.netem.impairment import DropReason, Impairment, PathModel
 from rlbridge.netem.relay import Relay
+from rlbridge.netem.stats import DirectionCounters
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -199,3 +200,20 @@ def test_write_errors_are_counted(make_relay: MakeRelay) -> None:
     stats = reply.stats.a_to_b
     assert stats.received == 1
     assert stats.delivered + stats.write_errors == 1
+
+
+def test_counters_classify_lateness() -> None:
+    counters = DirectionCounters()
+    for late_s in (0.0, 50e-6, 500e-6, 2e-3, 20e-3):
+        counters.on_received(100)
+        counters.on_scheduled()
+        counters.on_released(100, late_s, ok=True)
+    counters.on_received(100)
+    counters.on_dropped(DropReason.LOSS)
+    counters.on_received(100)
+    counters.on_dropped(DropReason.QUEUE_FULL)
+    snap = counters.snapshot()
+    assert (snap.late_over_100us, snap.late_over_1ms, snap.late_over_10ms) == (3, 2, 1)
+    assert snap.late_max_us == pytest.approx(20_000.0)
+    assert snap.late_mean_us == pytest.approx((50 + 500 + 2000 + 20_000) / 5)
+    assert (snap.received, snap.delivered, snap.dropped, snap.in_flight) == (7, 5, 2, 0)

@@ -30,8 +30,9 @@ from __future__ import annotations
 import importlib
 import logging
 import threading
+import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -79,6 +80,13 @@ _RELIABILITY: Mapping[str, ReliabilityPolicy] = {
     "reliable": ReliabilityPolicy.RELIABLE,
     "best_effort": ReliabilityPolicy.BEST_EFFORT,
 }
+
+
+def _creation_error(topic: str, msg_type: str, exc: RuntimeError) -> BindingError:
+    """rclpy's failure to create an endpoint, as the BindingError the server can report."""
+    reason = str(exc).split(", at /", 1)[0]
+    code = "TYPE_CLASH" if "incompatible type" in reason else "INTERNAL"
+    return BindingError(code, f"rclpy cannot bind '{topic}' as {msg_type}: {reason}")
 
 
 def qos_profile(qos: QoS) -> QoSProfile:
@@ -143,11 +151,14 @@ class Ros2Publisher:
             raise RuntimeError(f"publisher on {self.topic} is closed") from None
         self.published += len(messages)
 
+    def stop(self) -> bool:
+        """Refuse further publishes; ``True`` if it was open (the adapter then destroys it)."""
+        was_open, self._closed = not self._closed, True
+        return was_open
+
     def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        self._adapter.release_publisher(self)
+        if self.stop():
+            self._adapter.release_publisher(self)
 
 
 class Ros2Subscription:
@@ -204,12 +215,15 @@ class Ros2Subscription:
         except InvalidHandle:  # destroyed by close() on another thread: deliver what we have
             return
 
-    def close(self) -> None:
+    def stop(self) -> bool:
+        """Stop delivering (waits for a running callback); ``True`` if it was open."""
         with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-        self._adapter.release_subscription(self)
+            was_open, self._closed = not self._closed, True
+        return was_open
+
+    def close(self) -> None:
+        if self.stop():
+            self._adapter.release_subscription(self)
 
 
 class Ros2Adapter:
@@ -240,8 +254,9 @@ class Ros2Adapter:
         # args=[]: the adapter never reads the host program's command line (the server's CLI
         # flags are not ROS arguments); the ROS environment variables still apply.
         self._context.init(args=[], domain_id=domain_id)
+        node: Node | None = None
         try:
-            self.node = Node(
+            self.node = node = Node(
                 node_name,
                 namespace=namespace,
                 context=self._context,
@@ -257,6 +272,8 @@ class Ros2Adapter:
             self._executor = SingleThreadedExecutor(context=self._context)
             self._executor.add_node(self.node)
         except BaseException:
+            if node is not None:
+                node.destroy_node()
             self._context.try_shutdown()
             raise
         self._thread = threading.Thread(
@@ -304,6 +321,9 @@ class Ros2Adapter:
             full = self._claim(topic, codec.spec.msg_type)
             try:
                 ros = self.node.create_publisher(codec.msg_cls, full, profile)
+            except RuntimeError as exc:  # rclpy's RCLError: rcl or rmw refused
+                self._unclaim(full)
+                raise _creation_error(full, codec.spec.msg_type, exc) from exc
             except BaseException:
                 self._unclaim(full)
                 raise
@@ -328,6 +348,9 @@ class Ros2Adapter:
                 sub.ros = self.node.create_subscription(
                     codec.msg_cls, full, sub.on_message, profile
                 )
+            except RuntimeError as exc:  # rclpy's RCLError: rcl or rmw refused
+                self._unclaim(full)
+                raise _creation_error(full, codec.spec.msg_type, exc) from exc
             except BaseException:
                 self._unclaim(full)
                 raise
@@ -348,16 +371,19 @@ class Ros2Adapter:
         return sorted(found)
 
     def close(self) -> None:
-        """Destroy every endpoint, stop and join the executor thread, shut the context down."""
+        """Stop every endpoint, stop and join the executor thread, destroy node and context."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
             subscriptions, publishers = list(self._subscriptions), list(self._publishers)
+            self._subscriptions.clear()
+            self._publishers.clear()
+            self._bound.clear()
         for sub in subscriptions:
-            sub.close()
+            sub.stop()
         for pub in publishers:
-            pub.close()
+            pub.stop()
         self._executor.shutdown(timeout_sec=JOIN_TIMEOUT_S)
         if threading.current_thread() is not self._thread:
             self._thread.join(JOIN_TIMEOUT_S)
@@ -431,18 +457,58 @@ class Ros2Adapter:
                 del self._bound[full]
 
     def release_publisher(self, pub: Ros2Publisher) -> None:
-        """Destroy a publisher (from its ``close()``) and forget its topic when unused."""
+        """Destroy a publisher (from its ``close()``), then forget its topic when unused."""
         with self._lock:
-            if pub in self._publishers:
-                self._publishers.discard(pub)
-                self.node.destroy_publisher(pub.ros)
-                self._unclaim(pub.topic)
+            if pub not in self._publishers:
+                return  # the adapter is closed (or closing) and destroys it with the node
+            self._publishers.discard(pub)
+        self._on_executor_thread(lambda: self.node.destroy_publisher(pub.ros))
+        with self._lock:
+            self._unclaim(pub.topic)
 
     def release_subscription(self, sub: Ros2Subscription) -> None:
-        """Destroy a subscription (from its ``close()``) and forget its topic when unused."""
+        """Destroy a subscription (from its ``close()``), then forget its topic when unused."""
         with self._lock:
-            if sub in self._subscriptions:
-                self._subscriptions.discard(sub)
-                if sub.ros is not None:
-                    self.node.destroy_subscription(sub.ros)
-                self._unclaim(sub.topic)
+            if sub not in self._subscriptions:
+                return
+            self._subscriptions.discard(sub)
+        ros = sub.ros
+        if ros is not None:
+            self._on_executor_thread(lambda: self.node.destroy_subscription(ros))
+        with self._lock:
+            self._unclaim(sub.topic)
+
+    def _on_executor_thread(self, action: Callable[[], object]) -> None:
+        """Run ``action`` on the executor thread between two waits, and wait for it (bounded).
+
+        rclpy defers destroying an entity the executor's current wait set holds (every
+        subscription, and a publisher's event handlers) until the executor next wakes. Until
+        then the DDS entity lives on, and binding its topic with another type fails inside
+        rmw. Run on the executor thread, between waits, the destruction is immediate, so
+        ``close()`` returns with the entity gone. The topic stays claimed meanwhile, and no
+        lock is held while waiting, so a callback that binds does not deadlock with it.
+        """
+        if threading.current_thread() is self._thread or not self._thread.is_alive():
+            action()  # in a callback (nothing is held) or with the executor already stopped
+            return
+        done = threading.Event()
+        failure: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                action()
+            except BaseException as exc:  # re-raised on the caller's thread below
+                failure.append(exc)
+            finally:
+                done.set()
+
+        self._executor.create_task(run)
+        deadline = time.monotonic() + JOIN_TIMEOUT_S
+        while not done.wait(0.05):
+            if self._closed:
+                return  # close() destroys the node and with it this entity
+            if time.monotonic() > deadline:
+                log.warning("ros2 executor did not get to a destroy within %.1f s", JOIN_TIMEOUT_S)
+                return
+        if failure:
+            raise failure[0]

@@ -42,3 +42,17 @@ def jitter(
                      repeats=repeats, stress=stress, publish_hz=publish_hz,
                      only=tuple(s for s in only.split(",") if s), priority=priority, out=out,
                      plot=plot, command=command_line(sys.argv[1:])), typer.echo)
+
+
+@bench_app.command("channels")
+def channels(
+    n: Annotated[int, typer.Option(help="Operations per measurement.")] = 200_000,
+    repeats: Annotated[int, typer.Option(help="Repeats; figures are medians.")] = 5,
+    out: Out = Path("docs/bench-channels.md"),
+) -> None:
+    """ns per channel write/read/hand-off, next to queue.Queue and deque from the same run."""
+    from rlbridge.bench.channels import format_markdown, run_channel_bench
+
+    text = format_markdown(run_channel_bench(n, repeats))
+    out.write_text(text)
+    typer.echo(text)

@@ -52,7 +52,7 @@ class BenchError(RuntimeError):
     """A benchmark run failed (a child died, timed out, or reported an error)."""
 
 
-class Skipped(Exception):  # noqa: N818  (it is an outcome, not an error)
+class Skipped(Exception):
     """A row cannot be measured here (an optional package is missing); the reason is printed."""
 
 
@@ -114,7 +114,7 @@ class Worker:
             self.proc.stdin.write(json.dumps({"cmd": cmd, **fields}).encode() + b"\n")
             self.proc.stdin.flush()
         except BrokenPipeError:
-            raise BenchError(f"{self.name} exited early{self._stderr_tail()}") from None
+            raise BenchError(f"{self.name} exited early{self.stderr_tail()}") from None
 
     def expect(self, event: str, timeout: float) -> Params:
         """Wait for the child's next ``event`` line; raise with its stderr if it fails."""
@@ -135,14 +135,14 @@ class Worker:
             left = deadline - time.monotonic()
             if left <= 0:
                 raise BenchError(f"{self.name}: no '{event}' within {timeout:.1f} s"
-                                 f"{self._stderr_tail()}")
+                                 f"{self.stderr_tail()}")
             ready, _, _ = select.select([fd], [], [], left)
             if ready:
                 chunk = os.read(fd, 65536)
                 if not chunk:
                     self.proc.wait(2.0)
                     raise BenchError(f"{self.name} exited with {self.proc.returncode} before "
-                                     f"'{event}'{self._stderr_tail()}")
+                                     f"'{event}'{self.stderr_tail()}")
                 self._buf += chunk
 
     def mark_cpu(self) -> None:
@@ -152,7 +152,7 @@ class Worker:
     def cpu_since_mark(self) -> float:
         return cpu_seconds(self.pid) - self._cpu0
 
-    def _stderr_tail(self) -> str:
+    def stderr_tail(self) -> str:
         with contextlib.suppress(OSError):
             self._stderr.seek(0)
             tail = self._stderr.read()[-1500:].decode(errors="replace").strip()
@@ -199,6 +199,10 @@ class ProcessGroup:
         worker = Worker(name, proc, stderr)
         self._workers.append(worker)
         return worker, worker.expect(ready, timeout)
+
+    def diagnostics(self) -> str:
+        """The end of every worker's stderr (for the message of a failed run)."""
+        return "".join(f"\n--- {w.name} (pid {w.pid}) ---{w.stderr_tail()}" for w in self._workers)
 
     def close(self) -> None:
         for worker in reversed(self._workers):
@@ -371,9 +375,12 @@ def worker_main() -> None:
 def server_role(params: Params) -> None:
     """A bridge server (the same ``Server.serve`` the CLI runs); stops when stdin closes."""
     import asyncio
+    import logging
 
     from rlbridge.server import Server, ServerConfig, new_event_loop
 
+    logging.basicConfig(level=params.get("log_level", "INFO"), stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
     config = ServerConfig(host=params["host"], port=0, **params.get("config", {}))
     server = Server(config)
     Control(on_eof=server.stop)

@@ -291,8 +291,11 @@ def run_worker(scenario: Scenario, config: JitterConfig, port: int,
     argv = _python("worker", "--scenario", scenario.name, "--port", str(port),
                    "--cycles", str(config.cycles), "--period", repr(config.period),
                    "--result", str(result))
-    if scenario.switch_interval is not None:
-        argv += ["--switch-interval", repr(scenario.switch_interval)]
+    interval = scenario.switch_interval
+    if interval is None and config.suite == "gil":
+        interval = 0.005  # CPython's default, kept even though Bridge.connect shortens it
+    if interval is not None:
+        argv += ["--switch-interval", repr(interval)]
     if not config.priority:
         argv.append("--no-priority")
     children = Children()
@@ -396,7 +399,7 @@ def _probed(fn: Callable[..., Any], info: dict[str, Any]) -> Callable[..., Any]:
 def worker_main(args: argparse.Namespace) -> None:  # noqa: PLR0915  one dispatch on scenario
     """Run one scenario in this process and write its lateness samples as JSON."""
     from rlbridge.csp import patterns
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.csp.bridge import DEFAULT_SWITCH_INTERVAL, Bridge
 
     if args.switch_interval is not None:
         sys.setswitchinterval(args.switch_interval)
@@ -416,8 +419,10 @@ def worker_main(args: argparse.Namespace) -> None:  # noqa: PLR0915  one dispatc
         rate = {"send-loop-100": 100.0, "send-loop-1000": 1000.0, "sdk-100": 100.0,
                 "sdk-1000": 1000.0, "sdk-1000-rtio": 1000.0}.get(name)
         if name not in ("reference", "pyburn", "sendto-1000"):
+            # an explicit --switch-interval wins over Bridge.connect's default
+            keep = None if args.switch_interval is not None else DEFAULT_SWITCH_INTERVAL
             bridge = Bridge.connect("127.0.0.1", args.port, nodelay=True, send_rate_hz=rate,
-                                    name=f"bench-{name}")
+                                    name=f"bench-{name}", switch_interval=keep)
         if name == "sdk-1000-rtio":
             info["io_threads"] = _realtime_io_threads()
         recv, send = _probed(_receive_law(), info), _probed(_send_law(), info)
@@ -636,8 +641,10 @@ def shm_parent(args: argparse.Namespace) -> dict[str, Any]:
     stop = threading.Event()
     child_result = Path(args.result + ".child")
     try:
+        if args.switch_interval is not None:
+            sys.setswitchinterval(args.switch_interval)
         with Bridge.connect("127.0.0.1", args.port, nodelay=True, send_rate_hz=1000.0,
-                            name="bench-shm-sdk") as bridge:
+                            name="bench-shm-sdk", switch_interval=None) as bridge:
             incoming = bridge.subscribe(TOPIC_IN_FAST, F64, blocking=False, initial=0.0)
             out = bridge.publish(TOPIC_OUT, F64, through_buffer=True)
             _wait_first_value(incoming)
@@ -874,14 +881,15 @@ def _plot_gil(plt: Any, results: list[ScenarioResult], path: Path) -> None:
         xs = [i + k * width for i in range(len(names))]
         ax.bar(xs, p99, width, label=f"p99, {label}", alpha=0.85)
         ax.scatter(xs, p50, marker="_", color="black", s=80, zorder=3)
-    shm = next((r for r in results if r.scenario.name == "shm-1000"), None)
-    if shm is not None:
-        x = len(names) - 1 + len(GIL_INTERVALS) * width + 0.5
-        ax.bar([x], [shm.median("p99_us")], width, color="tab:green",
-               label="p99, loop in its own process (shm)")
-        ax.scatter([x], [shm.median("p50_us")], marker="_", color="black", s=80, zorder=3)
-    ax.set_xticks([i + width for i in range(len(names))] + ([x] if shm is not None else []),
-                  [*names, "shm-1000"] if shm is not None else names, fontsize=8)
+    extras = [r for r in results if r.scenario.name in ("sdk-1000-rtio", "shm-1000")]
+    ticks = [i + width for i in range(len(names))]
+    for j, res in enumerate(extras):
+        x = len(names) + j
+        ax.bar([x], [res.median("p99_us")], width * 2, color=("tab:purple", "tab:green")[j % 2],
+               label=f"p99, {res.scenario.label} (switch 5 ms)")
+        ax.scatter([x], [res.median("p50_us")], marker="_", color="black", s=80, zorder=3)
+        ticks.append(x)
+    ax.set_xticks(ticks, names + [r.scenario.name for r in extras], fontsize=8)
     ax.set_yscale("log")
     ax.set_ylabel("absolute jitter [us] (bar p99, tick p50)")
     ax.set_title("1 kHz loop next to other threads in one interpreter")

@@ -181,8 +181,8 @@ def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
         "hop 1 (publisher -> server)": taken - int(hop1["values_in"]),
         "hop 1 gaps": int(hop1["lost"]),
         "server drops": int(got["dropped"]),
-        "hop 2 (server -> subscriber)": int(got["values_out"]) - int(got["arrived"])
-        - int(got["duplicates"]),
+        "hop 2 (server -> subscriber)": int(got["values_out"]) - int(got["dropped"])
+        - int(got["arrived"]) - int(got["duplicates"]),
         "hop 2 gaps (IncomingChannel.lost)": int(got["lost"]),
         "subscriber ring": int(got["overwritten"]),
         "end to end": int(flow.sent["written"]) - int(got["received"]),
@@ -210,7 +210,10 @@ def measure(link: Link, case: Case, *, count: int, seconds: float, idle_s: float
     """One repeat of ``case`` over ``link``, in fresh processes that are all gone after it."""
     once = _rlbridge_once if case.kind == "rlbridge" else _baseline_once
     with ProcessGroup(link, lifetime_s=seconds + timeout + 60) as group:
-        return once(group, case, count, seconds, idle_s, timeout, rate)
+        try:
+            return once(group, case, count, seconds, idle_s, timeout, rate)
+        except BenchError as exc:
+            raise BenchError(f"{exc}{group.diagnostics()}") from None
 
 
 # -- report --------------------------------------------------------------------------------

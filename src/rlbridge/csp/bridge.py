@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import sys
 import threading
 from collections.abc import Callable
 from types import TracebackType
@@ -24,6 +25,9 @@ from rlbridge.wire import TopicClose, TopicConnect
 from rlbridge.wire.link import LinkState
 
 Transport = Literal["tcp", "udp"]
+
+DEFAULT_SWITCH_INTERVAL = 0.0005
+"""GIL switch interval ``Bridge.connect`` installs (never lengthens); see docs/gil.md."""
 
 
 class Bridge:
@@ -51,13 +55,20 @@ class Bridge:
         control: Control = "tcp",
         send_rate_hz: float | None = None,
         timeout: float = 5.0,
+        switch_interval: float | None = DEFAULT_SWITCH_INTERVAL,
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
 
         ``send_rate_hz`` starts the SDK's send loop: buffered values go out at that rate
         without anyone calling :meth:`send` (thesis figure 5.10). ``nodelay`` disables Nagle's
         algorithm on this client's TCP socket (the server has ``--nodelay`` for its side).
+        ``switch_interval`` shortens CPython's process-wide GIL switch interval (5 ms by
+        default) to this many seconds, never lengthens it: a control loop that wakes while
+        another Python thread computes then waits at most that long for the GIL (docs/gil.md).
+        ``None`` leaves the interpreter's setting alone.
         """
+        if switch_interval is not None and sys.getswitchinterval() > switch_interval:
+            sys.setswitchinterval(switch_interval)
         conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
                           control=control, timeout=timeout)
         ack = conn.open()

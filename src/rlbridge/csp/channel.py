@@ -308,7 +308,12 @@ class Channel(Generic[T]):
         return token
 
     def _latest(self) -> T:
-        """Non-blocking read with nothing new: repeat the most recent value."""
+        """Non-blocking read with nothing new: repeat the most recent value.
+
+        A value written between the empty ``pop`` and ``peek_latest`` is returned here as
+        the latest and again by the next read as new: a repeat, which non-blocking readers
+        must tolerate anyway, never a loss.
+        """
         if self._closed:
             raise ChannelClosed(self._name)
         value = self._ring.peek_latest()

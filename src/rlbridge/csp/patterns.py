@@ -29,8 +29,9 @@ Why the proper patterns keep the loop's timing: every operation the loop does is
 buffer operation (no lock, no system call), except ringing a doorbell when a consumer sleeps
 (``send_buffered``, ``send_naive``). Whatever waits (for the network, for a value) waits in a
 lower-priority thread. In CPython the loop still shares the GIL with those threads and with the
-SDK's receive and send threads: see ``docs/gil.md`` for what that costs and
-:func:`realtime_switch_interval` for the setting this module recommends.
+SDK's receive and send threads: see ``docs/gil.md`` for what that costs. ``Bridge.connect``
+shortens the GIL switch interval to :data:`DEFAULT_SWITCH_INTERVAL` (0.5 ms) for that reason;
+:func:`realtime_switch_interval` does the same for a process without a bridge.
 
 Lifetimes: a coupling owns the channels it created. When the loop has run its ``cycles`` (or
 :meth:`Coupling.stop` is called) the run's stop event is set, its incoming bridge channels are
@@ -48,7 +49,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, Final
 
-from rlbridge.csp.bridge import Bridge, Transport
+from rlbridge.csp.bridge import DEFAULT_SWITCH_INTERVAL, Bridge, Transport
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.connection import ConnectionClosed
@@ -77,8 +78,6 @@ ReceiveLaw = Callable[[Any], object]
 SendLaw = Callable[[], Any]
 """Control law of a send pattern: called once per cycle, returns the value to send."""
 
-DEFAULT_SWITCH_INTERVAL: Final = 0.0005
-"""The GIL switch interval :func:`realtime_switch_interval` installs (see docs/gil.md)."""
 
 
 def realtime_switch_interval(seconds: float = DEFAULT_SWITCH_INTERVAL) -> float:
@@ -88,8 +87,9 @@ def realtime_switch_interval(seconds: float = DEFAULT_SWITCH_INTERVAL) -> float:
     that thread reaches a blocking call, or at most one switch interval (5 ms by default)
     before it forces a hand-over. Shorter means a busy Python thread (a user's SRT process,
     a helper) can delay the loop by at most ``seconds``; the cost is more GIL hand-overs
-    between CPU-bound threads. It is process-wide, so this is an explicit call for the
-    application, not a side effect of importing rlbridge. Returns the previous value.
+    between CPU-bound threads. It is process-wide: ``Bridge.connect`` applies the default
+    (unless given ``switch_interval=None``); call this in a loop process without a bridge, or
+    to choose another value. Returns the previous value.
     """
     if seconds <= 0:
         raise ValueError(f"switch interval must be positive, got {seconds}")

@@ -25,8 +25,9 @@ def register_demo(app: typer.Typer) -> None:
     @app.command()
     @one_line_errors
     def demo(
-        seconds: Annotated[float, typer.Option(
-            help="How long to run (0: until Ctrl-C / SIGTERM).")] = 5.0,
+        seconds: Annotated[float | None, typer.Option(
+            help="How long to run; 0: until Ctrl-C / SIGTERM (all: 5; bridge, controller: 0).",
+            show_default=False)] = None,
         role: Annotated[str, typer.Option(
             help="all: both sides in one process; bridge: server + vision node (middleware "
                  "side); controller: the embedded loop controller.")] = "all",
@@ -34,16 +35,17 @@ def register_demo(app: typer.Typer) -> None:
             "--host", "-H", help="bridge/all: address to bind; controller: server to reach.")]
         = "127.0.0.1",
         port: Annotated[int | None, typer.Option(
-            "--port", "-p", help=f"Server port [all: any free port, else {DEFAULT_PORT}].")]
+            "--port", "-p", help=f"Server port (all: any free port; else {DEFAULT_PORT}).")]
         = None,
         adapter: Annotated[str, typer.Option(
             help="Middleware of the bridge side: inproc or ros2.")] = "inproc",
         dashboard: Annotated[bool, typer.Option(
             "--dashboard/--no-dashboard",
             help="Live terminal view (only on a terminal; else one line a second).")] = True,
-        plot: Annotated[Path, typer.Option(
-            help="PNG of set-points, angles and tracking error (a directory: "
-                 f"DIR/{DEFAULT_NAME}).")] = Path(DEFAULT_NAME),
+        plot: Annotated[Path | None, typer.Option(
+            help="PNG of set-points, angles and tracking error; a directory gets "
+                 f"DIR/{DEFAULT_NAME} [default: ./{DEFAULT_NAME}].", show_default=False)]
+        = None,
         no_plot: Annotated[bool, typer.Option("--no-plot", help="Do not write the plot.")]
         = False,
         report: Annotated[Path | None, typer.Option(
@@ -65,6 +67,7 @@ def register_demo(app: typer.Typer) -> None:
         sub-sampled to 50 Hz and its state (idle, tracking, safe, lost-link) over TCP. The
         vision node follows a target on a Lissajous path, losing it for a moment halfway.
         """
+        from rlbridge.demo.plot import PlotUnavailable
         from rlbridge.demo.run import DemoOptions, run_demo
         from rlbridge.demo.vision import Dropout
 
@@ -72,6 +75,8 @@ def register_demo(app: typer.Typer) -> None:
             raise fail(f"--role must be one of {', '.join(ROLES)}, not '{role}'", 2)
         if adapter not in ("inproc", "ros2"):
             raise fail(f"--adapter must be inproc or ros2, not '{adapter}'", 2)
+        if seconds is None:
+            seconds = 5.0 if role == "all" else 0.0
         if seconds < 0:
             raise fail("--seconds must be >= 0", 2)
         chosen: Literal["all", "bridge", "controller"] = role  # type: ignore[assignment]
@@ -85,11 +90,15 @@ def register_demo(app: typer.Typer) -> None:
             namespace=namespace,
             dropout=Dropout(dropout_at, dropout_for),
             dashboard=dashboard and sys.stdout.isatty(),
-            plot=None if no_plot or role == "controller" else plot,
+            plot=None if no_plot or role == "controller" else (plot or Path(DEFAULT_NAME)),
+            plot_required=plot is not None,
             report=report,
             connect_timeout=connect_timeout,
             lost_exit=lost_exit,
         )
-        result = run_demo(options, sys.stdout)
+        try:
+            result = run_demo(options, sys.stdout)
+        except PlotUnavailable as exc:
+            raise fail(str(exc)) from None
         if result.exit_code:
             raise typer.Exit(result.exit_code)

@@ -9,11 +9,12 @@ without it :func:`write_plot` raises :class:`PlotUnavailable` with that advice.
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from pathlib import Path
 from typing import Any
 
-from rlbridge.demo.metrics import TrackingMetrics, errors
+from rlbridge.demo.metrics import MAX_FRAME_GAP, TrackingMetrics, errors
 from rlbridge.demo.monitor import TraceSnapshot
 from rlbridge.demo.topics import AXES, Diagnostics
 
@@ -56,7 +57,12 @@ def write_plot(snap: TraceSnapshot, metrics: TrackingMetrics, path: Path,
     _axis_panel(ax_pan, snap, "pan")
     _axis_panel(ax_tilt, snap, "tilt")
     ax_pan.legend(loc="upper right", fontsize=8, ncols=2)
-    _error_panel(ax_err, snap, metrics, Patch)
+    _error_panel(ax_err, snap, metrics)
+    handles, _ = ax_err.get_legend_handles_labels()
+    handles += [Patch(color=c, alpha=0.5, label=label) for c, label in _SHADE.values()]
+    handles.append(Patch(facecolor="none", edgecolor="#9e9e9e", hatch="///",
+                         label="no set-points (target not seen)"))
+    fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize=8)
     ax_pan.set_xlim(0, max(snap.elapsed, 0.1))
     _path_panel(fig.add_subplot(grid[:, 1]), snap)
     fig.suptitle(_headline(title, metrics, diag), fontsize=11)
@@ -74,11 +80,12 @@ def _axis_panel(axes: Any, snap: TraceSnapshot, axis: str) -> None:
               label="angle (controller, 50 Hz, UDP)")
     axes.set_ylabel(f"{axis} [rad]")
     _shade(axes, snap.statuses, snap.elapsed)
+    _hatch_gaps(axes, snap)
     axes.grid(alpha=0.3)
     axes.tick_params(labelbottom=False)
 
 
-def _error_panel(axes: Any, snap: TraceSnapshot, metrics: TrackingMetrics, patch: Any) -> None:
+def _error_panel(axes: Any, snap: TraceSnapshot, metrics: TrackingMetrics) -> None:
     colours = {"pan": "#1565c0", "tilt": "#2e7d32"}
     for axis in AXES:
         errs = _with_breaks(errors(snap, axis))
@@ -90,11 +97,9 @@ def _error_panel(axes: Any, snap: TraceSnapshot, metrics: TrackingMetrics, patch
     axes.set_ylabel("set-point - angle [mrad]")
     axes.set_xlabel("time [s] (middleware clock)")
     _shade(axes, snap.statuses, snap.elapsed)
+    _hatch_gaps(axes, snap)
     axes.grid(alpha=0.3)
     _limit_error_axis(axes, snap)
-    handles, _ = axes.get_legend_handles_labels()
-    handles += [patch(color=c, alpha=0.5, label=label) for c, label in _SHADE.values()]
-    axes.legend(handles=handles, loc="upper right", fontsize=8, ncols=2)
 
 
 def _path_panel(axes: Any, snap: TraceSnapshot) -> None:
@@ -141,6 +146,15 @@ def _shade(axes: Any, statuses: list[tuple[float, str]], end: float) -> None:
         stop = statuses[i + 1][0] if i + 1 < len(statuses) else end
         if state in _SHADE and stop > start:
             axes.axvspan(start, stop, color=_SHADE[state][0], alpha=0.5, lw=0)
+
+
+def _hatch_gaps(axes: Any, snap: TraceSnapshot) -> None:
+    """Hatch where the vision node published nothing for longer than a frame gap."""
+    times = [s[0] for s in snap.setpoints]
+    for before, after in itertools.pairwise(times):
+        if after - before > MAX_FRAME_GAP:
+            axes.axvspan(before, after, facecolor="none", edgecolor="#9e9e9e", hatch="///",
+                         lw=0)
 
 
 def _limit_error_axis(axes: Any, snap: TraceSnapshot) -> None:

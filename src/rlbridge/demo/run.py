@@ -33,7 +33,7 @@ from rlbridge.demo.dashboard import WINDOW, AnsiDashboard, LineReport, Status, V
 from rlbridge.demo.loop import ControllerState
 from rlbridge.demo.metrics import TrackingMetrics, tracking_metrics
 from rlbridge.demo.monitor import Trace, TraceSnapshot
-from rlbridge.demo.plot import write_plot
+from rlbridge.demo.plot import PlotUnavailable, write_plot
 from rlbridge.demo.sides import AdapterName, connect_controller, middleware_side, switch_interval
 from rlbridge.demo.topics import DEFAULT_NAMESPACE, Diagnostics, Topics
 from rlbridge.demo.vision import Dropout
@@ -58,6 +58,8 @@ class DemoOptions:
     dropout: Dropout = field(default_factory=Dropout)
     dashboard: bool = False
     plot: Path | None = None
+    plot_required: bool = False
+    """False: without matplotlib the plot is skipped with a note (the default path)."""
     report: Path | None = None
     connect_timeout: float = 30.0
     lost_exit: float = 2.0
@@ -111,13 +113,19 @@ def run_demo(options: DemoOptions, out: TextIO) -> DemoResult:
             result = _run_controller(options, stop, out)
         else:
             result = _run_middleware(options, stop, out)
+    skipped = ""
     if options.plot is not None and result.snapshot is not None and result.metrics is not None:
-        result.plot = write_plot(result.snapshot, result.metrics, options.plot,
-                                 result.diagnostics)
+        try:
+            result.plot = write_plot(result.snapshot, result.metrics, options.plot,
+                                     result.diagnostics)
+        except PlotUnavailable as exc:
+            if options.plot_required:
+                raise
+            skipped = f"  plot skipped: {exc}"
     if options.report is not None:
         options.report.parent.mkdir(parents=True, exist_ok=True)
         options.report.write_text(json.dumps(result.as_dict(), indent=2) + "\n")
-    for line in summary(result):
+    for line in [*summary(result), *([skipped] if skipped else [])]:
         out.write(line + "\n")
     out.flush()
     return result

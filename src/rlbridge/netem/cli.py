@@ -17,7 +17,7 @@ import typer
 from rlbridge.netem.availability import emulator_unavailable_reason
 from rlbridge.netem.link import EmulatedLink
 from rlbridge.netem.netns import NetnsError, cleanup_stale_namespaces
-from rlbridge.netem.probe import measure_overhead
+from rlbridge.netem.probe import ProbeError, measure_overhead
 from rlbridge.netem.relay_process import RelayError
 from rlbridge.netem.signals import Terminated, sigterm_raises
 from rlbridge.netem.stats import DirectionStats, LinkStats
@@ -138,7 +138,7 @@ def shell(
             except Terminated:
                 how = "terminated"
             typer.echo(f"{how}; tearing down\n{_format_stats(link.stats())}")
-    except (NetnsError, RelayError, OSError, RuntimeError, ValueError) as exc:
+    except (NetnsError, RelayError, OSError, ValueError) as exc:
         raise _fail(str(exc)) from None
 
 
@@ -167,7 +167,7 @@ def calibrate(
             result = measure_overhead(
                 link, count=count, payload=payload, interval_s=interval / 1000.0
             )
-    except (NetnsError, RelayError, OSError, RuntimeError, ValueError) as exc:
+    except (NetnsError, RelayError, ProbeError, OSError, ValueError) as exc:
         raise _fail(str(exc)) from None
     excess = result.added_median_us - 2000.0 * delay
     typer.echo(

@@ -56,7 +56,7 @@ from rlbridge.netem.netns import (
 from rlbridge.netem.relay_process import RelayProcess
 from rlbridge.netem.signals import sigterm_raises
 from rlbridge.netem.stats import LinkStats
-from rlbridge.netem.tun import configure_point_to_point, open_tun
+from rlbridge.netem.tun import configure_point_to_point, open_tun, tx_dropped
 
 Side = Literal["a", "b"]
 
@@ -128,6 +128,8 @@ class EmulatedLink:
         if relay_rt_priority is not None and not 1 <= relay_rt_priority <= 99:
             raise ValueError(f"relay_rt_priority must be in [1, 99], got {relay_rt_priority}")
         self._relay_rt_priority = relay_rt_priority
+        self.name = _describe(self._impairments)
+        """A short label for reports, e.g. ``netem a_to_b=7.5ms/1% b_to_a=clean``."""
         self._stack: ExitStack | None = None
         self._relay: RelayProcess | None = None
         self._children: list[subprocess.Popen[Any]] = []
@@ -278,6 +280,10 @@ class EmulatedLink:
         self._children.append(proc)
         return proc
 
+    def popen(self, side: Side, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[Any]:
+        """Same as :meth:`popen_in`; the name ``rlbridge.bench.common.Link`` expects."""
+        return self.popen_in(side, argv, **kwargs)
+
     def run_in(
         self,
         side: Side,
@@ -331,10 +337,20 @@ class EmulatedLink:
         """Set both directions' impairments (rate limits, burst loss, reordering...)."""
         self._require_relay().set_impairments(a_to_b, b_to_a)
         self._impairments = (a_to_b, b_to_a)
+        self.name = _describe(self._impairments)
 
     def stats(self) -> LinkStats:
         """Packets relayed and dropped per direction, and the relay's own lateness."""
         return self._require_relay().stats()
+
+    def kernel_drops(self) -> tuple[int, int]:
+        """``(a, b)``: packets each side's kernel dropped before the relay could read them.
+
+        Non-zero means a sender outran the relay (TUN queue of ``txqueuelen`` packets
+        full); those losses are not in :meth:`stats`.  Costs two ``ip`` calls.
+        """
+        self._require_up()
+        return (tx_dropped(self.ns_a, IFNAME), tx_dropped(self.ns_b, IFNAME))
 
     def _require_up(self) -> None:
         if self._stack is None:
@@ -344,6 +360,24 @@ class EmulatedLink:
         if self._relay is None:
             raise RuntimeError("the link is not started (use it in a 'with' block)")
         return self._relay
+
+
+def _describe(impairments: tuple[Impairment, Impairment]) -> str:
+    def one(imp: Impairment) -> str:
+        if imp.is_clean:
+            return "clean"
+        parts = [f"{imp.delay_ms:g}ms"]
+        if imp.jitter_ms:
+            parts.append(f"+-{imp.jitter_ms:g}ms")
+        if imp.loss_pct:
+            parts.append(f"{imp.loss_pct:g}%")
+        if imp.bursts is not None:
+            parts.append(f"GE~{imp.bursts.mean_loss_pct:.2g}%")
+        if imp.rate_kbit is not None:
+            parts.append(f"{imp.rate_kbit:g}kbit")
+        return "/".join(parts)
+
+    return f"netem a_to_b={one(impairments[0])} b_to_a={one(impairments[1])}"
 
 
 def _simple(delay_ms: float, loss_pct: float, jitter_ms: float) -> Impairment:

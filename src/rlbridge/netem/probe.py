@@ -33,6 +33,10 @@ from rlbridge.netem.link import EmulatedLink, Side
 _SEQ = struct.Struct("!I")
 
 
+class ProbeError(RuntimeError):
+    """A measurement could not be set up (its echo process did not start)."""
+
+
 @dataclass(frozen=True)
 class RttSummary:
     """RTT statistics in microseconds; ``lost`` pings got no answer within the timeout."""
@@ -182,7 +186,7 @@ def echo_process(
         assert proc.stdout is not None
         line = proc.stdout.readline()
         if not line.strip().isdigit():
-            raise RuntimeError(f"echo process in namespace {side} did not start: {line!r}")
+            raise ProbeError(f"echo process in namespace {side} did not start: {line!r}")
         yield host, int(line)
     finally:
         if proc.stdin is not None:

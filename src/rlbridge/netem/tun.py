@@ -12,6 +12,7 @@ so when the relay process (which ends up owning the descriptors) exits, the devi
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import struct
 
@@ -62,3 +63,15 @@ def configure_point_to_point(
     )  # fmt: skip
     run_ip("-n", namespace, "addr", "add", local, "peer", peer, "dev", ifname)
     run_ip("-n", namespace, "link", "set", "dev", ifname, "up")
+
+
+def tx_dropped(namespace: str, ifname: str) -> int:
+    """Packets the kernel in ``namespace`` dropped on ``ifname`` before the relay read them.
+
+    A TUN device queues at most ``txqueuelen`` packets for user space and drops the rest
+    (counted as transmit drops), for instance when a sender floods the link faster than
+    the relay reads.  Those drops never reach the relay's own counters.
+    """
+    proc = run_ip("-n", namespace, "-s", "-j", "link", "show", "dev", ifname)
+    (info,) = json.loads(proc.stdout)
+    return int(info["stats64"]["tx"]["dropped"])

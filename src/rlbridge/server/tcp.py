@@ -22,6 +22,9 @@ from rlbridge.wire import (
 
 log = logging.getLogger("rlbridge.server")
 
+#: A read at least this large yields the loop before the connection is read again.
+YIELD_AFTER_BYTES = 64 << 10
+
 
 class TcpConnection(asyncio.Protocol):
     """One client socket. The first packet must be a hello; then everything goes to its session.
@@ -52,6 +55,13 @@ class TcpConnection(asyncio.Protocol):
         self._sink = TcpSink(t, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
 
     def data_received(self, data: bytes) -> None:
+        if len(data) >= YIELD_AFTER_BYTES and self._transport is not None:
+            # Fairness: uvloop (libuv) reads a busy socket up to 32 times in one loop
+            # iteration; a flooding client would hold the loop for seconds, starving other
+            # sessions, the corked writes and the watchdog (which then drops clients whose
+            # heartbeats sit unread). Pause after a large chunk, resume on the next iteration.
+            self._transport.pause_reading()
+            self._registry.ctx.loop.call_soon(self._resume_reading)
         try:
             packets = self._decoder.feed(data)
         except RemoteProtocolError as exc:
@@ -102,6 +112,11 @@ class TcpConnection(asyncio.Protocol):
             self._sink.send(Error(int(code), reason))
             self._session.close(reason, notify=True, code=int(code))
         self._transport.close()
+
+    def _resume_reading(self) -> None:
+        transport = self._transport
+        if transport is not None and not transport.is_closing():
+            transport.resume_reading()
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self._session is not None:

@@ -1,0 +1,205 @@
+"""docker-compose.yml without Docker: its shape, then its services' commands as local processes.
+
+There is no Docker engine on the machines this project is tested on, so the compose file is
+checked in two ways that need none:
+
+1. its structure: two services on one network, the controller pointed at the bridge service by
+   name, the impaired-link service in its own profile sharing the bridge's network namespace;
+2. its behaviour: each rlbridge service's ``command`` runs as a local process, with the service
+   host name replaced by 127.0.0.1, port 7411 by a free port and ``/out`` by a temporary
+   directory. They must find each other and track; then the bridge gets SIGTERM (what
+   ``docker compose stop`` sends), must write its plot and report and exit 0, and the controller
+   must notice the lost link and exit 3 (which ``restart: on-failure`` turns into a reconnect).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import queue
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+COMPOSE = REPO / "docker-compose.yml"
+DOCKERFILE = REPO / "Dockerfile"
+COMPOSE_PORT = "7411"
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict[str, Any]:
+    data: dict[str, Any] = yaml.safe_load(COMPOSE.read_text())
+    return data
+
+
+def test_compose_file_describes_bridge_and_controller_on_one_network(
+        compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    bridge, controller = services["bridge"], services["controller"]
+    assert bridge["command"][:4] == ["rlbridge", "demo", "--role", "bridge"]
+    assert controller["command"][:4] == ["rlbridge", "demo", "--role", "controller"]
+    assert _option(controller["command"], "--host") == "bridge"  # the service name
+    assert _option(bridge["command"], "--host") == "0.0.0.0"
+    assert _option(bridge["command"], "--port") == _option(controller["command"], "--port")
+    assert bridge["networks"] == controller["networks"]
+    assert set(bridge["networks"]) <= set(compose["networks"])
+    assert "bridge" in controller["depends_on"]
+    assert controller["restart"] == "on-failure"
+    assert {"7411:7411/tcp", "7411:7411/udp"} <= set(bridge["ports"])
+    for name in ("bridge", "controller"):
+        assert "profiles" not in services[name], f"{name} must start with a plain `up`"
+
+
+def test_impaired_link_service_is_optional_and_only_runs_tc(compose: dict[str, Any]) -> None:
+    netem = compose["services"]["netem"]
+    assert netem["profiles"] == ["impaired"]
+    assert netem["network_mode"] == "service:bridge"
+    assert "NET_ADMIN" in netem["cap_add"]
+    script = netem["command"][2].replace("$$", "$")  # compose's escape for a literal $
+    assert "tc qdisc replace dev eth0 root netem $NETEM" in script
+    assert "NETEM" in netem["environment"]
+    sh = shutil.which("sh")
+    if sh is not None:  # parse only (-n): nothing is executed, no qdisc is touched
+        subprocess.run([sh, "-n", "-c", script], check=True, timeout=10)
+
+
+def test_dockerfile_installs_the_package_with_its_entry_point() -> None:
+    text = DOCKERFILE.read_text()
+    assert re.search(r"^FROM python:3\.11", text, re.MULTILINE)
+    assert "COPY src ./src" in text
+    assert 'pip install --no-cache-dir ".[plot]"' in text
+    assert "iproute2" in text  # tc for the impaired-link service
+
+
+# -- the services' commands, run here ----------------------------------------------------------
+def _option(command: list[Any], name: str) -> str:
+    return str(command[command.index(name) + 1])
+
+
+def _rlbridge() -> list[str]:
+    script = shutil.which("rlbridge", path=str(Path(sys.executable).parent))
+    return [script] if script else [sys.executable, "-m", "rlbridge.cli"]
+
+
+def localize(command: list[Any], port: int, out: Path) -> list[str]:
+    """A compose ``command`` for this machine (see the module docstring)."""
+    args = [str(a) for a in command]
+    assert args[0] == "rlbridge"
+    local = _rlbridge()
+    for previous, arg in itertools.pairwise(args):
+        if previous == "--host":
+            local.append("127.0.0.1")  # "bridge" (the service name) or "0.0.0.0"
+        elif previous == "--port":
+            assert arg == COMPOSE_PORT
+            local.append(str(port))
+        elif arg.startswith("/out/"):
+            local.append(str(out / arg.removeprefix("/out/")))
+        else:
+            local.append(arg)
+    return local
+
+
+class Service:
+    """A running service: its process and a thread that collects its output lines."""
+
+    def __init__(self, name: str, args: list[str]) -> None:
+        self.name = name
+        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, env=_env())
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.output: list[str] = []
+        self._reader = threading.Thread(target=self._read, name=f"read {name}", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.output.append(line)
+            self.lines.put(line)
+
+    def wait_for_line(self, predicate: Callable[[str], bool], timeout: float) -> str:
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self.lines.get(timeout=left)
+            except queue.Empty:
+                break
+            if predicate(line):
+                return line
+        raise AssertionError(f"{self.name}: no matching line within {timeout} s:\n"
+                             + "".join(self.output))
+
+    def wait(self, timeout: float) -> int:
+        code = self.proc.wait(timeout)
+        self._reader.join(timeout=5)
+        return code
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+        self._reader.join(timeout=5)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+
+
+def _env() -> dict[str, str]:
+    import os
+
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env.pop("PYTHONWARNINGS", None)
+    return env
+
+
+@pytest.fixture
+def services() -> Iterator[dict[str, Service]]:
+    running: dict[str, Service] = {}
+    yield running
+    for service in running.values():
+        service.stop()
+
+
+def test_compose_services_run_locally_track_and_stop_in_order(
+        compose: dict[str, Any], services: dict[str, Service], tmp_path: Path,
+        free_port: Callable[[], int]) -> None:
+    port = free_port()
+    spec = compose["services"]
+    # `depends_on` order, as compose starts them; the controller retries until the bridge is up.
+    services["bridge"] = Service("bridge", localize(spec["bridge"]["command"], port, tmp_path))
+    services["controller"] = Service("controller",
+                                     localize(spec["controller"]["command"], port, tmp_path))
+    bridge, controller = services["bridge"], services["controller"]
+
+    controller.wait_for_line(lambda line: "controller connected" in line, timeout=20)
+    # The bridge prints one line a second with the controller's state as it reported it.
+    bridge.wait_for_line(lambda line: _tracking_after(line, 2.5), timeout=30)
+
+    bridge.proc.send_signal(signal.SIGTERM)  # `docker compose stop`
+    assert bridge.wait(timeout=30) == 0, "".join(bridge.output)
+    assert controller.wait(timeout=30) == 3, "".join(controller.output)  # link lost for 2 s
+    assert "state -> lost-link" in "".join(controller.output)
+
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["reason"] == "signal"
+    assert "tracking" in [s for _, s in report["states"]]
+    assert report["diagnostics"]["link"] == "connected"
+    assert sum(report["angles_received"].values()) > 100
+    assert report["tracking"]["pan"]["samples"] >= 20
+    assert report["tracking"]["pan"]["median_mrad"] < 20
+    assert (tmp_path / "pan_tilt.png").read_bytes().startswith(b"\x89PNG")
+
+
+def _tracking_after(line: str, seconds: float) -> bool:
+    match = re.match(r"t=\s*([\d.]+)s tracking ", line)
+    return match is not None and float(match.group(1)) >= seconds
