@@ -193,7 +193,7 @@ class ProcessGroup:
         """Start ``module.ROLES[role](params)`` on ``side``; wait for its ``ready`` line."""
         argv = [sys.executable, "-c", "from rlbridge.bench.common import worker_main; "
                 "worker_main()", module, role, json.dumps(params), str(self.lifetime_s)]
-        stderr = tempfile.TemporaryFile()
+        stderr = tempfile.TemporaryFile()  # noqa: SIM115 - closed by the worker's owner
         proc = self.link.popen(side, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                stderr=stderr)
         worker = Worker(name, proc, stderr)
