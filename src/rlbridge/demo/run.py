@@ -144,8 +144,8 @@ def _run_middleware(opts: DemoOptions, stop: threading.Event, out: TextIO) -> De
         controller: PanTiltController | None = None
         if opts.role == "all":
             stack.enter_context(switch_interval(0.0005))
-            bridge = connect_controller("127.0.0.1" if opts.host in ("0.0.0.0", "::")
-                                        else opts.host, mw.port, timeout=opts.connect_timeout,
+            local = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(opts.host, opts.host)
+            bridge = connect_controller(local, mw.port, timeout=opts.connect_timeout,
                                         stop=stop)
             stack.callback(bridge.close)
             controller = PanTiltController(bridge, topics=topics).start()
