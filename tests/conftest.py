@@ -10,7 +10,9 @@ Helpers are handed to tests through fixtures (tests import nothing from this fil
 * ``raw_tcp`` / ``raw_udp``: factories of protocol-level clients (:class:`RawTcp`,
   :class:`RawUdp`) that send packets and wait for answers, skipping heartbeats.
 * ``bridge``: a factory of SDK ``Bridge`` objects, all closed at teardown.
-* ``cli`` / ``cli_popen`` / ``cli_server``: the ``rlbridge`` command as a subprocess.
+* ``cli``: runs the ``rlbridge`` command as a subprocess (``cli.run``, ``cli.popen``).
+* ``cli_server`` / ``shared_cli_server``: ``rlbridge serve`` processes, ready to use.
+* ``wait_until``, ``free_port``, ``stats_over_tcp``, ``topics_of``: small bounded helpers.
 """
 
 from __future__ import annotations
@@ -396,11 +398,6 @@ def wait_server_ready(port: int, proc: subprocess.Popen[str] | None = None,
                 sock.send(codec.encode_datagram(Disconnect(0, "probe done"), packet.token))
                 return
     raise AssertionError(f"server on port {port} not ready within {timeout} s")
-
-
-@pytest.fixture(name="wait_server_ready")
-def wait_server_ready_fixture() -> Callable[..., None]:
-    return wait_server_ready
 
 
 def start_cli_server(procs: CliProcesses, *extra: str) -> tuple[int, subprocess.Popen[str]]:

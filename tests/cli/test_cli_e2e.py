@@ -107,19 +107,21 @@ def test_topic_hz_measures_about_50_hz(cli: Any, shared_cli_server: int,
                                        topics_of: Callable[[int], Sequence[str]],
                                        wait_until: Callable[..., Any]) -> None:
     port = shared_cli_server
-    hz = cli.popen("topic", "hz", "/rate", F64, "--duration", "5", "--port", str(port))
-    wait_for_topic(topics_of, port, "/rate", hz, wait_until)
-    pub = cli.popen("topic", "pub", "/rate", F64, "2.0", "--rate", "50", "--count", "75",
+    # The publisher runs first and long (30 s at most), so that hz measures a steady stream,
+    # whatever its own start-up costs on a busy machine.
+    pub = cli.popen("topic", "pub", "/rate", F64, "2.0", "--rate", "50", "--count", "1500",
                     "--port", str(port))
+    wait_for_topic(topics_of, port, "/rate", pub, wait_until)
+    hz = cli.popen("topic", "hz", "/rate", F64, "--duration", "3", "--port", str(port))
     out, err = hz.communicate(timeout=PROC_WAIT)
+    pub.send_signal(signal.SIGINT)
+    pub.communicate(timeout=PROC_WAIT)
     assert hz.returncode == 0, err
     rates = [float(m) for m in re.findall(r"average rate: ([0-9.]+)", out)]
     assert rates, out
-    final = rates[-1]
-    assert 25.0 < final < 100.0, out
+    assert 25.0 < rates[-1] < 100.0, out
     window = re.findall(r"window: (\d+)", out)
-    assert int(window[-1]) >= 10, out
-    pub.communicate(timeout=PROC_WAIT)
+    assert int(window[-1]) >= 50, out
 
 
 def test_stats_prints_json(cli: Any, shared_cli_server: int,
@@ -153,10 +155,12 @@ def test_serve_exits_0_on_signal_and_says_goodbye(
     _out, err = server.communicate(timeout=PROC_WAIT)
     assert server.returncode == 0, err
     assert "Traceback" not in err
-    # The client was told, and says so, instead of waiting forever.
+    # The client notices, and says so in one line, instead of waiting forever. Normally it
+    # read the server's goodbye; a heartbeat crossing the close can turn it into a reset.
     _out, err = echo.communicate(timeout=PROC_WAIT)
-    assert_one_line_error(subprocess.CompletedProcess([], echo.returncode, "", err),
-                          "server closed the session: server shutting down")
+    line = assert_one_line_error(subprocess.CompletedProcess([], echo.returncode, "", err))
+    assert re.search(r"server closed the session: server shutting down"
+                     r"|server closed the TCP connection|connection failed", line), line
 
 
 def test_port_in_use(cli: Any, free_port: Callable[[], int]) -> None:

@@ -235,6 +235,21 @@ def test_whole_messages_and_nested_fields(bridge: Callable[..., Bridge], transpo
     assert angular_z.read(timeout=10) == 0.0
 
 
+def test_udp_redundancy_delivers_each_value_once(bridge: Callable[..., Bridge]) -> None:
+    """The server repeats the last k values in every datagram; the SDK drops the repeats."""
+    pub, sub = bridge(), bridge()
+    inbox = sub.subscribe("/redundant", "std_msgs/msg/Int32", transport="udp", blocking=True,
+                          buffer_size=256, redundancy=3)
+    out = pub.publish("/redundant", "std_msgs/msg/Int32", transport="tcp")
+    for i in range(10):  # one at a time, so that each goes out in its own datagram
+        out.write(i)
+        assert inbox.read(timeout=10) == i
+    assert inbox.read_many() == []
+    # Datagrams 2, 3 and 4..10 repeated 1, 2 and 3 earlier values: recognised and dropped.
+    assert inbox.duplicates == 1 + 2 + 3 * 7
+    assert inbox.lost == 0
+
+
 # -- refusals carry the server's reason ----------------------------------------------------
 
 

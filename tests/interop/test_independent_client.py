@@ -194,24 +194,33 @@ def test_shortest_and_longer_forms_are_accepted(client: ic.IndependentClient) ->
 
 
 def test_malformed_body_costs_one_packet(session: ic.IndependentClient) -> None:
-    """Doc 2, 12.1: a bad body in a good frame: Error(MALFORMED, nil); the session goes on."""
-    for bad in (b"\xc1", ic.packb([99, 1]), ic.packb([ic.TAG_HELLO, 1.0, "x"]),
-                ic.packb([ic.TAG_BATCH, 1, 0, [1, 2], [1.0]]), ic.packb({"tag": 1})):
+    """Doc 2, 15.1: a bad body in a good frame: Error(MALFORMED, channel); the session goes on.
+
+    ``channel`` is the body's second element when the body starts with two integers, else nil.
+    """
+    cases = (
+        (b"\xc1", None),
+        (ic.packb([99, 1]), 1),
+        (ic.packb([ic.TAG_HELLO, 1.0, "x"]), None),
+        (ic.packb([ic.TAG_BATCH, 1, 0, [1, 2], [1.0]]), 1),
+        (ic.packb({"tag": 1}), None),
+    )
+    for bad, channel in cases:
         session.send_raw_tcp(ic.FRAME_HEADER.pack(b"RB", 1, 0, len(bad)) + bad)
         err = session.recv_tag(ic.TAG_ERROR, ic.TAG_CONNECT_ERROR)
         assert err.tag == ic.TAG_ERROR
-        assert (err.field(1), err.field(3)) == (ic.MALFORMED, None), err
+        assert (err.field(1), err.field(3)) == (ic.MALFORMED, channel), err
     assert "session" in session.stats()
 
 
-def test_topic_connect_that_does_not_decode_gets_a_plain_error(
+def test_topic_connect_that_does_not_decode_gets_a_topic_error(
         session: ic.IndependentClient) -> None:
-    """Doc 6.4 and 15.1: an invalid TopicConnect is MALFORMED, not a TopicError."""
+    """Doc 6.4 and 15.1: an invalid TopicConnect gets TopicError(channel, MALFORMED), so a
+    client waiting for that channel's answer is not left to time out."""
     session.send_tcp([ic.TAG_TOPIC_CONNECT, 7, "both", new_topic(), F64])
     err = session.recv_tag(ic.TAG_ERROR, ic.TAG_TOPIC_ERROR)
-    assert err.tag == ic.TAG_ERROR
-    assert err.field(1) == ic.MALFORMED
-    assert err.field(3) is None
+    assert err.tag == ic.TAG_TOPIC_ERROR
+    assert (err.field(1), err.field(2)) == (7, ic.MALFORMED)
 
 
 @pytest.mark.parametrize(

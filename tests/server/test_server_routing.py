@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.server import ServerThread
+from rlbridge.server import ServerError, ServerThread
 from rlbridge.wire import (
     Batch,
     Disconnect,
@@ -288,3 +288,14 @@ def test_nodelay(make_server: Callable[..., ServerThread], server_nodelay: bool,
     assert len(sides["client"]) == 1, sides
     assert bool(sides["server"][0]) is server_nodelay
     assert bool(sides["client"][0]) is client_nodelay
+
+
+def test_port_in_use_is_a_server_error() -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        srv = ServerThread(port=port)
+        with pytest.raises(ServerError, match=f"cannot listen on 127.0.0.1:{port}"):
+            srv.start()
+        srv.stop()

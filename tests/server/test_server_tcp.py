@@ -22,6 +22,7 @@ from rlbridge.wire import (
     Stats,
     TopicAck,
     TopicConnect,
+    TopicError,
     Value,
 )
 
@@ -207,3 +208,38 @@ def test_dropped_connection_releases_the_bindings(raw_tcp: Callable[..., Any],
     client.close()
     wait_until(lambda: ["/abandoned", F64] not in watcher.stats()["topics"],
                what="the abandoned topic to go away")
+
+
+def test_malformed_packet_names_its_channel(raw_tcp: Callable[..., Any]) -> None:
+    """A body that starts ``[tag, channel, ...]`` is answered for that channel (spec 15.1)."""
+    client = raw_tcp()
+    client.hello()
+    client.send_bytes(frame(b"\x95\x08\x05\xa1x\x00\x01"))  # Value(5, seq="x", ...)
+    err = client.expect(Error)
+    assert (err.code, err.channel) == (ErrorCode.MALFORMED, 5)
+    assert "Expected `int`, got `str`" in err.reason
+    # A broken topic-connect gets a TopicError, so a client waiting for channel 6 hears back.
+    client.send_bytes(frame(b"\x95\x04\x06\xa4both\xa2/t\xb4std_msgs/msg/Float64"))
+    refused = client.expect(TopicError)
+    assert (refused.channel, refused.code) == (6, ErrorCode.MALFORMED)
+    assert "both" in refused.reason
+    client.send(TopicConnect(6, "publish", "/t", F64, transport="tcp"))
+    assert client.expect(TopicAck).channel == 6
+
+
+def test_session_limit(make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
+                       raw_udp: Callable[..., Any]) -> None:
+    srv = make_server(max_sessions=2)
+    raw_tcp(srv.port).hello("one")
+    raw_tcp(srv.port).hello("two")
+    third = raw_tcp(srv.port)
+    third.send(Hello(PROTOCOL_VERSION, "three"))
+    got = third.wait_closed()
+    assert isinstance(got[0], ConnectError), got
+    assert got[0].code == ErrorCode.LIMIT
+    assert "2 sessions" in got[0].reason
+    over_udp = raw_udp(srv.port)
+    over_udp.send(Hello(PROTOCOL_VERSION, "four"), token=0)
+    token, refused = over_udp.recv_datagram()
+    assert isinstance(refused, ConnectError)
+    assert (token, refused.code) == (0, ErrorCode.LIMIT)

@@ -14,6 +14,7 @@ from rlbridge.wire import (
     PROTOCOL_VERSION,
     ConnectAck,
     Disconnect,
+    Error,
     ErrorCode,
     Heartbeat,
     Hello,
@@ -178,3 +179,20 @@ def test_udp_disabled_server_refuses_udp_channels(make_server: Callable[..., Ser
     err = client.expect(TopicError)
     assert err.code == ErrorCode.TRANSPORT_DISABLED
     assert "--no-udp" in err.reason
+
+
+def test_malformed_datagram_with_a_live_token_is_answered(raw_udp: Callable[..., Any]) -> None:
+    """A valid header and token prove the sender: it hears what was wrong (spec 15.1)."""
+    client = raw_udp()
+    ack = client.hello()
+    header = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, ack.token)
+    client.send_bytes(header + b"\x95\x08\x03\xa1x\x00\x01")  # Value(3, seq="x", ...)
+    err = client.expect(Error)
+    assert (err.code, err.channel) == (ErrorCode.MALFORMED, 3)
+    client.send_bytes(header + b"\x95\x04\x06\xa4both\xa2/t\xb4std_msgs/msg/Float64")
+    refused = client.expect(TopicError)
+    assert (refused.channel, refused.code) == (6, ErrorCode.MALFORMED)
+    client.send(Stats())
+    body = client.expect(Stats).body
+    assert body["server"]["udp_malformed"] == 2
+    assert body["session"]["malformed"] == 2

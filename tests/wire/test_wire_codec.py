@@ -437,6 +437,20 @@ def test_malformed_datagram_body(name: str) -> None:
     assert phrase in exc.value.reason
 
 
+def test_malformed_keeps_what_could_be_salvaged() -> None:
+    """Tag and channel of an invalid ``[tag, channel, ...]`` body survive, in both framings."""
+    bad = body(8, 5, "not a seq", 0, 1.0)
+    (entry,) = FrameDecoder().feed(frame(bad))
+    assert isinstance(entry, Malformed)
+    assert (entry.error.tag, entry.error.channel) == (8, 5)
+    with pytest.raises(RemoteProtocolError) as exc:
+        PacketCodec().decode_datagram(DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, 77) + bad)
+    assert (exc.value.tag, exc.value.channel, exc.value.token) == (8, 5, 77)
+    (nothing,) = FrameDecoder().feed(frame(b"\xc1"))
+    assert isinstance(nothing, Malformed)
+    assert (nothing.error.tag, nothing.error.channel) == (None, None)
+
+
 def test_malformed_body_split_byte_by_byte() -> None:
     codec = PacketCodec()
     stream = frame(body(99, 1)) + codec.encode_frame(Heartbeat(7))

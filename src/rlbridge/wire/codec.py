@@ -191,7 +191,9 @@ class FrameDecoder:
                     # A fresh error: the caught one's traceback and context hold a view of
                     # ``buf``, which would make the ``del buf[:pos]`` below (and every later
                     # ``feed``) fail with BufferError.
-                    out.append(Malformed(RemoteProtocolError(exc.code, exc.reason)))
+                    fresh = RemoteProtocolError(exc.code, exc.reason)
+                    fresh.tag, fresh.channel = exc.tag, exc.channel
+                    out.append(Malformed(fresh))
                 pos = end
         finally:
             view.release()
