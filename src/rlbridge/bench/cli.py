@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -56,3 +57,80 @@ def channels(
     text = format_markdown(run_channel_bench(n, repeats))
     out.write_text(text)
     typer.echo(text)
+
+
+# -- throughput and latency (rlbridge.bench.throughput, .latency) ----------------------------
+Repeats = Annotated[int, typer.Option(help="Runs per row; figures are medians over them.")]
+_ONLY = "Comma-separated row keys (default: every row): "
+
+
+def _command(ctx: typer.Context) -> list[str]:
+    """The command line with every option spelled out, so the report can be re-run exactly."""
+    args = ["rlbridge", "bench", ctx.info_name or ""]
+    for name, value in ctx.params.items():
+        if value is not None and value != "":
+            args += [f"--{name.replace('_', '-')}", str(value)]
+    return args
+
+
+def _run(name: str, measure: Callable[[], str], out: Path) -> None:
+    """Run, print the markdown, write its section of ``out``; a failed run is one line."""
+    from rlbridge.bench.common import BenchError, write_section
+
+    try:
+        text = measure()
+    except BenchError as exc:
+        typer.echo(f"rlbridge bench {name}: error: {exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(text)
+    write_section(out, name, text)
+
+
+def _keys(only: str) -> tuple[str, ...]:
+    return tuple(k.strip() for k in only.split(",") if k.strip())
+
+
+@bench_app.command("throughput")
+def throughput(
+    ctx: typer.Context,
+    count: Annotated[int, typer.Option(help="Values per run (at most).")] = 2_000_000,
+    seconds: Annotated[float, typer.Option(help="Longest send phase of a run.")] = 3.0,
+    repeats: Repeats = 3,
+    batch: Annotated[int, typer.Option(help="write_many size of the batched rows.")] = 4096,
+    rate: Annotated[float, typer.Option(help="Offered values/s of rlbridge rows (0: flood).")]
+    = 0.0,
+    only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, zenoh, rlb-udp-1, rlb-tcp-1, "
+                                      "rlb-udp-batch, rlb-tcp-batch.")] = "",
+    out: Out = Path("docs/benchmarks.md"),
+) -> None:
+    """Values/s publisher -> server -> subscriber (TCP, UDP), next to UDP/ZeroMQ/Zenoh."""
+    from rlbridge.bench import throughput as tp
+    from rlbridge.bench.common import LoopbackLink, progress
+
+    settings = tp.Settings(count=count, seconds=seconds, repeats=repeats, batch=batch,
+                           rate=rate, only=_keys(only))
+    _run("throughput", lambda: tp.report(tp.run(LoopbackLink(), settings, progress), settings,
+                                         _command(ctx)), out)
+
+
+@bench_app.command("latency")
+def latency(
+    ctx: typer.Context,
+    seconds: Annotated[float, typer.Option(help="Stream length per run.")] = 5.0,
+    count: Annotated[int | None, typer.Option(help="Samples per run (overrides --seconds).")]
+    = None,
+    repeats: Repeats = 3,
+    rates: Annotated[str, typer.Option(help="Comma-separated stream rates in Hz.")]
+    = "1000,100",
+    only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, rlb-udp, rlb-tcp-nodelay, "
+                                      "rlb-tcp-nagle.")] = "",
+    out: Out = Path("docs/benchmarks.md"),
+) -> None:
+    """One-way latency p50/p99/max of 1 kHz and 100 Hz streams, next to raw UDP and ZeroMQ."""
+    from rlbridge.bench import latency as lat
+    from rlbridge.bench.common import LoopbackLink, progress
+
+    settings = lat.Settings(seconds=seconds, count=count, repeats=repeats,
+                            rates=tuple(float(r) for r in _keys(rates)), only=_keys(only))
+    _run("latency", lambda: lat.report(lat.run(LoopbackLink(), settings, progress), settings,
+                                       _command(ctx)), out)

@@ -26,13 +26,14 @@ import math
 import os
 import platform
 import select
+import shlex
 import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -46,6 +47,8 @@ Role = Callable[[Params], None]
 WORKER_MODULES = ("rlbridge.bench.common", "rlbridge.bench.throughput",
                   "rlbridge.bench.latency", "rlbridge.bench.baselines")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
+#: Seconds a worker may take to start and report ``ready`` (imports on a loaded machine).
+STARTUP_S = 30.0
 
 
 class BenchError(RuntimeError):
@@ -188,16 +191,21 @@ class ProcessGroup:
         self.lifetime_s = lifetime_s
         self._workers: list[Worker] = []
 
-    def spawn(self, name: str, side: Side, module: str, role: str, params: Params,
-              ready: str = "ready", timeout: float = 20.0) -> tuple[Worker, Params]:
-        """Start ``module.ROLES[role](params)`` on ``side``; wait for its ``ready`` line."""
+    def start(self, name: str, side: Side, module: str, role: str, params: Params) -> Worker:
+        """Start ``module.ROLES[role](params)`` on ``side``; do not wait for it."""
         argv = [sys.executable, "-c", "from rlbridge.bench.common import worker_main; "
                 "worker_main()", module, role, json.dumps(params), str(self.lifetime_s)]
-        stderr = tempfile.TemporaryFile()  # noqa: SIM115 - closed by the worker's owner
+        stderr = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Worker.stop
         proc = self.link.popen(side, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                stderr=stderr)
         worker = Worker(name, proc, stderr)
         self._workers.append(worker)
+        return worker
+
+    def spawn(self, name: str, side: Side, module: str, role: str, params: Params,
+              ready: str = "ready", timeout: float = STARTUP_S) -> tuple[Worker, Params]:
+        """:meth:`start`, then wait for the worker's ``ready`` line."""
+        worker = self.start(name, side, module, role, params)
         return worker, worker.expect(ready, timeout)
 
     def diagnostics(self) -> str:
@@ -251,12 +259,13 @@ class Control:
         return None
 
     def wait(self, cmd: str, timeout: float = 60.0) -> Params:
+        """The next ``cmd`` message; checked and waited for under one lock (no lost wake-up)."""
         deadline = time.monotonic() + timeout
-        while True:
-            msg = self.poll(cmd)
-            if msg is not None:
-                return msg
-            with self._cond:
+        with self._cond:
+            while True:
+                msg = self.poll(cmd)  # the condition's lock is re-entrant
+                if msg is not None:
+                    return msg
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise TimeoutError(f"no '{cmd}' from the parent within {timeout} s")
@@ -428,7 +437,7 @@ def run_flow(sender: Worker, receiver: Worker, measured: Sequence[Worker], timeo
     tells the receiver how many values to expect, and reads every measured process's CPU time
     over the window from ``go`` to the receiver's result.
     """
-    receiver.expect("joined", 20.0)
+    receiver.expect("joined", STARTUP_S)
     for w in measured:
         w.mark_cpu()
     sender.send("go")
@@ -507,7 +516,7 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str
 def report_header(title: str, command: Sequence[str]) -> str:
     info = machine_info()
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
-    lines = [f"### {title}", "", f"Command: `{' '.join(command)}`  ", f"Date: {when}  "]
+    lines = [f"### {title}", "", f"Command: `{shlex.join(command)}`  ", f"Date: {when}  "]
     lines += [f"{k}: {v}  " for k, v in info.items()]
     return "\n".join(lines).rstrip() + "\n"
 
@@ -530,19 +539,6 @@ def write_section(path: Path, name: str, body: str) -> None:
     path.write_text(text)
 
 
-@contextlib.contextmanager
-def timed_section(label: str) -> Iterator[None]:
-    """Print how long a part of the run took (the benchmarks are long; show progress)."""
-    start = time.monotonic()
-    print(f"  {label} ...", file=sys.stderr, flush=True)
-    yield
-    print(f"  {label}: {time.monotonic() - start:.1f} s", file=sys.stderr, flush=True)
-
-
-@dataclass(frozen=True)
-class Row:
-    """A measured (or skipped) row of a report: its label and its figures by column."""
-
-    label: str
-    figures: dict[str, float]
-    skipped: str | None = None
+def progress(message: str) -> None:
+    """One line per run on stderr: the benchmarks take minutes, show that they move."""
+    print(f"  {message}", file=sys.stderr, flush=True)

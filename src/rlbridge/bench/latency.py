@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 from rlbridge.bench import baselines
 from rlbridge.bench.common import (
+    STARTUP_S,
     BenchError,
     Control,
     Link,
@@ -40,6 +41,7 @@ from rlbridge.bench.common import (
     paced,
     percentile,
     ratio,
+    report_header,
     run_flow,
     start_server,
     wait_for_go,
@@ -55,6 +57,7 @@ WARMUP = 20
 class Case:
     """One row: ``kind`` is ``rlbridge`` or a baseline (``udp``, ``zmq``)."""
 
+    key: str
     label: str
     kind: str
     transport: str = "udp"
@@ -62,13 +65,12 @@ class Case:
 
 
 CASES = (
-    Case("raw UDP socket, 1 hop", "udp"),
-    Case("ZeroMQ PUB/SUB tcp, 1 hop", "zmq"),
-    Case("rlbridge UDP", "rlbridge", "udp"),
-    Case("rlbridge TCP, nodelay", "rlbridge", "tcp", nodelay=True),
-    Case("rlbridge TCP, Nagle", "rlbridge", "tcp", nodelay=False),
+    Case("udp", "raw UDP socket, 1 hop", "udp"),
+    Case("zmq", "ZeroMQ PUB/SUB tcp, 1 hop", "zmq"),
+    Case("rlb-udp", "rlbridge UDP", "rlbridge", "udp"),
+    Case("rlb-tcp-nodelay", "rlbridge TCP, nodelay", "rlbridge", "tcp", nodelay=True),
+    Case("rlb-tcp-nagle", "rlbridge TCP, Nagle", "rlbridge", "tcp", nodelay=False),
 )
-RATES = (1000.0, 100.0)
 
 
 # -- worker roles (child processes) --------------------------------------------------------
@@ -100,14 +102,16 @@ def subscriber(params: Params) -> None:
     emit("joined")
     tally = Tally(control, float(params["idle_s"]))
     samples, read, now_ns, mono = tally.samples, ch.read, time.time_ns, time.monotonic
+    first_leg: list[int] = []  # publisher's write -> server's send (the server stamps values)
     while not tally.done(mono()):
         try:
             value = read(0.05)
         except TimeoutError:
             continue
         samples.append(now_ns() - value)
+        first_leg.append(ch.last_stamp_ns - value)
         tally.add(1, mono())
-    tally.report(lost=ch.lost, overwritten=ch.statistics().overwritten)
+    tally.report(lost=ch.lost, overwritten=ch.statistics().overwritten, first_leg=first_leg)
 
 
 ROLES: dict[str, Role] = {"publisher": publisher, "subscriber": subscriber}
@@ -123,22 +127,34 @@ class Measurement:
     max: float
     samples: int
     lost: int
+    #: rlbridge only: p50 of publisher write -> server send, and of server send -> read.
+    first_leg_p50: float = math.nan
+    second_leg_p50: float = math.nan
 
 
-def _summary(samples_ns: Sequence[int], sent: int) -> Measurement:
+def _summary(received: Params, sent: int) -> Measurement:
+    samples_ns: list[int] = received["samples"]
     kept = sorted(s / 1000.0 for s in samples_ns[WARMUP:])
-    return Measurement(percentile(kept, 50), percentile(kept, 99),
-                       kept[-1] if kept else math.nan, len(kept), sent - len(samples_ns))
+    m = Measurement(percentile(kept, 50), percentile(kept, 99),
+                    kept[-1] if kept else math.nan, len(kept), sent - len(samples_ns))
+    legs: list[int] | None = received.get("first_leg")
+    if legs:
+        pairs = list(zip(samples_ns, legs, strict=True))[WARMUP:]
+        m.first_leg_p50 = percentile(sorted(x / 1000.0 for _, x in pairs), 50)
+        m.second_leg_p50 = percentile(sorted((t - x) / 1000.0 for t, x in pairs), 50)
+    return m
 
 
 def _rlbridge_once(group: ProcessGroup, case: Case, stream: Params) -> Measurement:
     server, host, port = start_server(group, nodelay=case.nodelay)
     common: Params = {"host": host, "port": port, "transport": case.transport,
                       "nodelay": case.nodelay, **stream}
-    sub, _ = group.spawn("subscriber", "b", MODULE, "subscriber", common)
-    pub, _ = group.spawn("publisher", "b", MODULE, "publisher", common)
+    sub = group.start("subscriber", "b", MODULE, "subscriber", common)
+    pub = group.start("publisher", "b", MODULE, "publisher", common)
+    for worker in (sub, pub):  # started together; the publisher waits for "go" anyway
+        worker.expect("ready", STARTUP_S)
     flow = run_flow(pub, sub, [pub, server, sub], _timeout(stream))
-    return _summary(flow.received["samples"], int(flow.sent["sent"]))
+    return _summary(flow.received, int(flow.sent["sent"]))
 
 
 def _timeout(stream: Params) -> float:
@@ -155,12 +171,28 @@ def measure(link: Link, case: Case, *, rate_hz: float, count: int,
                 return _rlbridge_once(group, case, stream)
             tx, rx = baselines.spawn_pair(group, case.kind, {"mode": "paced", **stream})
             flow = run_flow(tx, rx, [tx, rx], _timeout(stream))
-            return _summary(flow.received["samples"], int(flow.sent["sent"]))
+            return _summary(flow.received, int(flow.sent["sent"]))
         except BenchError as exc:
             raise BenchError(f"{exc}{group.diagnostics()}") from None
 
 
-# -- report --------------------------------------------------------------------------------
+# -- runs and report -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Settings:
+    """What ``rlbridge bench latency`` was asked for (also printed in the report)."""
+
+    seconds: float = 5.0
+    count: int | None = None
+    repeats: int = 3
+    rates: tuple[float, ...] = (1000.0, 100.0)
+    idle_s: float = 0.5
+    only: tuple[str, ...] = ()
+
+    def samples(self, rate_hz: float) -> int:
+        """Samples kept per run (``count``, else ``seconds`` at the stream's rate)."""
+        return self.count if self.count is not None else max(10, int(self.seconds * rate_hz))
+
+
 @dataclass
 class CaseResult:
     case: Case
@@ -172,20 +204,26 @@ class CaseResult:
         return median([float(getattr(m, name)) for m in self.runs])
 
 
-def run(link: Link, cases: Sequence[Case], rates: Sequence[float], *, seconds: float,
-        count: int | None, repeats: int,
+def run(link: Link, settings: Settings,
         progress: Callable[[str], None] | None = None) -> list[CaseResult]:
     """Every (case, rate) ``repeats`` times, interleaved so that noise hits every row."""
-    results = [CaseResult(c, r) for r in rates for c in cases]
-    for rep in range(repeats):
+    unknown = set(settings.only) - {c.key for c in CASES}
+    if unknown:
+        raise BenchError(f"unknown row key(s) {', '.join(sorted(unknown))}; the rows are "
+                         f"{', '.join(c.key for c in CASES)}")
+    selected = [c for c in CASES if not settings.only or c.key in settings.only]
+    results = [CaseResult(c, r) for r in settings.rates for c in selected]
+    for rep in range(settings.repeats):
         for res in results:
             if res.skipped is not None:
                 continue
             if progress is not None:
-                progress(f"repeat {rep + 1}/{repeats}: {res.case.label} at {res.rate_hz:g} Hz")
-            n = count if count is not None else max(WARMUP + 10, int(seconds * res.rate_hz))
+                progress(f"latency {rep + 1}/{settings.repeats}: {res.case.label} at "
+                         f"{res.rate_hz:g} Hz")
+            count = settings.samples(res.rate_hz) + WARMUP
             try:
-                res.runs.append(measure(link, res.case, rate_hz=res.rate_hz, count=n + WARMUP))
+                res.runs.append(measure(link, res.case, rate_hz=res.rate_hz, count=count,
+                                        idle_s=settings.idle_s))
             except Skipped as exc:
                 res.skipped = str(exc)
             except BenchError as exc:
@@ -193,23 +231,72 @@ def run(link: Link, cases: Sequence[Case], rates: Sequence[float], *, seconds: f
     return results
 
 
+def _peer(results: Sequence[CaseResult], r: CaseResult, kind: str) -> CaseResult | None:
+    return next((x for x in results if x.rate_hz == r.rate_hz and x.case.kind == kind
+                 and x.runs), None)
+
+
 def table(results: Sequence[CaseResult]) -> str:
-    """p50/p99/max medians over repeats, and the targets' ratios (per stream rate)."""
+    """p50/p99/max (medians over repeats) and the targets' ratios, per stream rate."""
     headers = ["stream", "path", "p50 us", "p99 us", "max us", "p50 / raw UDP p50",
-               "p99 / ZeroMQ p99", "samples/run", "lost (median)"]
+               "p99 / ZeroMQ p99", "p50 pub -> server send", "p50 server send -> read",
+               "samples/run", "lost/run"]
     rows = []
     for r in results:
         if r.skipped is not None:
             rows.append([f"{r.rate_hz:g} Hz", r.case.label, f"skipped: {r.skipped}"]
                         + [""] * (len(headers) - 3))
             continue
-        peers = {x.case.kind: x for x in results if x.rate_hz == r.rate_hz and x.runs}
-        udp, zmq = peers.get("udp"), peers.get("zmq")
+        udp, zmq = _peer(results, r, "udp"), _peer(results, r, "zmq")
         rows.append([
             f"{r.rate_hz:g} Hz", r.case.label, fmt(r.stat("p50"), 1), fmt(r.stat("p99"), 1),
             fmt(r.stat("max"), 1),
             fmt(ratio(r.stat("p50"), udp.stat("p50") if udp else math.nan), 2),
             fmt(ratio(r.stat("p99"), zmq.stat("p99") if zmq else math.nan), 2),
+            fmt(r.stat("first_leg_p50"), 1), fmt(r.stat("second_leg_p50"), 1),
             fmt(r.stat("samples")), fmt(r.stat("lost")),
         ])
     return markdown_table(headers, rows)
+
+
+def targets(results: Sequence[CaseResult]) -> list[str]:
+    """At 1 kHz: p50 <= 2 x raw UDP p50 and p99 <= ZeroMQ p99, per rlbridge row."""
+    lines = []
+    for r in results:
+        if r.case.kind != "rlbridge" or r.rate_hz != 1000.0 or not r.runs:
+            continue
+        udp, zmq = _peer(results, r, "udp"), _peer(results, r, "zmq")
+        if udp is not None:
+            x = ratio(r.stat("p50"), udp.stat("p50"))
+            lines.append(f"- {r.case.label} at 1 kHz: p50 = {fmt(x, 2)} x raw UDP; target "
+                         f"<= 2: **{'met' if x <= 2 else 'not met'}**")
+        if zmq is not None:
+            x = ratio(r.stat("p99"), zmq.stat("p99"))
+            lines.append(f"- {r.case.label} at 1 kHz: p99 = {fmt(x, 2)} x ZeroMQ; target "
+                         f"<= 1: **{'met' if x <= 1 else 'not met'}**")
+    return lines
+
+
+def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[str]) -> str:
+    """The markdown section ``rlbridge bench latency --out`` writes."""
+    per_run = (f"{settings.count:,} samples" if settings.count is not None
+               else f"{settings.seconds:g} s")
+    parts = [
+        report_header("Latency", command),
+        f"{settings.repeats} repeats per row, interleaved; {per_run} per run after "
+        f"{WARMUP} warm-up samples. One-way latency = subscriber's `time.time_ns()` when a "
+        "blocking read returns the value, minus the publisher's `time.time_ns()` written into "
+        "it (same machine, same clock). Percentiles per run, then the median over repeats. "
+        "rlbridge: publisher -> server -> subscriber (2 hops, 3 processes); baselines: 1 hop. "
+        "The two legs split each rlbridge sample at the server's send stamp "
+        "(`IncomingChannel.last_stamp_ns`): publisher write -> server send includes the "
+        "publisher's send-thread wake-up, hop 1 and the server; server send -> read includes "
+        "hop 2, the receive thread and the reader's wake-up.",
+        "",
+        table(results),
+        "",
+        "Targets:",
+        "",
+        *targets(results),
+    ]
+    return "\n".join(parts) + "\n"

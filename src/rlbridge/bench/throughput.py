@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from rlbridge.bench import baselines
 from rlbridge.bench.common import (
+    STARTUP_S,
     BenchError,
     Control,
     Flow,
@@ -42,13 +43,18 @@ from rlbridge.bench.common import (
     Tally,
     emit,
     fmt,
+    hold,
     markdown_table,
     median,
     ratio,
+    report_header,
     run_flow,
     start_server,
     wait_for_go,
 )
+
+if TYPE_CHECKING:
+    from rlbridge.csp.bridge_channels import OutgoingChannel
 
 MODULE = "rlbridge.bench.throughput"
 TOPIC = "/bench/throughput"
@@ -60,43 +66,38 @@ SUB_BUFFER = 1 << 18
 class Case:
     """One row: ``kind`` is ``rlbridge`` or a baseline (``udp``, ``zmq``, ``zenoh``)."""
 
+    key: str
     label: str
     kind: str
     transport: str = "udp"
     batch: int = 1
 
 
-CASES = (
-    Case("raw UDP socket, 1 hop", "udp"),
-    Case("ZeroMQ PUB/SUB tcp, 1 hop", "zmq"),
-    Case("Zenoh peer tcp, 1 hop", "zenoh"),
-    Case("rlbridge UDP, 1 value/datagram", "rlbridge", "udp", 1),
-    Case("rlbridge TCP, 1 value/frame", "rlbridge", "tcp", 1),
-    Case("rlbridge UDP, write_many(4096)", "rlbridge", "udp", 4096),
-    Case("rlbridge TCP, write_many(4096)", "rlbridge", "tcp", 4096),
-)
+def cases(batch: int = 4096) -> tuple[Case, ...]:
+    """Every row, in report order; ``batch`` is the ``write_many`` size of the batched rows."""
+    return (
+        Case("udp", "raw UDP socket, 1 hop", "udp"),
+        Case("zmq", "ZeroMQ PUB/SUB tcp, 1 hop", "zmq"),
+        Case("zenoh", "Zenoh peer tcp, 1 hop", "zenoh"),
+        Case("rlb-udp-1", "rlbridge UDP, 1 value/datagram", "rlbridge", "udp", 1),
+        Case("rlb-tcp-1", "rlbridge TCP, 1 value/frame", "rlbridge", "tcp", 1),
+        Case("rlb-udp-batch", f"rlbridge UDP, write_many({batch})", "rlbridge", "udp", batch),
+        Case("rlb-tcp-batch", f"rlbridge TCP, write_many({batch})", "rlbridge", "tcp", batch),
+    )
 
 
 # -- worker roles (child processes) --------------------------------------------------------
-def publisher(params: Params) -> None:
-    """SDK publisher: ``write`` per value (batch 1) or ``write_many`` of ``batch`` values."""
-    from rlbridge.csp.bridge import Bridge
+def _write_loop(out: OutgoingChannel, batch: int, high: int, count: int, seconds: float,
+                rate: float) -> tuple[int, float]:
+    """Write ``count`` values (or for ``seconds``); return how many and the start time.
 
-    control = Control()
-    batch = int(params["batch"])
-    buffer = max(4 * batch, 1 << 16)
-    bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub")
-    out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
-                         buffer_size=buffer)
+    Waits while more than ``high`` values are unsent (the ring would otherwise overwrite
+    them); with ``rate`` > 0 it also keeps to that many values per second.
+    """
     values = [float(i) for i in range(batch)]
-    high = buffer // 2
-    count, seconds = int(params["count"]), float(params["seconds"])
-    emit("ready")
-    wait_for_go(control)
     sent = 0
     start = time.monotonic()
     end = start + seconds
-    rate = float(params.get("rate", 0.0))
     while sent < count and time.monotonic() < end:
         while out.pending() > high:
             time.sleep(0.0001)
@@ -113,6 +114,23 @@ def publisher(params: Params) -> None:
             n = min(batch, count - sent)
             out.write_many(values if n == batch else values[:n])
         sent += n
+    return sent, start
+
+
+def publisher(params: Params) -> None:
+    """SDK publisher: ``write`` per value (batch 1) or ``write_many`` of ``batch`` values."""
+    from rlbridge.csp.bridge import Bridge
+
+    control = Control()
+    batch = int(params["batch"])
+    buffer = max(4 * batch, 1 << 16)
+    bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub")
+    out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
+                         buffer_size=buffer)
+    emit("ready")
+    wait_for_go(control)
+    sent, start = _write_loop(out, batch, buffer // 2, int(params["count"]),
+                              float(params["seconds"]), float(params.get("rate", 0.0)))
     bridge.send(wait=True)
     stats = out.statistics()
     emit("sent", sent=sent, t_start=start, t_end=time.monotonic(), written=stats.written,
@@ -121,7 +139,7 @@ def publisher(params: Params) -> None:
     channel = bridge.server_stats()["session"]["channels"][str(out.channel_id)]
     emit("stats", values_in=channel["values_in"], lost=channel["lost"],
          bad_values=channel["bad_values"])
-    control.wait("never", 1e9)
+    hold(control)
 
 
 def subscriber(params: Params) -> None:
@@ -143,11 +161,10 @@ def subscriber(params: Params) -> None:
             continue
         tally.add(1 + len(read_many()), mono())
     stats = ch.statistics()
-    server = bridge.server_stats()["session"]["channels"]
-    out = next(iter(server.values()))
+    out = bridge.server_stats()["session"]["channels"][str(ch.channel_id)]
     tally.report(lost=ch.lost, duplicates=ch.duplicates, overwritten=stats.overwritten,
                  arrived=stats.written, values_out=out["values_out"], dropped=out["dropped"])
-    control.wait("never", 1e9)
+    hold(control)
 
 
 ROLES: dict[str, Role] = {"publisher": publisher, "subscriber": subscriber}
@@ -160,17 +177,24 @@ class Measurement:
 
     rate: float
     cpu: dict[str, float]
+    written: int
     loss: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def lost_fraction(self) -> float:
+        return self.loss.get("end to end", 0) / self.written if self.written else math.nan
 
 
 def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
                    idle_s: float, timeout: float, rate: float) -> Measurement:
     server, host, port = start_server(group, max_batch=case.batch)
     common: Params = {"host": host, "port": port, "transport": case.transport}
-    sub, _ = group.spawn("subscriber", "b", MODULE, "subscriber", {**common, "idle_s": idle_s})
-    pub, _ = group.spawn("publisher", "b", MODULE, "publisher",
-                         {**common, "batch": case.batch, "count": count, "seconds": seconds,
-                          "rate": rate})
+    sub = group.start("subscriber", "b", MODULE, "subscriber", {**common, "idle_s": idle_s})
+    pub = group.start("publisher", "b", MODULE, "publisher",
+                      {**common, "batch": case.batch, "count": count, "seconds": seconds,
+                       "rate": rate})
+    for worker in (sub, pub):  # started together; the publisher waits for "go" anyway
+        worker.expect("ready", STARTUP_S)
     flow = run_flow(pub, sub, [pub, server, sub], timeout, expect_key="taken")
     pub.send("stats")
     hop1 = pub.expect("stats", 30.0)
@@ -187,7 +211,7 @@ def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
         "subscriber ring": int(got["overwritten"]),
         "end to end": int(flow.sent["written"]) - int(got["received"]),
     }
-    return _measurement(flow, loss)
+    return _measurement(flow, int(flow.sent["written"]), loss)
 
 
 def _baseline_once(group: ProcessGroup, case: Case, count: int, seconds: float,
@@ -195,14 +219,14 @@ def _baseline_once(group: ProcessGroup, case: Case, count: int, seconds: float,
     tx, rx = baselines.spawn_pair(group, case.kind, {"mode": "flood", "count": count,
                                                      "seconds": seconds, "idle_s": idle_s})
     flow = run_flow(tx, rx, [tx, rx], timeout)
-    return _measurement(flow, {"end to end": int(flow.sent["sent"])
-                               - int(flow.received["received"])})
+    sent = int(flow.sent["sent"])
+    return _measurement(flow, sent, {"end to end": sent - int(flow.received["received"])})
 
 
-def _measurement(flow: Flow, loss: dict[str, int]) -> Measurement:
+def _measurement(flow: Flow, written: int, loss: dict[str, int]) -> Measurement:
     cpu = {name: flow.cpu_per_million(name) for name in flow.cpu_s}
     cpu["total"] = sum(cpu.values())
-    return Measurement(flow.rate, cpu, loss)
+    return Measurement(flow.rate, cpu, written, loss)
 
 
 def measure(link: Link, case: Case, *, count: int, seconds: float, idle_s: float = 0.5,
@@ -216,7 +240,20 @@ def measure(link: Link, case: Case, *, count: int, seconds: float, idle_s: float
             raise BenchError(f"{exc}{group.diagnostics()}") from None
 
 
-# -- report --------------------------------------------------------------------------------
+# -- runs and report -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Settings:
+    """What ``rlbridge bench throughput`` was asked for (also printed in the report)."""
+
+    count: int = 2_000_000
+    seconds: float = 3.0
+    repeats: int = 3
+    batch: int = 4096
+    rate: float = 0.0
+    idle_s: float = 0.5
+    only: tuple[str, ...] = ()
+
+
 @dataclass
 class CaseResult:
     case: Case
@@ -231,19 +268,25 @@ class CaseResult:
         return median([m.cpu.get(name, math.nan) for m in self.runs])
 
 
-def run(link: Link, cases: Sequence[Case], *, count: int, seconds: float, repeats: int,
-        idle_s: float = 0.5, progress: Any = None) -> list[CaseResult]:
-    """Every case ``repeats`` times, interleaved so that a noisy minute hits every row."""
-    results = [CaseResult(c) for c in cases]
-    for rep in range(repeats):
+def run(link: Link, settings: Settings,
+        progress: Callable[[str], None] | None = None) -> list[CaseResult]:
+    """Every selected case ``repeats`` times, interleaved so a noisy minute hits every row."""
+    unknown = set(settings.only) - {c.key for c in cases(settings.batch)}
+    if unknown:
+        raise BenchError(f"unknown row key(s) {', '.join(sorted(unknown))}; the rows are "
+                         f"{', '.join(c.key for c in cases(settings.batch))}")
+    selected = [c for c in cases(settings.batch) if not settings.only or c.key in settings.only]
+    results = [CaseResult(c) for c in selected]
+    for rep in range(settings.repeats):
         for res in results:
             if res.skipped is not None:
                 continue
             if progress is not None:
-                progress(f"repeat {rep + 1}/{repeats}: {res.case.label}")
+                progress(f"throughput {rep + 1}/{settings.repeats}: {res.case.label}")
             try:
-                res.runs.append(measure(link, res.case, count=count, seconds=seconds,
-                                        idle_s=idle_s))
+                res.runs.append(measure(link, res.case, count=settings.count,
+                                        seconds=settings.seconds, idle_s=settings.idle_s,
+                                        rate=settings.rate))
             except Skipped as exc:
                 res.skipped = str(exc)
             except BenchError as exc:
@@ -252,33 +295,85 @@ def run(link: Link, cases: Sequence[Case], *, count: int, seconds: float, repeat
 
 
 def table(results: Sequence[CaseResult]) -> str:
-    base = {r.case.kind: r.rate for r in results if r.case.kind != "rlbridge"}
-    headers = ["path", "values/s (median)", "x raw UDP", "x ZeroMQ", "x Zenoh",
-               "CPU s/M values: sender/pub", "server", "receiver/sub", "total",
-               "lost end to end (median)"]
+    """Medians over repeats; ratios to the baselines of the same run."""
+    base = {r.case.kind: r.rate for r in results if r.case.kind != "rlbridge" and r.runs}
+    headers = ["path", "values/s", "x raw UDP", "x ZeroMQ", "x Zenoh", "lost",
+               "CPU s per 1M values: sender", "server", "receiver", "total"]
     rows = []
     for r in results:
         if r.skipped is not None:
             rows.append([r.case.label, f"skipped: {r.skipped}"] + [""] * (len(headers) - 2))
             continue
-        sender = r.cpu("publisher") if r.case.kind == "rlbridge" else r.cpu("sender")
-        receiver = r.cpu("subscriber") if r.case.kind == "rlbridge" else r.cpu("receiver")
-        lost = median([float(m.loss.get("end to end", 0)) for m in r.runs])
-        rows.append([r.case.label, fmt(r.rate), fmt(ratio(r.rate, base.get("udp", math.nan)), 2),
-                     fmt(ratio(r.rate, base.get("zmq", math.nan)), 2),
-                     fmt(ratio(r.rate, base.get("zenoh", math.nan)), 2), fmt(sender, 2),
-                     fmt(r.cpu("server"), 2), fmt(receiver, 2), fmt(r.cpu("total"), 2),
-                     fmt(lost)])
+        rlb = r.case.kind == "rlbridge"
+        lost = median([m.lost_fraction for m in r.runs])
+        rows.append([r.case.label, fmt(r.rate)]
+                    + [fmt(ratio(r.rate, base.get(k, math.nan)), 2) for k in KINDS]
+                    + [f"{100 * lost:.2f} %" if not math.isnan(lost) else "-",
+                       fmt(r.cpu("publisher" if rlb else "sender"), 2),
+                       fmt(r.cpu("server"), 2) if rlb else "-",
+                       fmt(r.cpu("subscriber" if rlb else "receiver"), 2),
+                       fmt(r.cpu("total"), 2)])
     return markdown_table(headers, rows)
 
 
+KINDS = ("udp", "zmq", "zenoh")
+
+
 def loss_table(results: Sequence[CaseResult]) -> str:
-    """Where values were lost, per rlbridge case and repeat (UDP overload shows up here)."""
+    """Where rlbridge values were lost, per repeat (UDP overload shows up here)."""
     rows = []
     for r in results:
         if r.case.kind != "rlbridge":
             continue
         for i, m in enumerate(r.runs):
             stages = ", ".join(f"{k}: {v:,}" for k, v in m.loss.items() if v)
-            rows.append([r.case.label, str(i + 1), fmt(m.rate), stages or "none"])
-    return markdown_table(["path", "repeat", "values/s", "losses by stage"], rows)
+            rows.append([r.case.label, str(i + 1), fmt(m.rate), f"{m.written:,}",
+                         stages or "none"])
+    return markdown_table(["path", "repeat", "values/s", "written", "lost, by stage"], rows)
+
+
+def targets(results: Sequence[CaseResult]) -> list[str]:
+    """The issue's targets, each with its verdict (only rows measured in this run)."""
+    by = {r.case.key: r for r in results if r.runs}
+    lines = []
+    rivals = [by[k] for k in ("zmq", "zenoh") if k in by]
+    for key in ("rlb-tcp-batch", "rlb-udp-batch"):
+        if key in by:
+            r = by[key]
+            ok = r.rate >= 1e6 and all(r.rate > x.rate for x in rivals)
+            vs = ", ".join(f"{x.case.label} {fmt(x.rate)}" for x in rivals) or "no rivals run"
+            lines.append(f"- {r.case.label}: {fmt(r.rate)} values/s; target >= 1,000,000 and "
+                         f"ahead of {vs}: **{'met' if ok else 'not met'}**")
+    if "rlb-udp-1" in by and "udp" in by:
+        x = ratio(by["rlb-udp-1"].rate, by["udp"].rate)
+        lines.append(f"- rlbridge UDP, 1 value/datagram: {fmt(x, 2)} x the raw UDP loop; "
+                     f"target >= 0.40: **{'met' if x >= 0.4 else 'not met'}**")
+    return lines
+
+
+def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[str]) -> str:
+    """The markdown section ``rlbridge bench throughput --out`` writes."""
+    flood = "as fast as flow control allows" if not settings.rate else \
+        f"offered at {settings.rate:,.0f} values/s"
+    parts = [
+        report_header("Throughput", command),
+        f"{settings.repeats} repeats per row, interleaved; each run sends up to "
+        f"{settings.count:,} values or for {settings.seconds:g} s ({flood}). Figures are "
+        "medians over the repeats. values/s = values the receiving process read, divided by "
+        "the time from the sender's first send to that receiver's last arrival. CPU = user + "
+        "system seconds of each whole process (all threads, /proc/<pid>/stat) over the run, "
+        "per million values received. rlbridge rows: 3 processes, 2 hops (publisher -> "
+        "server -> subscriber); baselines: 2 processes, 1 hop, 8-byte messages.",
+        "",
+        table(results),
+        "",
+        "Targets:",
+        "",
+        *targets(results),
+        "",
+        "Losses of the rlbridge rows by stage (sequence gaps are `IncomingChannel.lost` for "
+        "the second hop and the server's per-channel counter for the first):",
+        "",
+        loss_table(results),
+    ]
+    return "\n".join(parts) + "\n"

@@ -13,6 +13,7 @@ import itertools
 import os
 import sys
 import threading
+import warnings
 from collections.abc import Callable
 from types import TracebackType
 from typing import Any, Literal
@@ -20,6 +21,7 @@ from typing import Any, Literal
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import _MISSING
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
+from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.sender import SendLoop
 from rlbridge.wire import TopicClose, TopicConnect
 from rlbridge.wire.link import LinkState
@@ -168,6 +170,28 @@ class Bridge:
         channel.close()
         if not self._conn.closed.is_set():
             self._conn.send_control(TopicClose(channel.channel_id))
+
+    def set_io_priority(self, priority: int = 40) -> bool:
+        """Run the SDK's receive and send threads at ``SCHED_FIFO`` ``priority``.
+
+        Put them below the control loop (``PriParallel`` gives it 50) and above everything
+        else: a thread preempted by another process while it holds the GIL keeps the loop
+        waiting whatever the loop's own priority (docs/gil.md measures it at 1 kHz traffic).
+        Needs ``CAP_SYS_NICE``; returns ``False`` and says why in one ``RealTimeWarning`` when
+        refused. Opt-in, because a real-time thread that spins can starve the machine.
+        """
+        threads = [self._conn._thread, self._sender._thread]
+        try:
+            for thread in threads:
+                if thread is not None and thread.native_id is not None:
+                    os.sched_setscheduler(thread.native_id, os.SCHED_FIFO,
+                                          os.sched_param(priority))
+        except (OSError, AttributeError) as exc:
+            warnings.warn(RealTimeWarning(
+                f"SDK threads stay at normal priority: SCHED_FIFO {priority} refused ({exc}); "
+                "it needs CAP_SYS_NICE or RLIMIT_RTPRIO"), stacklevel=2)
+            return False
+        return True
 
     @property
     def send_rate_hz(self) -> float | None:

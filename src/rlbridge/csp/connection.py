@@ -55,6 +55,8 @@ Control = Literal["tcp", "udp"]
 
 #: Datagrams read before the values gathered so far are handed to the channels.
 RUN_DATAGRAMS = 32
+#: Datagrams read in one go before the receive thread serves its other duties.
+MAX_DRAIN = 256
 #: Bytes of queued datagrams the client's UDP socket asks the kernel for.
 UDP_RECEIVE_BUFFER = 4 << 20
 
@@ -294,22 +296,23 @@ class Connection:
                         self._receive_datagrams(sock, token)
                     else:
                         return
-                    self._flush_values()
                 self._tick(link)
+                # Last before blocking again: a woken reader then finds the GIL free soon.
+                self._flush_values()
         except RemoteProtocolError as exc:
             self._shutdown(f"server sent an invalid stream: {exc.reason}")
         except OSError as exc:
             self._shutdown(f"connection failed: {exc}")
 
     def _receive_datagrams(self, sock: socket.socket, token: int) -> None:
-        """Read every datagram already queued, without blocking.
+        """Read the datagrams already queued (at most ``MAX_DRAIN``), without blocking.
 
         Values are handed on every ``RUN_DATAGRAMS`` datagrams (and when the queue is empty),
         so a long burst neither waits for its end nor costs a channel wake-up per datagram.
+        After ``MAX_DRAIN`` datagrams the loop goes back to ``select``: under a flood the queue
+        never empties, and heartbeats (the server's watchdog) and TCP must still be served.
         """
-        count = 0
-        while True:
-            count += 1
+        for count in range(1, MAX_DRAIN + 1):
             if count % RUN_DATAGRAMS == 0:
                 self._flush_values()
             try:

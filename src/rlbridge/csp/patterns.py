@@ -6,24 +6,24 @@ channels it created, composed as ``PriParallel(loop, *helpers)`` so that the loo
 highest priority the OS grants. The control law is a plain callable; the recipe does the
 plumbing.
 
-=====================  ========  ==============================================================
-function               thesis    what the HRT loop touches each cycle
-=====================  ========  ==============================================================
-:func:`reference`      fig 5.7   nothing (the baseline every pattern is compared with)
-:func:`receive_nonblocking` 5.3  a non-blocking incoming bridge channel (latest value)
-:func:`receive_blocking`  5.4    a non-blocking local channel fed by a lower-priority process
-                                 that does the *blocking* read of the bridge channel
-:func:`receive_naive`  5.3.1     a blocking incoming bridge channel: the loop waits for the
-                                 network (reported: ``RealTimeWarning``, ``hrt_blocking_reads``)
-:func:`send_buffered`  5.5       a blocking buffered local channel; a lower-priority process
-                                 reads every value, writes it to the bridge and calls ``send``
-:func:`send_sampled`   5.6       a non-blocking local channel of size 1; a lower-priority timed
-                                 process forwards the latest value at a lower rate
-:func:`send_loop`      5.10      a ``through_buffer`` bridge channel; the SDK's send loop
-                                 (``Bridge.connect(send_rate_hz=...)``) sends it
-:func:`send_naive`     5.2.2     an immediate bridge channel (``through_buffer=False``): each
-                                 write may wake the send thread (one futex call)
-=====================  ========  ==============================================================
+============================  ======  ========================================================
+function                      thesis  what the HRT loop touches each cycle
+============================  ======  ========================================================
+:func:`reference`             5.7     nothing (the baseline every pattern is compared with)
+:func:`receive_nonblocking`   5.3     a non-blocking incoming bridge channel (latest value)
+:func:`receive_blocking`      5.4     a non-blocking local channel fed by a lower-priority
+                                      process that does the *blocking* bridge read
+:func:`receive_naive`         5.3.1   a blocking incoming bridge channel: the loop waits for
+                                      the network (``RealTimeWarning``, ``hrt_blocking_reads``)
+:func:`send_buffered`         5.5     a blocking buffered local channel; a lower-priority
+                                      process sends every value and calls ``bridge.send()``
+:func:`send_sampled`          5.6     a non-blocking local channel of size 1; a lower-priority
+                                      timed process forwards the latest value at a lower rate
+:func:`send_loop`             5.10    a ``through_buffer`` bridge channel sent by the SDK's
+                                      send loop (``Bridge.connect(send_rate_hz=...)``)
+:func:`send_naive`            5.2.2   an immediate bridge channel (``through_buffer=False``):
+                                      a write may wake the send thread (one futex call)
+============================  ======  ========================================================
 
 Why the proper patterns keep the loop's timing: every operation the loop does is a ring
 buffer operation (no lock, no system call), except ringing a doorbell when a consumer sleeps
