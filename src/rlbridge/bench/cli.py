@@ -54,7 +54,14 @@ def channels(
     """ns per channel write/read/hand-off, next to queue.Queue and deque from the same run."""
     from rlbridge.bench.channels import format_markdown, run_channel_bench
 
+    import datetime
+    import sys
+
     text = format_markdown(run_channel_bench(n, repeats))
+    header = "# CSP layer micro-benchmark\n"
+    command = "rlbridge " + " ".join(sys.argv[1:])
+    stamp = f"\nCommand: `{command}` ({datetime.date.today().isoformat()}).\n"
+    text = text.replace(header, header + stamp, 1) if text.startswith(header) else text
     out.write_text(text)
     typer.echo(text)
 
