@@ -52,10 +52,10 @@ def channels(
     out: Out = Path("docs/bench-channels.md"),
 ) -> None:
     """ns per channel write/read/hand-off, next to queue.Queue and deque from the same run."""
-    from rlbridge.bench.channels import format_markdown, run_channel_bench
-
     import datetime
     import sys
+
+    from rlbridge.bench.channels import format_markdown, run_channel_bench
 
     text = format_markdown(run_channel_bench(n, repeats))
     header = "# CSP layer micro-benchmark\n"
