@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from rlbridge.csp.patterns import Coupling
 
@@ -50,6 +51,18 @@ def publisher(host: str, port: int, seconds: float, enabled: bool = True,
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGTERM)
         proc.wait(10)
+
+
+def sine_source(period_us: int) -> Callable[[], float]:
+    """The value an example's HRT loop computes each cycle: a sine of the loop's own time."""
+    k = 0
+
+    def control() -> float:
+        nonlocal k
+        k += 1
+        return math.sin(k * period_us / 1e6)
+
+    return control
 
 
 def report(coupling: Coupling) -> None:

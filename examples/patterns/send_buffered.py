@@ -6,9 +6,7 @@
 
 from __future__ import annotations
 
-import math
-
-from _common import F64, OUTPUT, parser, report
+from _common import F64, OUTPUT, parser, report, sine_source
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.patterns import send_buffered
@@ -16,11 +14,7 @@ from rlbridge.csp.patterns import send_buffered
 
 def main() -> None:
     args = parser(__doc__ or "").parse_args()
-    k = [0]
-
-    def control() -> float:
-        k[0] += 1
-        return math.sin(k[0] * args.period_us / 1e6)
+    control = sine_source(args.period_us)
 
     with Bridge.connect(args.host, args.port, nodelay=True) as bridge:
         coupling = send_buffered(bridge, OUTPUT, F64, control, period=args.period_us / 1e6,

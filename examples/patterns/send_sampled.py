@@ -6,9 +6,7 @@
 
 from __future__ import annotations
 
-import math
-
-from _common import F64, OUTPUT, parser, report
+from _common import F64, OUTPUT, parser, report, sine_source
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.patterns import send_sampled
@@ -18,11 +16,7 @@ def main() -> None:
     p = parser(__doc__ or "")
     p.add_argument("--rate", type=float, default=100.0, help="send rate of the sampler (Hz)")
     args = p.parse_args()
-    k = [0]
-
-    def control() -> float:
-        k[0] += 1
-        return math.sin(k[0] * args.period_us / 1e6)
+    control = sine_source(args.period_us)
 
     with Bridge.connect(args.host, args.port, nodelay=True) as bridge:
         coupling = send_sampled(bridge, OUTPUT, F64, control, rate_hz=args.rate,
