@@ -27,6 +27,7 @@ from rlbridge.wire import TopicClose, TopicConnect
 from rlbridge.wire.link import LinkState
 
 Transport = Literal["tcp", "udp"]
+"""Per channel: ``udp`` when the newest value matters most, ``tcp`` when every value must arrive."""
 
 DEFAULT_SWITCH_INTERVAL = 0.0005
 """GIL switch interval ``Bridge.connect`` installs (never lengthens); see docs/gil.md."""
@@ -230,6 +231,7 @@ class Bridge:
 
     @property
     def session_id(self) -> int:
+        """The number the server gave this session: it names it in logs and ``rlbridge stats``."""
         assert self._conn.ack is not None
         return self._conn.ack.session
 

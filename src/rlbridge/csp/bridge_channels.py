@@ -111,6 +111,7 @@ class OutgoingChannel:
                 bell.ring()
 
     def pending(self) -> int:
+        """Values written and not yet taken by the send thread (a snapshot, for monitors)."""
         return len(self._ring)
 
     def take(self) -> tuple[int, list[int], list[object]]:
@@ -121,6 +122,7 @@ class OutgoingChannel:
         return first, [s for s, _ in items], [v for _, v in items]
 
     def statistics(self) -> ChannelStatistics:
+        """Counters as for a :class:`Channel`; ``overwritten`` is what a full buffer dropped."""
         ring = self._ring
         return ChannelStatistics(buffered=len(ring), overwritten=ring.overwritten, dropped=0,
                                  written=ring.written, read=ring.popped, waiting_readers=0,
@@ -128,7 +130,9 @@ class OutgoingChannel:
 
     @property
     def closed(self) -> bool:
+        """True after :meth:`close` (``Bridge.unsubscribe`` or ``Bridge.close``)."""
         return self._closed
 
     def close(self) -> None:
+        """Refuse further writes (``ChannelClosed``); ``Bridge.unsubscribe`` also unbinds it."""
         self._closed = True

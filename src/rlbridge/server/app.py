@@ -35,6 +35,7 @@ class ServerError(RuntimeError):
 
 @dataclass(frozen=True)
 class BoundAddress:
+    """Where a started server listens (``Server.address``); ``port`` is the real one."""
     host: str
     port: int
     tcp: bool
@@ -83,6 +84,7 @@ class Server:
         install_signal_handlers: bool = False,
         started: Callable[[BoundAddress], None] | None = None,
     ) -> None:
+        """Serve on the running loop until :meth:`stop`; embed it in your own asyncio program."""
         loop = asyncio.get_running_loop()
         self._loop = loop
         self._stop = asyncio.Event()
@@ -179,10 +181,12 @@ class ServerThread:
 
     @property
     def port(self) -> int:
+        """The bound port: the one the OS picked when the config said 0."""
         assert self.server.address is not None, "server not started"
         return self.server.address.port
 
     def start(self, timeout: float = 10.0) -> ServerThread:
+        """Start serving; return once it listens, or raise ``ServerError`` saying why not."""
         def main() -> None:
             try:
                 with asyncio.Runner(
@@ -202,6 +206,7 @@ class ServerThread:
         return self
 
     def stop(self, timeout: float = 10.0) -> None:
+        """Shut the server down in order and join its thread (waits at most ``timeout``)."""
         self.server.stop()
         if self._thread is not None:
             self._thread.join(timeout)
