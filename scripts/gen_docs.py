@@ -143,8 +143,13 @@ API: list[tuple[str, str, list[str], str]] = [
      "`tests/adapters/contract.py` is the conformance suite it must pass."),
     ("", "rlbridge.adapters", ["load_adapter", "AdapterUnavailable", "InProcessBus"], ""),
     ("Embedding the server", "rlbridge.server.config", ["ServerConfig"],
-     "`rlbridge serve` builds a `ServerConfig` and calls `Server(config).run()`; "
-     "so can your program."),
+     "`rlbridge serve` builds a `ServerConfig` and calls `Server(config).run()`; so can your "
+     "program. `ServerThread` runs it in a background thread (tests, examples, one-process "
+     "set-ups):\n\n```python\nfrom rlbridge import Bridge\n"
+     "from rlbridge.server import ServerConfig, ServerThread\n\n"
+     "with ServerThread(ServerConfig(port=0, nodelay=True)) as server:  # port 0: any free port\n"
+     "    with Bridge.connect(\"127.0.0.1\", server.port) as bridge:\n"
+     "        print(bridge.link_state)\n```"),
     ("", "rlbridge.server.app",
      ["Server", "ServerThread", "BoundAddress", "ServerError", "new_event_loop"], ""),
 ]
@@ -293,7 +298,7 @@ def _render_class(cls: type, qual: str) -> list[str]:
     if issubclass(cls, enum.Enum):
         members = ", ".join(f"`{m.name}` = `{m.value!r}`" for m in cls)
         out += [f"`class {cls.__name__}{_bases(cls)}`: {members}", ""]
-    elif is_protocol or issubclass(cls, BaseException):
+    elif is_protocol or issubclass(cls, BaseException) or hasattr(cls, "model_fields"):
         out += [f"`class {cls.__name__}{_bases(cls)}`", ""]
     else:
         sig = _signature(cls).removesuffix(" -> None")
@@ -305,18 +310,39 @@ def _render_class(cls: type, qual: str) -> list[str]:
             out += [f"- attribute `{attr}: {_annotation(ann)}`", ""]
     fields = getattr(cls, "model_fields", None)
     if fields:
-        out += ["| field | type | default | meaning |", "|---|---|---|---|"]
+        out += ["| field | type | default | range | meaning |", "|---|---|---|---|---|"]
         for fname, info in fields.items():
             ann = _annotation(info.annotation).replace("|", "\\|")
             out.append(f"| `{fname}` | `{ann}` | `{_default(info.default)}` | "
-                       f"{info.description or ''} |")
+                       f"{_bounds(info.metadata)} | {info.description or ''} |")
         out.append("")
         return out
     if issubclass(cls, BaseException) or dataclasses.is_dataclass(cls) or qual in CLASS_ONLY:
         return out
     for name, raw in _members(cls):
+        if _inherits_doc(cls, name, raw):
+            continue  # an override the base class documents already (``execute``)
         out += _render_member(cls, name, raw, qual)
     return out
+
+
+def _bounds(metadata: list[Any]) -> str:
+    """``ge``/``le`` style constraints of a pydantic field as ``0 ≤ x ≤ 65535``."""
+    low = high = ""
+    for item in metadata:
+        for attr, sign in (("ge", " ≤"), ("gt", " <")):
+            if getattr(item, attr, None) is not None:
+                low = f"{getattr(item, attr)}{sign} "
+        for attr, sign in (("le", "≤ "), ("lt", "< ")):
+            if getattr(item, attr, None) is not None:
+                high = f" {sign}{getattr(item, attr)}"
+    return f"{low}x{high}" if low or high else ""
+
+
+def _inherits_doc(cls: type, name: str, raw: Any) -> bool:
+    func = raw.__func__ if isinstance(raw, (staticmethod, classmethod)) else raw
+    own = func.fget.__doc__ if isinstance(func, property) and func.fget else func.__doc__
+    return not own and any(name in vars(base) for base in cls.__mro__[1:])
 
 
 def render_api() -> str:
