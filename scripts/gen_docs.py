@@ -11,9 +11,9 @@ builds: :func:`rlbridge.cli.main` registers the ``bench``, ``demo`` and ``netem`
 this script runs it once (with ``--help``, output discarded) and then walks ``cli.app``.
 
 docs/api.md is the public SDK and server API, rendered by ``scripts/api_reference.py`` from
-signatures and docstrings, in the order of its ``API`` list (add new public objects there). A
-public object or member without a
-docstring is an error (``--check`` fails on it too): the reference must say why and when.
+signatures and docstrings, in the order of its ``API`` list (add new public objects there).
+A public object or member without a docstring is an error (``--check`` fails on it too):
+the reference must say why and when.
 ``tests/docs/test_docs.py`` runs ``--check``.
 """
 
