@@ -392,3 +392,17 @@ def test_io_priority_reports_thread_ids_and_follows_a_reconnect(
     assert recv
     assert recv[0] not in ids
     assert os.sched_getscheduler(recv[0]) == os.SCHED_FIFO  # type: ignore[arg-type]
+
+
+def test_udp_only_session_reconnects_over_udp(serve: Serve,
+                                              bridges: Callable[..., Bridge]) -> None:
+    """No TCP connection to break: the client's watchdog notices, the hello goes over UDP."""
+    b = bridges(control="udp")
+    inbox = b.subscribe("/udp_only", F64, transport="udp", blocking=True, buffer_size=64)
+    out = b.publish("/udp_only", F64, transport="udp")
+    assert roundtrip(out, inbox, 1.0)
+    serve.kill()
+    wait_for(lost(b), "the watchdog to declare the link lost")
+    serve.start()
+    wait_for(reconnected(b), "the reconnect over UDP")
+    assert roundtrip(out, inbox, 2.0)

@@ -280,11 +280,12 @@ class Connection:
 
     def _connect_tcp(self) -> socket.socket:
         """``connect`` that :meth:`close` can interrupt (a dropped SYN would wait ``timeout``)."""
-        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
-        sock = socket.socket(family, socket.SOCK_STREAM)
+        family, kind, proto, _name, address = socket.getaddrinfo(
+            self.host, self.port, type=socket.SOCK_STREAM)[0]
+        sock = socket.socket(family, kind, proto)
         try:
             sock.setblocking(False)
-            err = sock.connect_ex((self.host, self.port))
+            err = sock.connect_ex(address)
             if err not in (0, errno.EINPROGRESS):
                 raise OSError(err, os.strerror(err))
             ready, writable, _ = select.select([self._wake_r], [sock], [], self.timeout)
@@ -429,10 +430,10 @@ class Connection:
                 self._dispatch(packet)
         self._leftover = []
         self._flush_values()
-        if self.udp is not None and self.control == "tcp":
-            self.send_udp_packet(link.make_heartbeat(time.monotonic_ns()))
         sockets = [s for s in (self.tcp, self.udp, self._wake_r) if s is not None]
         try:
+            if self.udp is not None and self.control == "tcp":
+                self.send_udp_packet(link.make_heartbeat(time.monotonic_ns()))
             while generation == self._generation and self.up:
                 now = time.monotonic_ns()
                 timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
