@@ -18,9 +18,9 @@ import sys
 import textwrap
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
 
 import pytest
+from link_helpers import WAIT, roundtrip, wait_for
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.reconnect import Backoff, ClientState
@@ -28,7 +28,6 @@ from rlbridge.server import ServerConfig
 from rlbridge.wire.link import LinkState
 
 F64 = "std_msgs/msg/Float64"
-WAIT = 20.0
 TIMEOUT_MS = ServerConfig().timeout_ms
 SLACK_MS = 2000
 FAST = Backoff(initial=0.02, max_delay=0.2)
@@ -38,28 +37,6 @@ def test_default_watchdog_notices_within_three_heartbeats_and_one_second() -> No
     cfg = ServerConfig()
     assert cfg.timeout_ms <= 3 * cfg.heartbeat_ms
     assert cfg.timeout_ms <= 1000
-
-
-def wait_for(predicate: Callable[[], object], what: str, timeout: float = WAIT) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.01)
-
-
-def roundtrip(out: Any, inbox: Any, value: float) -> bool:
-    """Write ``value`` until it arrives in ``inbox`` (blocking channel)."""
-    deadline = time.monotonic() + WAIT
-    while time.monotonic() < deadline:
-        out.write(value)
-        try:
-            while True:
-                if inbox.read(timeout=0.2) == value:
-                    return True
-        except TimeoutError:
-            continue
-    return False
 
 
 class Healthy:

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from link_helpers import WAIT, roundtrip, wait_for
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.errors import ChannelClosed
@@ -27,7 +28,6 @@ from rlbridge.wire.link import LinkState
 
 F64 = "std_msgs/msg/Float64"
 I32 = "std_msgs/msg/Int32"
-WAIT = 20.0
 #: Quick retries, so that a restarted server is found again soon after it listens.
 FAST = Backoff(initial=0.02, max_delay=0.2)
 
@@ -120,14 +120,6 @@ def bridges(serve: Serve) -> Iterator[Callable[..., Bridge]]:
         b.close()
 
 
-def wait_for(predicate: Callable[[], object], what: str, timeout: float = WAIT) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.01)
-
-
 def reconnected(*bs: Bridge, at_least: int = 1) -> Callable[[], bool]:
     return lambda: all(b.reconnects >= at_least and b.link_state is LinkState.CONNECTED
                        for b in bs)
@@ -135,20 +127,6 @@ def reconnected(*bs: Bridge, at_least: int = 1) -> Callable[[], bool]:
 
 def lost(*bs: Bridge) -> Callable[[], bool]:
     return lambda: all(b.link_state is LinkState.LOST for b in bs)
-
-
-def roundtrip(out: Any, inbox: Any, value: float) -> bool:
-    """Write ``value`` until it arrives (a value sent before the peer's binding is gone)."""
-    deadline = time.monotonic() + WAIT
-    while time.monotonic() < deadline:
-        out.write(value)
-        try:
-            while True:
-                if inbox.read(timeout=0.2) == value:
-                    return True
-        except TimeoutError:
-            continue
-    return False
 
 
 @pytest.mark.parametrize("how", ["kill", "terminate"])

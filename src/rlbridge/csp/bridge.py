@@ -30,7 +30,7 @@ from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import _MISSING, Channel
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
 from rlbridge.csp.errors import RealTimeWarning
-from rlbridge.csp.failsafe import OnLost, fail_safe
+from rlbridge.csp.failsafe import GuardedChannel, OnLost, fail_safe
 from rlbridge.csp.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
 from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
@@ -141,10 +141,12 @@ class Bridge:
                 f"an incoming channel needs buffer_size >= 1 (got {buffer_size}): values "
                 "arrive from the network whether or not a reader waits")
         ch_id = next(self._ids)
-        channel = IncomingChannel(ch_id, topic, msg_type, field, transport=transport,
+        kind = IncomingChannel if guard is None else GuardedChannel
+        channel = kind(ch_id, topic, msg_type, field, transport=transport,
                                   blocking=blocking, buffer_size=buffer_size,
                                   initial=initial if not blocking else _MISSING)
-        channel.failsafe = guard
+        if isinstance(channel, GuardedChannel):
+            channel.failsafe = guard
         with self._lock:
             self._incoming[ch_id] = channel
         try:

@@ -21,7 +21,6 @@ from typing import Any
 
 from rlbridge.csp.channel import _MISSING, Channel, ChannelStatistics, Doorbell, _Missing
 from rlbridge.csp.errors import ChannelClosed
-from rlbridge.csp.failsafe import FailSafe
 from rlbridge.csp.ring import SpscRing
 from rlbridge.wire.sequence import SequenceTracker
 
@@ -29,8 +28,8 @@ from rlbridge.wire.sequence import SequenceTracker
 class IncomingChannel(Channel[Any]):
     """Middleware -> control code. Read it like any buffered channel."""
 
-    __slots__ = ("_tracker", "channel_id", "failsafe", "field", "last_stamp_ns", "msg_type",
-                 "topic", "transport")
+    __slots__ = ("_tracker", "channel_id", "field", "last_stamp_ns", "msg_type", "topic",
+                 "transport")
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, blocking: bool, buffer_size: int,
@@ -44,14 +43,6 @@ class IncomingChannel(Channel[Any]):
         self.transport = transport
         self.last_stamp_ns = 0
         self._tracker = SequenceTracker()
-        self.failsafe: FailSafe | None = None  # on_lost: what reads do while the link is lost
-
-    def read(self, timeout: float | None = None) -> Any:
-        """Read as from any channel; while the link is lost, as ``on_lost`` says."""
-        failsafe = self.failsafe
-        if failsafe is not None and failsafe.active:
-            return failsafe.read(self.name)
-        return super().read(timeout)
 
     def restart_sequence(self) -> None:
         """The channel was bound again (reconnect): the server numbers from 0 again."""

@@ -13,9 +13,12 @@ it reads then is the channel's choice, made once at ``Bridge.subscribe(..., on_l
 ``"raise"``
     Every read raises :class:`LinkLost`, for code that must not act on old data.
 
-The check costs one attribute read per read (the Bridge's ``LinkEvents.lost``) and happens when
-the read starts: a blocking read already waiting when the link drops keeps waiting (give it a
-timeout, or read without blocking from a hard-real-time loop, which is the rule anyway).
+Only channels with ``SafeValue`` or ``"raise"`` are a :class:`GuardedChannel` (an
+:class:`~rlbridge.csp.bridge_channels.IncomingChannel` whose ``read`` checks first), so
+``"hold"`` channels pay nothing. The check costs one attribute read per read (the Bridge's
+``LinkEvents.lost``) and happens when the read starts: a blocking read already waiting when the
+link drops keeps waiting (give it a timeout, or read without blocking from a hard-real-time
+loop, which is the rule anyway).
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
+from rlbridge.csp.bridge_channels import IncomingChannel
+from rlbridge.csp.channel import Channel
 from rlbridge.csp.errors import ChannelError
 
 
@@ -70,6 +75,23 @@ class FailSafe:
         if self._raise:
             raise LinkLost(channel_name)
         return self._value
+
+
+class GuardedChannel(IncomingChannel):
+    """An incoming channel with a fail-safe: reads answer from it while the link is lost."""
+
+    __slots__ = ("failsafe",)
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.failsafe: FailSafe | None = None  # set by Bridge.subscribe
+
+    def read(self, timeout: float | None = None) -> Any:
+        """Read as from any channel; while the link is lost, as ``on_lost`` says."""
+        failsafe = self.failsafe
+        if failsafe is not None and failsafe.active:
+            return failsafe.read(self.name)
+        return Channel.read(self, timeout)
 
 
 def fail_safe(on_lost: OnLost, flag: LinkFlag) -> FailSafe | None:
