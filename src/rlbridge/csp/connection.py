@@ -410,6 +410,9 @@ class Connection:
 
     def request_stats(self) -> dict[str, object]:
         """Ask the server for its counters and topic list (``rlbridge stats``, ``topic list``)."""
+        if not self._wait_up(self.timeout):
+            raise ConnectionFailed(f"no session with the server within {self.timeout} s: "
+                                   f"{self.close_reason}")
         pending = _Pending(threading.Event())
         with self._pending_lock:
             self._stats_waiters.append(pending)
