@@ -142,6 +142,7 @@ def test_server_restart_mid_stream_resumes_both_ways_on_tcp_and_udp(
             links[f"{name}/{transport}"] = (src.publish(topic, F64, transport=transport), inbox)
     for key, (out, inbox) in links.items():
         assert roundtrip(out, inbox, 1.0), f"{key}: no value before the restart"
+    channels = {b_: b_.server_stats()["session"]["channels"] for b_ in (a, b)}
 
     getattr(serve, how)()
     wait_for(lost(a, b), "both bridges to see the link lost")
@@ -149,6 +150,10 @@ def test_server_restart_mid_stream_resumes_both_ways_on_tcp_and_udp(
     assert not a.closed
     serve.start()  # same port; nobody tells the bridges
     wait_for(reconnected(a, b), "both bridges to reconnect by themselves")
+    for bridge, before in channels.items():  # the same channel ids, directions, on a new server
+        after = bridge.server_stats()["session"]["channels"]
+        assert {c: d["direction"] for c, d in after.items()} == {
+            c: d["direction"] for c, d in before.items()}
     for key, (out, inbox) in links.items():
         assert roundtrip(out, inbox, 2.0), f"{key}: values do not flow after the restart"
 
