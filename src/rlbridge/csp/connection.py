@@ -389,8 +389,12 @@ class Connection:
 
     def local_ports(self) -> dict[str, int]:
         """This session's local ports (``{"tcp": ..., "udp": ...}``), for logs and firewalls."""
-        return {name: sock.getsockname()[1] for name, sock in (("tcp", self.tcp), ("udp", self.udp))
-                if sock is not None and sock.fileno() >= 0}
+        ports: dict[str, int] = {}
+        for name, sock in (("tcp", self.tcp), ("udp", self.udp)):
+            with contextlib.suppress(OSError):  # closed meanwhile: the session has ended
+                if sock is not None:
+                    ports[name] = sock.getsockname()[1]
+        return ports
 
     def bindings(self) -> list[TopicConnect]:
         """The acknowledged bindings, oldest first (to bind again after a reconnect)."""

@@ -42,7 +42,7 @@ class LinkEvents:
 
     def __init__(self, state: LinkState = LinkState.CONNECTED) -> None:
         self._lock = threading.RLock()  # a callback may subscribe another channel
-        self._last = LinkEvent(state, time.monotonic_ns(), "connected")
+        self._last = LinkEvent(state, time.monotonic_ns(), "initial state")
         self._callbacks: list[Callable[[LinkState], None]] = []
         self._channels: list[Channel[LinkEvent]] = []
         #: True while the link is lost; read lock-free by fail-safes on every channel read.
