@@ -150,7 +150,7 @@ def topic_pub(
     from rlbridge.csp.bridge import Bridge
 
     parsed = _parse_value(value)
-    with Bridge.connect(host, port, name="rlbridge-topic-pub") as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False) as bridge:
         out = bridge.publish(topic, msg_type, field or None, transport=_transport(transport))  # type: ignore[arg-type]
         n = max(1, count) if rate > 0 else 1
         period = 1.0 / rate if rate > 0 else 0.0
@@ -179,7 +179,7 @@ def topic_echo(
     """Print each value published on TOPIC, one JSON document per line."""
     from rlbridge.csp.bridge import Bridge
 
-    with Bridge.connect(host, port, name="rlbridge-topic-echo") as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=4096)
         seen = 0
@@ -195,10 +195,11 @@ def topic_echo(
 def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
     """A blocking read that gives up once the session ends (the server stopped or closed it).
 
-    Waits in short slices: a closed session never delivers again, and nothing else would wake
-    a reader blocked without a timeout.
+    Waits in short slices for ``--timeout``; the end of the session (the tools do not
+    reconnect) closes the channel, which ends the read with ``ChannelClosed``.
     """
     from rlbridge.csp.connection import ConnectionClosed
+    from rlbridge.csp.errors import ChannelClosed
 
     deadline = None if timeout is None else time.monotonic() + timeout
     while True:
@@ -207,6 +208,8 @@ def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
             raise TimeoutError
         try:
             return ch.read(timeout=left)
+        except ChannelClosed:
+            raise ConnectionClosed(bridge.close_reason) from None
         except TimeoutError:
             if bridge.closed:
                 raise ConnectionClosed(bridge.close_reason) from None
@@ -227,8 +230,9 @@ def topic_hz(
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second)."""
     from rlbridge.csp.bridge import Bridge
+    from rlbridge.csp.errors import ChannelClosed
 
-    with Bridge.connect(host, port, name="rlbridge-topic-hz") as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=65536)
         arrivals: list[float] = []
@@ -237,7 +241,7 @@ def topic_hz(
         while time.monotonic() < end:
             try:
                 ch.read(timeout=min(1.0, max(0.01, end - time.monotonic())))
-            except TimeoutError:
+            except (TimeoutError, ChannelClosed):
                 if bridge.closed:
                     from rlbridge.csp.connection import ConnectionClosed
 
@@ -275,7 +279,7 @@ def topic_list(
     """List the topics the server's middleware knows."""
     from rlbridge.csp.bridge import Bridge
 
-    with Bridge.connect(host, port, name="rlbridge-topic-list") as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False) as bridge:
         for name, msg_type in bridge.server_stats()["topics"]:
             typer.echo(f"{name} [{msg_type}]" if show_types else name)
 
@@ -286,7 +290,7 @@ def stats(host: Host = "127.0.0.1", port: Port = 7411) -> None:
     """Print the server's counters (JSON)."""
     from rlbridge.csp.bridge import Bridge
 
-    with Bridge.connect(host, port, name="rlbridge-stats") as bridge:
+    with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False) as bridge:
         typer.echo(json.dumps(bridge.server_stats(), indent=2, sort_keys=True))
 
 

@@ -187,8 +187,7 @@ def test_compose_services_run_locally_track_and_stop_in_order(
 
     bridge.proc.send_signal(signal.SIGTERM)  # `docker compose stop`
     assert bridge.wait(timeout=30) == 0, "".join(bridge.output)
-    assert controller.wait(timeout=30) == 3, "".join(controller.output)  # link lost for 2 s
-    assert "state -> lost-link" in "".join(controller.output)
+    controller.wait_for_line(lambda line: "state -> lost-link" in line, timeout=10)
 
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["reason"] == "signal"
@@ -198,6 +197,14 @@ def test_compose_services_run_locally_track_and_stop_in_order(
     assert report["tracking"]["pan"]["samples"] >= 20
     assert report["tracking"]["pan"]["median_mrad"] < 20
     assert (tmp_path / "pan_tilt.png").read_bytes().startswith(b"\x89PNG")
+
+    # `docker compose start bridge`: the controller, never restarted, reconnects and tracks.
+    services["bridge again"] = Service("bridge", localize(spec["bridge"]["command"], port,
+                                                          tmp_path / "again"))
+    controller.wait_for_line(lambda line: "state -> tracking" in line, timeout=30)
+    assert controller.proc.poll() is None, "".join(controller.output)
+    controller.proc.send_signal(signal.SIGTERM)
+    assert controller.wait(timeout=30) == 0, "".join(controller.output)
 
 
 def _tracking_after(line: str, seconds: float) -> bool:

@@ -5,8 +5,8 @@ Layers, fastest first:
 * plant and loop on a fake clock (deterministic, milliseconds): the control law tracks, the
   state machine goes idle -> tracking -> safe -> tracking, a lost link holds position;
 * ``rlbridge demo`` as a subprocess: a real server, real sockets, the 1 kHz loop, the plot;
-* the controller in this process against a server that goes away: it reports ``lost-link``
-  and holds position;
+* the controller in this process against a server that goes away: it reports ``lost-link``,
+  holds position, and tracks again once a server is back on the same port;
 * with rclpy: ``rlbridge serve --adapter ros2`` + the rclpy vision node + the controller.
 
 Bounds are chosen with a wide margin for a loaded machine: on an idle one the tracking error
@@ -282,20 +282,28 @@ def test_rclpy_vision_node_drives_the_controller_through_a_ros2_server(
 
 # -- the controller when its server goes away --------------------------------------------------
 @pytest.mark.filterwarnings(RT_REFUSED)
-def test_controller_reports_lost_link_and_holds_position_when_the_server_stops() -> None:
-    with middleware_side(vision_start=0.0) as mw:
-        with connect_controller("127.0.0.1", mw.port, timeout=10) as bridge, \
-                PanTiltController(bridge) as controller:
-            assert mw.trace.wait_for(lambda s: "tracking" in [x for _, x in s.statuses], 10)
-            mw.server.stop()
-            assert controller.wait_for_state(ControllerState.LOST_LINK, timeout=5)
-            plant = controller.loop.plant
-            before = (plant.pan.angle, plant.tilt.angle)
-            time.sleep(0.3)  # the loop must keep holding; give it 300 cycles to drift
-            after = (plant.pan.angle, plant.tilt.angle)
-            assert controller.loop.state is ControllerState.LOST_LINK
-            assert bridge.link_state.value == "lost"
+def test_controller_holds_position_while_the_server_is_gone_and_resumes_when_it_returns(
+) -> None:
+    with middleware_side(vision_start=0.0) as mw, \
+            connect_controller("127.0.0.1", mw.port, timeout=10) as bridge, \
+            PanTiltController(bridge) as controller:
+        assert mw.trace.wait_for(lambda s: "tracking" in [x for _, x in s.statuses], 10)
+        mw.server.stop()
+        assert controller.wait_for_state(ControllerState.LOST_LINK, timeout=5)
+        plant = controller.loop.plant
+        before = (plant.pan.angle, plant.tilt.angle)
+        time.sleep(0.3)  # the loop must keep holding; give it 300 cycles to drift
+        after = (plant.pan.angle, plant.tilt.angle)
+        assert controller.loop.state is ControllerState.LOST_LINK
+        assert bridge.link_state.value == "lost"
         # Decelerating from tracking speed under the 3 rad/s rate limit moves < 0.2 rad.
         assert max(abs(a - b) for a, b in zip(before, after, strict=True)) < 0.2
         assert abs(plant.pan.speed) < 0.2
         assert abs(plant.tilt.speed) < 0.2
+        # The bridge comes back on the same port: the SDK reconnects and the loop tracks.
+        with middleware_side(port=mw.port, vision_start=0.0) as mw_again:
+            assert mw_again.trace.wait_for(
+                lambda s: "tracking" in [x for _, x in s.statuses], 20)
+        states = [s.value for _, s in controller.states()]
+        assert states[states.index("lost-link"):][:2] in (
+            ["lost-link", "safe"], ["lost-link", "tracking"])

@@ -5,11 +5,19 @@ thread, watchdog) and a :class:`~rlbridge.csp.sender.SendLoop` (send thread). ``
 and ``publish`` bind a topic at run time (message type + field) and return CSP channels
 (:mod:`rlbridge.csp.bridge_channels`). The caller's thread never touches a socket after
 ``connect``: reads and writes only move values through ring buffers.
+
+With ``reconnect`` on (the default) a :class:`~rlbridge.csp.reconnect.ReconnectSupervisor`
+opens a new session whenever one ends and :meth:`Bridge._bind_again` binds every channel under
+its old id; control code keeps its channels and notices only through the link state
+(:mod:`rlbridge.csp.link_events`) and each channel's fail-safe (:mod:`rlbridge.csp.failsafe`).
+docs/reliability.md tells the whole story.
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import logging
 import os
 import sys
 import threading
@@ -19,12 +27,17 @@ from types import TracebackType
 from typing import Any, Literal
 
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
-from rlbridge.csp.channel import _MISSING
+from rlbridge.csp.channel import _MISSING, Channel
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
 from rlbridge.csp.errors import RealTimeWarning
+from rlbridge.csp.failsafe import GuardedChannel, OnLost, fail_safe
+from rlbridge.csp.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
+from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
-from rlbridge.wire import TopicClose, TopicConnect
+from rlbridge.wire import RemoteError, TopicClose, TopicConnect
 from rlbridge.wire.link import LinkState
+
+log = logging.getLogger("rlbridge.client")
 
 Transport = Literal["tcp", "udp"]
 """Per channel: ``udp`` when the newest value matters most, ``tcp`` when every value must arrive."""
@@ -36,16 +49,22 @@ DEFAULT_SWITCH_INTERVAL = 0.0005
 class Bridge:
     """A session with a bridge server. Thread-safe for SRT code; see the module docstring."""
 
-    def __init__(self, conn: Connection, send_loop: SendLoop) -> None:
+    def __init__(self, conn: Connection, send_loop: SendLoop,
+                 backoff: Backoff | None = None) -> None:
         self._conn = conn
         self._sender = send_loop
         self._ids = itertools.count(1)
         self._lock = threading.Lock()
         self._incoming: dict[int, IncomingChannel] = {}
         self._outgoing: dict[int, OutgoingChannel] = {}
-        self._link_callbacks: list[Callable[[LinkState], None]] = []
+        self._events = LinkEvents(conn.link_state)
+        self._io_priority: int | None = None
+        self._supervisor = None if backoff is None else ReconnectSupervisor(
+            conn, backoff, self._bind_again)
+        conn.keep_alive = self._supervisor is not None
         conn.on_values = self._on_values
-        conn.on_link_change = self._on_link_change
+        conn.on_link_change = self._events.emit
+        conn.on_session_end = self._on_session_end
 
     @classmethod
     def connect(
@@ -59,8 +78,16 @@ class Bridge:
         send_rate_hz: float | None = None,
         timeout: float = 5.0,
         switch_interval: float | None = DEFAULT_SWITCH_INTERVAL,
+        reconnect: bool | Backoff = True,
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
+
+        ``reconnect``: when the session ends (server restart, network outage noticed by the
+        watchdog), open a new one with backoff and bind every channel again, by itself.
+        ``True`` uses :class:`~rlbridge.csp.reconnect.Backoff` defaults (50 ms doubling to
+        2 s); pass ``Backoff(max_delay=...)`` to tune it; ``False`` ends the bridge with its
+        first session (channels then close and blocked readers get ``ChannelClosed``). The
+        first connect is not retried: it raises :class:`ConnectionFailed` at once.
 
         ``send_rate_hz`` starts the SDK's send loop: buffered values go out at that rate
         without anyone calling :meth:`send` (thesis figure 5.10). ``nodelay`` disables Nagle's
@@ -80,8 +107,11 @@ class Bridge:
         except BaseException:
             conn.close()  # e.g. a bad send rate: do not leak the session and its thread
             raise
-        bridge = cls(conn, sender)
+        backoff = reconnect if isinstance(reconnect, Backoff) else Backoff() if reconnect else None
+        bridge = cls(conn, sender, backoff)
         sender.start()
+        if bridge._supervisor is not None:
+            bridge._supervisor.start()
         return bridge
 
     # -- channels --------------------------------------------------------------------------
@@ -96,22 +126,28 @@ class Bridge:
         buffer_size: int = 1,
         initial: Any = _MISSING,
         redundancy: int = 0,
+        on_lost: OnLost = "hold",
     ) -> IncomingChannel:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
 
         Non-blocking channels return the latest value on every read (or ``initial`` before the
         first one; with neither, ``NoValueYet``); blocking channels wait for a new value.
         Raises the server's reason (``UnknownTypeError``, ``NoSuchFieldError``,
-        ``TypeClashError``) if the binding is refused.
+        ``TypeClashError``) if the binding is refused. ``on_lost`` is what reads do while the
+        link is lost: ``"hold"``, ``SafeValue(v)`` or ``"raise"`` (:mod:`rlbridge.csp.failsafe`).
         """
+        guard = fail_safe(on_lost, self._events)
         if buffer_size < 1:
             raise ValueError(
                 f"an incoming channel needs buffer_size >= 1 (got {buffer_size}): values "
                 "arrive from the network whether or not a reader waits")
         ch_id = next(self._ids)
-        channel = IncomingChannel(ch_id, topic, msg_type, field, transport=transport,
+        kind = IncomingChannel if guard is None else GuardedChannel
+        channel = kind(ch_id, topic, msg_type, field, transport=transport,
                                   blocking=blocking, buffer_size=buffer_size,
                                   initial=initial if not blocking else _MISSING)
+        if isinstance(channel, GuardedChannel):
+            channel.failsafe = guard
         with self._lock:
             self._incoming[ch_id] = channel
         try:
@@ -169,8 +205,10 @@ class Bridge:
         if out is not None:
             self._sender.remove(out)
         channel.close()
-        if not self._conn.closed.is_set():
-            self._conn.send_control(TopicClose(channel.channel_id))
+        self._conn.forget_topic(channel.channel_id)
+        if self._conn.up:  # while reconnecting: the new session does not bind it again
+            with contextlib.suppress(OSError, ConnectionClosed):
+                self._conn.send_control(TopicClose(channel.channel_id))
 
     def set_io_priority(self, priority: int = 40) -> bool:
         """Run the SDK's receive and send threads at ``SCHED_FIFO`` ``priority``.
@@ -179,20 +217,26 @@ class Bridge:
         else: a thread preempted by another process while it holds the GIL keeps the loop
         waiting whatever the loop's own priority (docs/gil.md measures it at 1 kHz traffic).
         Needs ``CAP_SYS_NICE``; returns ``False`` and says why in one ``RealTimeWarning`` when
-        refused. Opt-in, because a real-time thread that spins can starve the machine.
+        refused. Opt-in, because a real-time thread that spins can starve the machine. The
+        receive thread of every later session (after a reconnect) gets the same priority.
         """
-        threads = [self._conn._thread, self._sender._thread]
         try:
-            for thread in threads:
-                if thread is not None and thread.native_id is not None:
-                    os.sched_setscheduler(thread.native_id, os.SCHED_FIFO,
-                                          os.sched_param(priority))
+            self._apply_io_priority(priority)
         except (OSError, AttributeError) as exc:
             warnings.warn(RealTimeWarning(
                 f"SDK threads stay at normal priority: SCHED_FIFO {priority} refused ({exc}); "
                 "it needs CAP_SYS_NICE or RLIMIT_RTPRIO"), stacklevel=2)
             return False
+        self._io_priority = priority
         return True
+
+    def _apply_io_priority(self, priority: int) -> None:
+        supervisor = self._supervisor
+        ids = [self._conn.receive_thread_id, self._sender.native_id,
+               None if supervisor is None else supervisor.native_id]
+        for tid in ids:
+            if tid is not None:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
 
     @property
     def send_rate_hz(self) -> float | None:
@@ -202,28 +246,54 @@ class Bridge:
     # -- link ------------------------------------------------------------------------------
     @property
     def link_state(self) -> LinkState:
-        """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks."""
-        return self._conn.link_state
+        """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks.
+
+        ``lost`` from the end of a session until its channels are bound again.
+        """
+        return LinkState.LOST if self._events.lost else self._conn.link_state
+
+    @property
+    def state(self) -> ClientState:
+        """``connected``, ``reconnecting`` or ``closed`` (for good)."""
+        return self._conn.state
 
     @property
     def closed(self) -> bool:
-        """True once the session has ended: closed here, by the server, or the socket broke."""
+        """True once the bridge is closed for good: here, or its session ended without reconnect."""
         return self._conn.closed.is_set()
 
     @property
     def close_reason(self) -> str:
-        """Why the session ended (``""`` while it is open)."""
+        """Why the last session ended (``""`` while the first one is open)."""
         return self._conn.close_reason
 
+    @property
+    def reconnects(self) -> int:
+        """Sessions opened again after one ended (0 with ``reconnect=False``)."""
+        return 0 if self._supervisor is None else self._supervisor.reconnects
+
     def on_link_change(self, callback: Callable[[LinkState], None]) -> None:
-        """Call ``callback(state)`` from the receive thread when the link state changes."""
-        self._link_callbacks.append(callback)
+        """Call ``callback(state)`` in the SDK thread that saw the change; keep it short."""
+        self._events.add_callback(callback)
+
+    def link_events(self, buffer_size: int = DEFAULT_EVENT_BUFFER) -> Channel[LinkEvent]:
+        """A non-blocking channel of :class:`~rlbridge.csp.link_events.LinkEvent` values.
+
+        Its first value is the current state; ``read()`` never waits (the newest event),
+        ``read_many()`` returns the events not read yet. Closed with the bridge.
+        """
+        return self._events.channel(buffer_size)
 
     @property
     def rtt_ns(self) -> int:
         """Smoothed round-trip time from heartbeats (-1 until measured)."""
         link = self._conn.link
         return -1 if link is None else link.stats(0).rtt_ns
+
+    @property
+    def local_ports(self) -> dict[str, int]:
+        """The current session's local TCP and UDP ports (they change with every reconnect)."""
+        return self._conn.local_ports()
 
     def server_stats(self) -> dict[str, Any]:
         """The server's counters for this session, its totals, and the topics it knows."""
@@ -240,15 +310,57 @@ class Bridge:
         if channel is not None:
             channel.deliver(first_seq, stamps, values)
 
-    def _on_link_change(self, state: LinkState) -> None:
-        for callback in self._link_callbacks:
-            callback(state)
+    # -- sessions --------------------------------------------------------------------------
+    def _on_session_end(self, reason: str, final: bool) -> None:
+        """A session ended: hold outgoing values; for good, close every channel."""
+        self._sender.pause()
+        if final:
+            self._close_channels()
+
+    def _bind_again(self) -> None:
+        """Supervisor thread, new session: bind every channel under its old id, then resume.
+
+        A binding the server now refuses (a type clash with a newer publisher) closes that
+        channel and says why in the log; a lost session raises and the supervisor tries again.
+        """
+        for req in self._conn.bindings():
+            incoming = self._incoming.get(req.channel)
+            if incoming is not None:
+                incoming.restart_sequence()  # before the request: values may follow at once
+            try:
+                self._conn.request_topic(req)
+            except RemoteError as exc:
+                log.warning("channel %d (%s) not bound again: %s", req.channel, req.topic, exc)
+                with self._lock:
+                    channel = self._incoming.pop(req.channel, None) or self._outgoing.pop(
+                        req.channel, None)
+                self._conn.forget_topic(req.channel)
+                if channel is not None:
+                    channel.close()
+        if self._io_priority is not None:
+            with contextlib.suppress(OSError):
+                self._apply_io_priority(self._io_priority)
+        self._sender.resume()
+        ack = self._conn.ack
+        self._events.emit(self._conn.link_state,
+                          f"reconnected: session {ack.session if ack else '?'}")
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self) -> None:
-        """Flush, say goodbye, stop both threads, close every channel; idempotent."""
+        """Flush, say goodbye, stop every SDK thread, close every channel; idempotent.
+
+        Prompt in every phase: a reconnect backoff ends at once and a handshake is aborted.
+        """
+        if self._supervisor is not None:
+            self._supervisor.request_stop()
         self._sender.close()
         self._conn.close()
+        if self._supervisor is not None:
+            self._supervisor.stop()
+        self._close_channels()
+        self._events.close()
+
+    def _close_channels(self) -> None:
         with self._lock:
             channels: list[IncomingChannel | OutgoingChannel] = [
                 *self._incoming.values(), *self._outgoing.values()]

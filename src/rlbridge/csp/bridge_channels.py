@@ -44,6 +44,10 @@ class IncomingChannel(Channel[Any]):
         self.last_stamp_ns = 0
         self._tracker = SequenceTracker()
 
+    def restart_sequence(self) -> None:
+        """The channel was bound again (reconnect): the server numbers from 0 again."""
+        self._tracker.restart()
+
     def deliver(self, first_seq: int, stamps: list[int], values: list[Any]) -> None:
         """Called by the receive thread with one packet's values."""
         start = self._tracker.accept_run(first_seq, len(values))

@@ -8,12 +8,21 @@ The same thread sends heartbeats and runs the watchdog, with timeouts taken from
 :class:`~rlbridge.wire.link.LinkMonitor`. Outgoing values are the send thread's business
 (:mod:`rlbridge.csp.sender`); writes to the TCP socket from both threads go through one lock so
 frames never interleave.
+
+Sessions. One handshake and one receive thread make a *session*; a session ends when the server
+hangs up, a socket breaks, or (with ``keep_alive``) the watchdog hears nothing for the server's
+``timeout_ms``. Without ``keep_alive`` that is the end of the connection (``closed``, as
+before); with it the connection waits in ``RECONNECTING`` until :meth:`reopen` (called by
+:class:`~rlbridge.csp.reconnect.ReconnectSupervisor`) runs the same :meth:`_handshake` again.
+Only :meth:`close` (or a session ending without ``keep_alive``) closes it for good.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
+import os
 import select
 import socket
 import threading
@@ -24,6 +33,7 @@ from typing import Literal
 
 import msgspec
 
+from rlbridge.csp.reconnect import ClientState
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     Batch,
@@ -71,6 +81,8 @@ class ConnectionClosed(RlbridgeError):
 
 #: ``(channel, first_seq, stamps, values)``: how the receive thread hands values to channels.
 ValuesHandler = Callable[[int, int, list[int], list[object]], None]
+#: ``(state, reason)``: called from the receive thread when the link state changes.
+LinkHandler = Callable[[LinkState, str], None]
 
 
 @dataclass
@@ -97,11 +109,24 @@ class Connection:
         self.ack: ConnectAck | None = None
         self.link: LinkMonitor | None = None
         self.on_values: ValuesHandler | None = None
-        self.on_link_change: Callable[[LinkState], None] | None = None
+        self.on_link_change: LinkHandler | None = None
         self.on_error: Callable[[Error], None] | None = None
+        #: Called with the reason when a session ends (before any reconnect), and once more,
+        #: with ``final=True``, when the connection is closed for good.
+        self.on_session_end: Callable[[str, bool], None] | None = None
+        #: Set: a lost session leaves the connection RECONNECTING instead of closing it.
+        self.keep_alive = False
+        self.state = ClientState.CONNECTING
         self.closed = threading.Event()
         self.close_reason = ""
+        self._state_lock = threading.Lock()
+        self._state_changed = threading.Condition(self._state_lock)
+        self._session_ended = False
+        self._handshaking = False
+        self._generation = 0
         self._pending: dict[int, _Pending] = {}
+        #: Every binding the server acknowledged, by channel: what a new session binds again.
+        self._bindings: dict[int, TopicConnect] = {}
         self._pending_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = socket.socketpair()
@@ -113,29 +138,106 @@ class Connection:
 
     # -- opening ---------------------------------------------------------------------------
     def open(self) -> ConnectAck:
-        """Handshake, then start the receive thread. Raises :class:`ConnectionFailed`."""
+        """First session: handshake, then the receive thread. Raises :class:`ConnectionFailed`."""
+        try:
+            ack = self._handshake()
+        except BaseException:
+            with self._state_lock:
+                self.closed.set()
+                self.state = ClientState.CLOSED
+            self._release()
+            raise
+        self._start_session(ack)
+        return ack
+
+    def reopen(self) -> None:
+        """A new session after the last one ended (the reconnect supervisor calls this).
+
+        Ends the current session first if one is still up (its channels failed to bind again),
+        joins its receive thread, then runs the same handshake as :meth:`open`. Raises
+        :class:`ConnectionFailed` (try again later) or :class:`ConnectionClosed` (closed here).
+        """
+        self._end_session("starting a new session", self._generation)
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(5.0)
+        self._close_session_sockets()
+        self._start_session(self._handshake())
+
+    def _handshake(self) -> ConnectAck:
+        """The handshake of every session, first and reconnect: sockets, hello, answer.
+
+        :meth:`close` from another thread aborts it (wake-up socket, socket shutdown); the
+        sockets are then released here, never under this thread's feet.
+        """
+        with self._state_lock:
+            if self.closed.is_set():
+                raise ConnectionClosed(f"connection closed: {self.close_reason}")
+            self._handshaking = True
         hello = Hello(PROTOCOL_VERSION, self.name)
         try:
-            ack = self._open_tcp(hello) if self.control == "tcp" else self._open_udp(hello)
+            return self._open_tcp(hello) if self.control == "tcp" else self._open_udp(hello)
         except OSError as exc:
-            self._close_sockets()
+            self._close_session_sockets()
             raise ConnectionFailed(
                 f"cannot reach rlbridge server at {self.host}:{self.port}: {exc.strerror or exc}"
             ) from None
         except BaseException:
-            self._close_sockets()
+            self._close_session_sockets()
             raise
-        self.ack = ack
-        self.link = LinkMonitor(time.monotonic_ns(), ack.heartbeat_ms * 1_000_000,
-                                ack.timeout_ms * 1_000_000)
-        self._thread = threading.Thread(target=self._receive_loop, name="rlbridge-recv",
-                                        daemon=True)
-        self._thread.start()
-        return ack
+        finally:
+            with self._state_lock:
+                self._handshaking = False
+                aborted = self.closed.is_set()
+            if aborted:  # close() ran meanwhile and left the sockets to this thread
+                self._release()
+
+    def _start_session(self, ack: ConnectAck) -> None:
+        with self._state_changed:
+            if self.closed.is_set():
+                raise ConnectionClosed(f"connection closed: {self.close_reason}")
+            self._generation += 1
+            self.ack = ack
+            self.link = LinkMonitor(time.monotonic_ns(), ack.heartbeat_ms * 1_000_000,
+                                    ack.timeout_ms * 1_000_000)
+            self._runs = {}
+            self._link_state = LinkState.CONNECTED
+            self._session_ended = False
+            self.state = ClientState.CONNECTED
+            self._thread = threading.Thread(target=self._receive_loop, args=(self._generation,),
+                                            name="rlbridge-recv", daemon=True)
+            self._thread.start()
+            self._state_changed.notify_all()
+
+    @property
+    def up(self) -> bool:
+        """True while a session is established (values and requests can go out)."""
+        return self.state is ClientState.CONNECTED
+
+    def wait_session_end(self, stop: threading.Event) -> bool:
+        """Block until the current session has ended (True) or ``stop``/close (False).
+
+        ``stop`` is honoured at once only if its setter also calls :meth:`wake` (the Bridge
+        sets it together with closing this connection, which wakes every waiter).
+        """
+        with self._state_changed:
+            self._state_changed.wait_for(
+                lambda: self._session_ended or stop.is_set() or self.closed.is_set())
+            return self._session_ended and not stop.is_set() and not self.closed.is_set()
+
+    def wake(self) -> None:
+        """Wake :meth:`wait_session_end` and requests waiting for a session, to re-check."""
+        with self._state_changed:
+            self._state_changed.notify_all()
+
+    @property
+    def receive_thread_id(self) -> int | None:
+        """Native id of the current session's receive thread (``None`` when none runs)."""
+        thread = self._thread
+        return thread.native_id if thread is not None and thread.is_alive() else None
 
     def _open_tcp(self, hello: Hello) -> ConnectAck:
-        sock = socket.create_connection((self.host, self.port), timeout=self.timeout)
-        self.tcp = sock
+        self.tcp = sock = self._connect_tcp()
         if self.nodelay:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.sendall(self.codec.encode_frame(hello))
@@ -166,7 +268,7 @@ class Connection:
         self.udp = sock = self._udp_socket()
         datagram = self.codec.encode_datagram(hello, 0)
         deadline = time.monotonic() + self.timeout
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not self.closed.is_set():
             sock.send(datagram)
             ready, _, _ = select.select([sock], [], [], 0.2)
             if ready:
@@ -175,6 +277,31 @@ class Connection:
                 return self._expect_ack(packet)
         raise ConnectionFailed(
             f"no answer over UDP from {self.host}:{self.port} within {self.timeout} s")
+
+    def _connect_tcp(self) -> socket.socket:
+        """``connect`` that :meth:`close` can interrupt (a dropped SYN would wait ``timeout``)."""
+        family, kind, proto, _name, address = socket.getaddrinfo(
+            self.host, self.port, type=socket.SOCK_STREAM)[0]
+        sock = socket.socket(family, kind, proto)
+        try:
+            sock.setblocking(False)
+            err = sock.connect_ex(address)
+            if err not in (0, errno.EINPROGRESS):
+                raise OSError(err, os.strerror(err))
+            ready, writable, _ = select.select([self._wake_r], [sock], [], self.timeout)
+            if ready:
+                raise ConnectionClosed("connection closed while connecting")
+            if not writable:
+                raise ConnectionFailed(
+                    f"no answer from {self.host}:{self.port} within {self.timeout} s")
+            err = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+            if err:
+                raise OSError(err, os.strerror(err))
+            sock.setblocking(True)
+        except BaseException:
+            sock.close()
+            raise
+        return sock
 
     def _udp_socket(self) -> socket.socket:
         family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
@@ -221,7 +348,11 @@ class Connection:
         self.send_udp(self.codec.encode_datagram(packet, self.ack.token))
 
     def request_topic(self, req: TopicConnect) -> TopicAck:
-        """Send a topic-connect and wait for its answer; retransmit while the control is UDP."""
+        """Send a topic-connect and wait for its answer; retransmit while the control is UDP.
+
+        While the connection is reconnecting, waits for the next session (within ``timeout``);
+        a session that ends before the answer arrives makes it ask again in the next one.
+        """
         try:  # Structs are not validated when built: check locally, before the network
             msgspec.convert(msgspec.to_builtins(req), TopicConnect)
         except msgspec.ValidationError as exc:
@@ -231,27 +362,61 @@ class Connection:
             self._pending[req.channel] = pending
         try:
             deadline = time.monotonic() + self.timeout
-            while not pending.done.is_set():
+            while pending.answer is None:
                 if self.closed.is_set():
                     raise ConnectionClosed(f"connection closed: {self.close_reason}")
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise ConnectionFailed(
                         f"no answer to the topic-connect for {req.topic} within {self.timeout} s")
-                self.send_control(req)
+                if not self._wait_up(left):
+                    continue
+                pending.done.clear()
+                with contextlib.suppress(OSError, ConnectionClosed):  # session ended: retry
+                    self.send_control(req)
                 pending.done.wait(min(left, 0.25 if self.control == "udp" else left))
         finally:
             with self._pending_lock:
                 self._pending.pop(req.channel, None)
         answer = pending.answer
         if isinstance(answer, TopicAck):
+            with self._pending_lock:
+                self._bindings[req.channel] = req
             return answer
         if isinstance(answer, TopicError):
             raise error_from_code(answer.code, answer.reason, channel=answer.channel)
         raise ConnectionClosed(f"connection closed: {self.close_reason}")
 
+    def local_ports(self) -> dict[str, int]:
+        """This session's local ports (``{"tcp": ..., "udp": ...}``), for logs and firewalls."""
+        ports: dict[str, int] = {}
+        for name, sock in (("tcp", self.tcp), ("udp", self.udp)):
+            with contextlib.suppress(OSError):  # closed meanwhile: the session has ended
+                if sock is not None:
+                    ports[name] = sock.getsockname()[1]
+        return ports
+
+    def bindings(self) -> list[TopicConnect]:
+        """The acknowledged bindings, oldest first (to bind again after a reconnect)."""
+        with self._pending_lock:
+            return list(self._bindings.values())
+
+    def forget_topic(self, channel: int) -> None:
+        """The channel was unbound: a new session does not bind it again."""
+        with self._pending_lock:
+            self._bindings.pop(channel, None)
+
+    def _wait_up(self, timeout: float) -> bool:
+        """Wait (at most ``timeout``) until a session is up or the connection closed."""
+        with self._state_changed:
+            return self._state_changed.wait_for(lambda: self.up or self.closed.is_set(),
+                                                timeout) and self.up
+
     def request_stats(self) -> dict[str, object]:
         """Ask the server for its counters and topic list (``rlbridge stats``, ``topic list``)."""
+        if not self._wait_up(self.timeout):
+            raise ConnectionFailed(f"no session with the server within {self.timeout} s: "
+                                   f"{self.close_reason}")
         pending = _Pending(threading.Event())
         with self._pending_lock:
             self._stats_waiters.append(pending)
@@ -261,7 +426,7 @@ class Connection:
         return pending.answer.body
 
     # -- receiving (the receive thread) ------------------------------------------------------
-    def _receive_loop(self) -> None:
+    def _receive_loop(self, generation: int) -> None:
         decoder = FrameDecoder(self.codec)
         link = self.link
         assert link is not None
@@ -272,11 +437,11 @@ class Connection:
                 self._dispatch(packet)
         self._leftover = []
         self._flush_values()
-        if self.udp is not None and self.control == "tcp":
-            self.send_udp_packet(link.make_heartbeat(time.monotonic_ns()))
         sockets = [s for s in (self.tcp, self.udp, self._wake_r) if s is not None]
         try:
-            while not self.closed.is_set():
+            if self.udp is not None and self.control == "tcp":
+                self.send_udp_packet(link.make_heartbeat(time.monotonic_ns()))
+            while generation == self._generation and self.up:
                 now = time.monotonic_ns()
                 timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
                 readable, _, _ = select.select(sockets, [], [], timeout)
@@ -284,7 +449,7 @@ class Connection:
                     if sock is self.tcp:
                         data = sock.recv(1 << 18)
                         if not data:
-                            self._shutdown("server closed the TCP connection")
+                            self._end_session("server closed the TCP connection", generation)
                             return
                         for packet in decoder.feed(data):
                             if isinstance(packet, Malformed):
@@ -296,13 +461,13 @@ class Connection:
                         self._receive_datagrams(sock, token)
                     else:
                         return
-                self._tick(link)
                 # Last before blocking again: a woken reader then finds the GIL free soon.
                 self._flush_values()
+                self._tick(link, generation)
         except RemoteProtocolError as exc:
-            self._shutdown(f"server sent an invalid stream: {exc.reason}")
+            self._end_session(f"server sent an invalid stream: {exc.reason}", generation)
         except OSError as exc:
-            self._shutdown(f"connection failed: {exc}")
+            self._end_session(f"connection failed: {exc}", generation)
 
     def _receive_datagrams(self, sock: socket.socket, token: int) -> None:
         """Read the datagrams already queued (at most ``MAX_DRAIN``), without blocking.
@@ -329,13 +494,18 @@ class Connection:
             if got == token:
                 self._dispatch(packet)
 
-    def _tick(self, link: LinkMonitor) -> None:
+    def _tick(self, link: LinkMonitor, generation: int) -> None:
         now = time.monotonic_ns()
         state = link.state(now)
+        if state is LinkState.LOST and self.keep_alive:
+            # The server's watchdog has the same timeout: it has dropped this session too.
+            self._end_session(f"watchdog: nothing from the server within "
+                              f"{link.timeout_ns // 1_000_000} ms", generation)
+            return
         if state is not self._link_state:
-            self._link_state = state
-            if self.on_link_change is not None:
-                self.on_link_change(state)
+            silent_ms = link.stats(now).silence_ns // 1_000_000
+            self._set_link(state, "heard from the server" if state is LinkState.CONNECTED
+                           else f"nothing from the server for {silent_ms} ms")
         if link.heartbeat_due(now):
             hb = link.make_heartbeat(now)
             if self.tcp is not None:
@@ -377,9 +547,11 @@ class Connection:
                     pending.answer = packet
                     pending.done.set()
             case ConnectError():
-                self._shutdown(f"server ended the session: {packet.reason}")
+                self._end_session(f"server ended the session: {packet.reason}",
+                                  self._generation)
             case Disconnect():
-                self._shutdown(f"server closed the session: {packet.reason or 'no reason'}")
+                self._end_session(f"server closed the session: {packet.reason or 'no reason'}",
+                                  self._generation)
             case _:
                 link.on_receive(now)
 
@@ -415,38 +587,76 @@ class Connection:
 
     @property
     def link_state(self) -> LinkState:
-        if self.closed.is_set():
+        if not self.up:
             return LinkState.LOST
         return self._link_state
 
+    def _set_link(self, state: LinkState, reason: str) -> None:
+        self._link_state = state
+        if self.on_link_change is not None:
+            self.on_link_change(state, reason)
+
     # -- closing ---------------------------------------------------------------------------
-    def _shutdown(self, reason: str) -> None:
-        if self.closed.is_set():
-            return
-        self.close_reason = reason
-        self.closed.set()
-        log.info("connection closed: %s", reason)
-        if self._link_state is not LinkState.LOST:
-            self._link_state = LinkState.LOST
-            if self.on_link_change is not None:
-                self.on_link_change(LinkState.LOST)
+    def _end_session(self, reason: str, generation: int, *, final: bool = False) -> None:
+        """End session ``generation`` (a stale one is ignored): reconnect later or close.
+
+        Runs in the receive thread (hang-up, error, watchdog, goodbye), in the supervisor
+        (:meth:`reopen`) or in the closing thread (``final``).
+        """
+        with self._state_changed:
+            if generation != self._generation or self.closed.is_set():
+                return
+            was_up = self.state is ClientState.CONNECTED
+            final = final or not self.keep_alive
+            if not (was_up or final):
+                return
+            self.close_reason = reason
+            if final:
+                self.closed.set()
+                self.state = ClientState.CLOSED
+            else:
+                self.state = ClientState.RECONNECTING
+                self._session_ended = True
+            self._state_changed.notify_all()
+        log.info("session ended (%s): %s", "closed" if final else "will reconnect", reason)
+        if was_up:
+            self._set_link(LinkState.LOST, reason)
+        if self.on_session_end is not None:
+            self.on_session_end(reason, final)
         with self._pending_lock:
             for pending in self._pending.values():
                 pending.done.set()
 
     def close(self) -> None:
-        """Say goodbye, stop the receive thread, close the sockets; idempotent."""
-        if not self.closed.is_set() and self.ack is not None:
-            with contextlib.suppress(OSError):
+        """Say goodbye, stop the receive thread, close the sockets; idempotent.
+
+        Also aborts a reconnect handshake running in another thread: the sockets are then
+        released by that thread when its handshake fails.
+        """
+        if self.up and self.ack is not None:
+            with contextlib.suppress(OSError, ConnectionClosed):
                 self.send_control(Disconnect(0, "client closed"))
-        self._shutdown("closed by the client")
+        self._end_session("closed by the client", self._generation, final=True)
+        with self._state_lock:
+            handshaking = self._handshaking
         with contextlib.suppress(OSError):
             self._wake_w.send(b"x")
+        for sock in (self.tcp, self.udp):
+            if sock is not None:  # wakes a recv blocked in a handshake or the receive thread
+                with contextlib.suppress(OSError):
+                    sock.shutdown(socket.SHUT_RDWR)
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(5.0)
-        self._close_sockets()
+        if not handshaking:
+            self._release()
 
-    def _close_sockets(self) -> None:
-        for sock in (self.tcp, self.udp, self._wake_r, self._wake_w):
+    def _close_session_sockets(self) -> None:
+        tcp, udp, self.tcp, self.udp = self.tcp, self.udp, None, None
+        for sock in (tcp, udp):
             if sock is not None:
                 sock.close()
+
+    def _release(self) -> None:
+        self._close_session_sockets()
+        self._wake_r.close()
+        self._wake_w.close()

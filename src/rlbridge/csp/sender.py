@@ -8,6 +8,10 @@ buffer (thesis: ``send through buffer``), or the SDK's own send loop ticks at it
 rate (thesis 4.3, figure 5.10). Every value waiting in a channel goes out in one packet per
 channel (a Batch when there are several), TCP frames of all channels coalesced into one
 ``sendall``; so the packet rate follows the send loop, not the control loop.
+
+While the link is down (:meth:`SendLoop.pause`, from the end of a session until its channels are
+bound again) the thread takes nothing: values wait in their channels' rings, which keep the
+newest (overflow counted in ``overwritten``), and go out on :meth:`SendLoop.resume`.
 """
 
 from __future__ import annotations
@@ -60,6 +64,7 @@ class SendLoop:
         self._flushed = threading.Condition()
         self._flush_count = 0
         self._stop = threading.Event()
+        self._paused = False
         self._thread = threading.Thread(target=self._run, name="rlbridge-send", daemon=True)
         self.packets_sent = 0
         self.values_sent = 0
@@ -68,6 +73,20 @@ class SendLoop:
     def start(self) -> None:
         self._thread.start()
 
+    @property
+    def native_id(self) -> int | None:
+        """The send thread's OS id (for ``Bridge.set_io_priority``), ``None`` when not running."""
+        return self._thread.native_id if self._thread.is_alive() else None
+
+    def pause(self) -> None:
+        """Keep values in their channels (the link is down); flushes return at once."""
+        self._paused = True
+
+    def resume(self) -> None:
+        """Send again, starting with everything that waited (the channels are bound again)."""
+        self._paused = False
+        self.flush()
+
     def add(self, source: OutgoingSource) -> None:
         self._sources = (*self._sources, source)
 
@@ -75,7 +94,12 @@ class SendLoop:
         self._sources = tuple(s for s in self._sources if s is not source)
 
     def flush(self, wait: bool = False, timeout: float = 5.0) -> None:
-        """Send every buffered value now (``Bridge.send``); optionally wait until it is out."""
+        """Send every buffered value now (``Bridge.send``); optionally wait until it is out.
+
+        While paused the values stay buffered and this returns at once: they go on resume.
+        """
+        if self._paused:
+            return
         with self._flushed:
             target = self._flush_count + 1
         self._flush_all = True
@@ -109,10 +133,12 @@ class SendLoop:
                     self._flushed.notify_all()
 
     def _has_work(self) -> bool:
-        return (self._flush_all or self._stop.is_set()
-                or any(s.immediate and s.pending() for s in self._sources))
+        return self._stop.is_set() or (not self._paused and (
+            self._flush_all or any(s.immediate and s.pending() for s in self._sources)))
 
     def _send_pending(self, flush_all: bool) -> None:
+        if self._paused:
+            return
         conn = self._conn
         codec = conn.codec
         frames = bytearray()

@@ -58,8 +58,9 @@ def register_demo(app: typer.Typer) -> None:
         connect_timeout: Annotated[float, typer.Option(
             help="controller: keep trying to reach the server this long (s).")] = 30.0,
         lost_exit: Annotated[float, typer.Option(
-            help="controller: exit with status 3 after the link was lost this long (s).")]
-        = 2.0,
+            help="controller: exit with status 3 after the link was lost this long (s); "
+                 "0: never, reconnect and resume.")]
+        = 0.0,
     ) -> None:
         """Pan-tilt camera demo: a 1 kHz loop controller tracks a 30 Hz vision node's set-points.
 

@@ -24,6 +24,12 @@ Why this shape:
 * ``PriParallel`` gives the loop the higher priority (SCHED_FIFO where permitted, otherwise a
   lower nice value for the telemetry, with one warning that says so).
 
+* A lost link puts the loop in ``lost-link`` (hold position) while the SDK reconnects by itself;
+  once the bridge is back the set-points are old, so the loop passes through ``safe`` and
+  resumes ``tracking`` with the first fresh ones. Outgoing angles and states written during the
+  outage wait in their channels (newest angle, every state change up to the buffer) and go out
+  after the reconnect; nothing here has to know about it.
+
 Lifetimes: :meth:`start` starts the composition's owner thread; :meth:`close` stops it, joins
 it (re-raising a process's error), and sends the final status and diagnostics if the link is
 up. The :class:`~rlbridge.csp.bridge.Bridge` belongs to the caller, who closes it afterwards.

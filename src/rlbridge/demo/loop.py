@@ -10,7 +10,7 @@ States (sent to the middleware as the status string when they change)::
     idle ──first fresh set-points──▶ tracking ──set-point older than stale_after──▶ safe
                                         ▲                                           │
                                         └──────────────fresh set-points─────────────┘
-    any state ──bridge link lost──▶ lost-link   (final: the session is gone)
+    any state ──bridge link lost──▶ lost-link ──link back (the SDK reconnected)──▶ safe/tracking
 
 In every state but ``tracking`` the camera holds position: the reference is brought (at the
 follower's rate limit) to the angle measured when the state was entered, and stays there. That
@@ -159,8 +159,6 @@ class PanTiltLoop:
             new = ControllerState.SAFE
         else:
             new = ControllerState.TRACKING
-        if self.state is ControllerState.LOST_LINK:
-            new = ControllerState.LOST_LINK  # the session is gone for good
         if new is self.state:
             return None
         self.state = new

@@ -10,9 +10,10 @@
     The embedded side only (the board, or the ``controller`` compose service): connects to
     ``--host``, retrying until the server answers.
 
-Each role runs for ``seconds`` (0: until SIGINT/SIGTERM). The controller role also ends when
-its link has been lost for ``lost_exit`` seconds, with exit status 3, so that a supervisor
-(compose's ``restart: on-failure``) starts it again and it reconnects.
+Each role runs for ``seconds`` (0: until SIGINT/SIGTERM). The controller rides out outages:
+its bridge reconnects by itself and the loop resumes tracking. With ``lost_exit`` > 0 it instead
+ends once its link has been lost that long, with exit status 3 (the behaviour from before the
+SDK could reconnect, for a supervisor that prefers to restart the process).
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ class DemoOptions:
     """False: without matplotlib the plot is skipped with a note (the default path)."""
     report: Path | None = None
     connect_timeout: float = 30.0
-    lost_exit: float = 2.0
+    lost_exit: float = 0.0
+    """Exit with status 3 after the link was lost this long (s); 0: never, ride it out."""
 
 
 @dataclass
@@ -224,7 +226,9 @@ def _watch_controller(controller: PanTiltController, opts: DemoOptions, stop: th
                       f"{d.setpoint_age_ms:.0f} ms) loop p99 {d.late_p99_us / 1e3:.2f} ms "
                       f"missed {d.missed} [{d.scheduling}]\n")
         out.flush()
-        if controller.loop.state is ControllerState.LOST_LINK:
+        if controller.loop.state is not ControllerState.LOST_LINK:
+            lost_since = None
+        elif opts.lost_exit > 0:
             lost_since = now if lost_since is None else lost_since
             if now - lost_since >= opts.lost_exit:
                 return "lost-link"

@@ -22,6 +22,10 @@ class SequenceTracker:
         self.stale = 0
         self.lost = 0
 
+    def restart(self) -> None:
+        """The sender numbers from 0 again (a new binding); the counters keep their totals."""
+        self.highest = -1
+
     def accept(self, seq: int) -> bool:
         """True if ``seq`` is new and newer than everything delivered; counts the rest."""
         highest = self.highest
