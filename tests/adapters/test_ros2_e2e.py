@@ -96,7 +96,7 @@ class CliServer:
 
 
 @pytest.fixture(scope="module")
-def server(ros_env: int) -> Iterator[CliServer]:
+def ros2_server(ros_env: int) -> Iterator[CliServer]:
     """The bridge server with the ROS 2 adapter, in the ``ros_env``-scoped environment."""
     srv = CliServer(f"rlbridge_e2e_{os.getpid()}")
     try:
@@ -110,9 +110,10 @@ def server(ros_env: int) -> Iterator[CliServer]:
 
 
 @pytest.fixture(scope="module")
-def sdk(server: CliServer) -> Iterator[Bridge]:
+def sdk(ros2_server: CliServer) -> Iterator[Bridge]:
     """One SDK session shared by the module: errors must not end it."""
-    with Bridge.connect("127.0.0.1", server.port(), name="e2e-ros2", timeout=TIMEOUT) as bridge:
+    port = ros2_server.port()
+    with Bridge.connect("127.0.0.1", port, name="e2e-ros2", timeout=TIMEOUT) as bridge:
         yield bridge
 
 

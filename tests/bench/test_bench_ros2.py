@@ -8,6 +8,7 @@ options are one line, and that no worker process is left behind.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -20,17 +21,11 @@ pytestmark = [pytest.mark.ros2, pytest.mark.timeout(120)]
 
 
 def _children() -> set[int]:
-    """PIDs of this process's live children (zombies excluded)."""
-    found = set()
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text()
-            except OSError:
-                continue
-            fields = stat[stat.rindex(")") + 2 :].split()
-            if int(fields[1]) == os.getpid() and fields[0] != "Z":
-                found.add(int(entry.name))
+    """PIDs of this process's children, from each thread's ``/proc/.../children`` list."""
+    found: set[int] = set()
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        with contextlib.suppress(OSError):
+            found.update(int(pid) for pid in (task / "children").read_text().split())
     return found
 
 
