@@ -448,6 +448,15 @@ def run_flow(sender: Worker, receiver: Worker, measured: Sequence[Worker], timeo
     return Flow(sent, received, cpu)
 
 
+def select_cases(cases: Sequence[Any], only: Sequence[str]) -> list[Any]:
+    """The rows whose ``key`` is in ``only`` (every row if empty); an unknown key is an error."""
+    unknown = set(only) - {c.key for c in cases}
+    if unknown:
+        raise BenchError(f"unknown row key(s) {', '.join(sorted(unknown))}; the rows are "
+                         f"{', '.join(c.key for c in cases)}")
+    return [c for c in cases if not only or c.key in only]
+
+
 # -- statistics ----------------------------------------------------------------------------
 def percentile(sorted_values: Sequence[float], q: float) -> float:
     """Linear-interpolated percentile (0..100) of already sorted values; NaN when empty."""

@@ -49,6 +49,7 @@ from rlbridge.bench.common import (
     ratio,
     report_header,
     run_flow,
+    select_cases,
     start_server,
 )
 from rlbridge.bench.ros2_roles import DEPTH
@@ -189,12 +190,8 @@ class CaseResult:
 def run(link: Link, settings: Settings,
         progress: Callable[[str], None] | None = None) -> list[CaseResult]:
     """Every (row, mode) ``repeats`` times, interleaved; discovery scoped for every process."""
-    unknown = set(settings.only) - {c.key for c in CASES}
-    if unknown:
-        raise BenchError(f"unknown row key(s) {', '.join(sorted(unknown))}; the rows are "
-                         f"{', '.join(c.key for c in CASES)}")
+    selected: list[Case] = select_cases(CASES, settings.only)
     scoped = RosScopedLink(link, ros_scope())
-    selected = [c for c in CASES if not settings.only or c.key in settings.only]
     results = [CaseResult(c, m) for m in settings.modes for c in selected]
     run_id = 0
     for rep in range(settings.repeats):
