@@ -48,6 +48,7 @@ try:
         )
         importlib.import_module("rosidl_generator_py")  # untyped; only its side effect counts
 
+    from rclpy._rclpy_pybind11 import RCLError
     from rclpy.context import Context
     from rclpy.exceptions import InvalidHandle, InvalidTopicNameException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -127,6 +128,8 @@ class Ros2Publisher:
         self.topic = topic
         self.spec: ValueSpec = codec.spec
         self.published = 0
+        #: Messages rmw refused to publish ("cannot publish data"); each is logged and counted.
+        self.failed = 0
         self._adapter = adapter
         self._encode = codec.encode
         self.ros = ros
@@ -143,13 +146,27 @@ class Ros2Publisher:
         # batch (which also keeps a concurrent close() from destroying it mid-batch) and call
         # the handle directly: about a quarter less per message.
         handle = self.ros.handle
+        sent = 0
         try:
             with handle:
                 for msg in messages:
-                    handle.publish(msg)
+                    try:
+                        handle.publish(msg)
+                    except RCLError as exc:
+                        # rmw refused this one message (Fast DDS in ASYNCHRONOUS mode does so
+                        # when its history is full of unsent samples): a middleware condition,
+                        # not the client's fault. Count it, keep the session and the batch.
+                        self.failed += 1
+                        if self.failed == 1 or self.failed % 1000 == 0:
+                            reason = str(exc).split(", at /", 1)[0]
+                            log.warning("ros2 publisher on %s: %s (%d messages refused so far)",
+                                        self.topic, reason, self.failed)
+                    else:
+                        sent += 1
         except InvalidHandle:
             raise RuntimeError(f"publisher on {self.topic} is closed") from None
-        self.published += len(messages)
+        finally:
+            self.published += sent
 
     def stop(self) -> bool:
         """Refuse further publishes; ``True`` if it was open (the adapter then destroys it)."""

@@ -66,6 +66,27 @@ def channels(
     typer.echo(text)
 
 
+@bench_app.command("ros2")
+def ros2(
+    ctx: typer.Context,
+    rate_hz: Annotated[float, typer.Option("--rate-hz", help="Latency stream rate.")] = 1000.0,
+    count: Annotated[int, typer.Option(help="Latency samples per run.")] = 3000,
+    seconds: Annotated[float, typer.Option(help="Flood length per throughput run.")] = 2.0,
+    repeats: Annotated[int, typer.Option(help="Runs per row; medians over them.")] = 3,
+    modes: Annotated[str, typer.Option(help="latency, throughput or both.")]
+    = "latency,throughput",
+    only: Annotated[str, typer.Option(help="Rows: rclpy, in-tcp, in-udp, out-tcp, out-udp.")]
+    = "",
+    out: Out = Path("docs/ros2.md"),
+) -> None:
+    """Values/s and latency through the ROS 2 adapter, next to rclpy node -> node (same run)."""
+    from rlbridge.bench import ros2 as r2
+    from rlbridge.bench.common import LoopbackLink, progress
+
+    _run("ros2", lambda: r2.bench(LoopbackLink(), r2.Settings(
+        rate_hz=rate_hz, count=count, seconds=seconds, repeats=repeats,
+        modes=r2.parse_modes(modes), only=_keys(only)), _command(ctx), progress), out)
+
 # -- throughput and latency (rlbridge.bench.throughput, .latency) ----------------------------
 Repeats = Annotated[int, typer.Option(help="Runs per row; figures are medians over them.")]
 _ONLY = "Comma-separated row keys (default: every row): "

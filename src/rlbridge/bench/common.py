@@ -45,7 +45,7 @@ Role = Callable[[Params], None]
 
 #: Modules whose ``ROLES`` a child may run (the child's entry point refuses anything else).
 WORKER_MODULES = ("rlbridge.bench.common", "rlbridge.bench.throughput",
-                  "rlbridge.bench.latency", "rlbridge.bench.baselines")
+                  "rlbridge.bench.latency", "rlbridge.bench.baselines", "rlbridge.bench.ros2_roles")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: Seconds a worker may take to start and report ``ready`` (imports on a loaded machine).
 STARTUP_S = 30.0
@@ -446,6 +446,15 @@ def run_flow(sender: Worker, receiver: Worker, measured: Sequence[Worker], timeo
     received = receiver.expect("result", timeout)
     cpu = {w.name: w.cpu_since_mark() for w in measured}
     return Flow(sent, received, cpu)
+
+
+def select_cases(cases: Sequence[Any], only: Sequence[str]) -> list[Any]:
+    """The rows whose ``key`` is in ``only`` (every row if empty); an unknown key is an error."""
+    unknown = set(only) - {c.key for c in cases}
+    if unknown:
+        raise BenchError(f"unknown row key(s) {', '.join(sorted(unknown))}; the rows are "
+                         f"{', '.join(c.key for c in cases)}")
+    return [c for c in cases if not only or c.key in only]
 
 
 # -- statistics ----------------------------------------------------------------------------
