@@ -273,7 +273,7 @@ class Connection:
         self._leftover = []
         self._flush_values()
         if self.udp is not None and self.control == "tcp":
-            self.send_udp_packet(link.make_heartbeat(time.monotonic_ns()))
+            self.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
         sockets = [s for s in (self.tcp, self.udp, self._wake_r) if s is not None]
         try:
             while not self.closed.is_set():
@@ -337,7 +337,7 @@ class Connection:
             if self.on_link_change is not None:
                 self.on_link_change(state)
         if link.heartbeat_due(now):
-            hb = link.make_heartbeat(now)
+            hb = link.make_heartbeat(now, time.time_ns())
             if self.tcp is not None:
                 self.send_tcp(self.codec.encode_frame(hb))
             if self.udp is not None:
@@ -356,7 +356,7 @@ class Connection:
                 self._gather(packet.channel, packet.first_seq, list(packet.stamps),
                              list(packet.values))
             case Heartbeat():
-                link.on_heartbeat(packet, now)
+                link.on_heartbeat(packet, now, time.time_ns())
             case TopicAck(channel=ch) | TopicError(channel=ch):
                 link.on_receive(now)
                 with self._pending_lock:
