@@ -12,7 +12,6 @@ import pytest
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.health import ChannelHealth
-from rlbridge.server import ServerThread
 from rlbridge.wire import (
     Batch,
     ConnectAck,
@@ -66,13 +65,15 @@ def test_health_on_both_channel_kinds(bridge: Callable[..., Bridge]) -> None:
     _wait(lambda: b.rtt_ns > 0, "an RTT sample")
     h = sub.health()
     assert isinstance(h, ChannelHealth)
-    assert h.values == 5 and h.lost == 0 and h.expired == 0
+    assert (h.values, h.lost, h.expired) == (5, 0, 0)
     assert h.rtt_ns > 0
     assert 0 <= h.one_way_ns < 5_000_000_000
     assert h.jitter_ns >= 0
     assert h.clock_error_ns >= 0  # same host: the offset estimate exists and is bounded
     oh = out.health()
-    assert oh.values == 5 and oh.rtt_ns > 0 and oh.one_way_ns == oh.rtt_ns // 2
+    assert oh.values == 5
+    assert oh.rtt_ns > 0
+    assert oh.one_way_ns == oh.rtt_ns // 2
     out.write(9.0)
     value, age = sub.read_with_age(timeout=WAIT)
     assert value == 9.0
@@ -137,7 +138,8 @@ class StallingServer:
         assert self.conn is not None
         deadline = time.monotonic() + WAIT
         while not self.values or self.values[-1][1] != last:
-            assert time.monotonic() < deadline, f"{last[:8]!r} never arrived, {len(self.values)} did, last {self.values[-1:] and self.values[-1][0]}"
+            assert time.monotonic() < deadline, (
+                f"{last[:8]!r} never arrived ({len(self.values)} values did)")
             for packet in self.decoder.feed(self.conn.recv(1 << 16)):
                 if isinstance(packet, Value):
                     self.values.append((packet.seq, packet.value))

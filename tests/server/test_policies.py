@@ -7,12 +7,15 @@ state (``rlbridge.tcpstate``), not a model of it.
 
 from __future__ import annotations
 
+import asyncio
 import socket
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from rlbridge.server import ServerThread
+from rlbridge.server.handoff import LoopHandoff
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     Batch,
@@ -194,3 +197,49 @@ def test_inbound_policies_dedup_expire_and_keep_latest(
     assert channel["jitter_ns"] >= 0
     for key in ("rtt_ns", "one_way_ns", "overwritten"):
         assert key in channel
+
+
+def test_values_are_stamped_when_the_middleware_delivers_them() -> None:
+    """The stamp is taken on the adapter's callback thread, before the hop to the loop."""
+    loop = asyncio.new_event_loop()
+    try:
+        handoff = LoopHandoff(loop)
+        calls: list[tuple[list[float], int, int]] = []
+        done = threading.Event()
+
+        def on_loop(values: Sequence[Any], stamp_ns: int) -> None:
+            calls.append((list(values), stamp_ns, time.time_ns()))
+            done.set()
+            loop.stop()
+
+        callback = handoff.wrap(on_loop)
+        before = time.time_ns()
+        worker = threading.Thread(target=callback, args=([1.5],))
+        worker.start()
+        worker.join()
+        after = time.time_ns()
+        time.sleep(0.05)  # the loop is not running yet: the value waits in the hand-off
+        loop.run_forever()
+    finally:
+        loop.close()
+    assert done.is_set()
+    [(values, stamp, ran_at)] = calls
+    assert values == [1.5]
+    assert before <= stamp <= after < ran_at
+
+
+def test_outbound_puts_the_delivery_stamp_on_the_wire(
+        server: ServerThread, raw_tcp: Callable[..., Any]) -> None:
+    sub = raw_tcp()
+    sub.hello("sub")
+    sub.send(TopicConnect(1, "subscribe", "/stamp", F64, transport="tcp"))
+    sub.expect(TopicAck)
+    pub = raw_tcp()
+    pub.hello("pub")
+    pub.send(TopicConnect(2, "publish", "/stamp", F64, transport="tcp"))
+    pub.expect(TopicAck)
+    before = time.time_ns()
+    pub.send(Value(2, 0, before, 1.0))
+    packet = sub.expect(Value)
+    assert packet.value == 1.0
+    assert before <= packet.stamp_ns <= time.time_ns()

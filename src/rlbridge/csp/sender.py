@@ -156,7 +156,7 @@ class SendLoop:
                 continue
             self.values_sent += n - repeated
             self.values_repeated += repeated
-            for packet in _packets(src.channel_id, first_seq, stamps, values, self._max_batch):
+            for packet in packets_for(src.channel_id, first_seq, stamps, values, self._max_batch):
                 self.packets_sent += 1
                 if src.transport == "tcp":
                     codec.encode_frame_into(packet, frames)
@@ -195,7 +195,7 @@ class SendLoop:
             self._thread.join(5.0)
 
 
-def _packets(channel: int, first_seq: int, stamps: list[int], values: list[object],
+def packets_for(channel: int, first_seq: int, stamps: list[int], values: list[object],
              max_batch: int) -> list[Packet]:
     if len(values) == 1:
         return [Value(channel, first_seq, stamps[0], values[0])]
