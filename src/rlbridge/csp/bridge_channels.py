@@ -32,7 +32,7 @@ from rlbridge.csp.channel import _MISSING, Channel, ChannelStatistics, Doorbell,
 from rlbridge.csp.errors import ChannelClosed, ChannelMisuseError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.stamped_ring import StampedRing
-from rlbridge.wire.clock import InterarrivalJitter
+from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
 from rlbridge.wire.link import LinkMonitor
 from rlbridge.wire.sequence import SequenceTracker
 
@@ -44,12 +44,17 @@ class AgedValue(NamedTuple):
     age_ns: int
 
 
+_new_aged = tuple.__new__
+#: Stands in for a link's clock before (or without) one: offset 0, error unknown.
+_NO_CLOCK = ClockOffset()
+
+
 class IncomingChannel(Channel[Any]):
     """Middleware -> control code. Read it like any buffered channel."""
 
-    __slots__ = ("_delivered", "_jitter", "_link", "_max_age_ns", "_one_way", "_overtaken",
-                 "_tracker", "channel_id", "expired", "field", "last_stamp_ns", "latest",
-                 "msg_type", "topic", "transport")  # fmt: skip
+    __slots__ = ("_clock", "_delivered", "_jitter", "_link", "_max_age_ns", "_one_way",
+                 "_overtaken", "_tracker", "channel_id", "expired", "field", "last_stamp_ns",
+                 "latest", "msg_type", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, blocking: bool, buffer_size: int,
@@ -68,6 +73,7 @@ class IncomingChannel(Channel[Any]):
         self.latest = latest
         self._max_age_ns = max_age_ms * 1_000_000
         self._link = link
+        self._clock = link.clock if link is not None else _NO_CLOCK
         self.last_stamp_ns = 0
         self._tracker = SequenceTracker()
         self._jitter = InterarrivalJitter()
@@ -77,18 +83,13 @@ class IncomingChannel(Channel[Any]):
         #: Values dropped on arrival for being older than ``max_age_ms``.
         self.expired = 0
 
-    def _offset(self) -> int:
-        """Server clock minus ours (0 until the heartbeats measured it)."""
-        link = self._link
-        return link.clock.offset_ns if link is not None else 0
-
     def deliver(self, first_seq: int, stamps: list[int], values: list[Any]) -> None:
         """Called by the receive thread with one packet's (or one read burst's) values."""
         n = len(values)
         start = self._tracker.accept_run(first_seq, n)
         if start >= n or self.closed:
             return
-        now = time.time_ns() + self._offset()  # in the server's clock, like the stamps
+        now = time.time_ns() + self._clock.offset_ns  # in the server's clock, like the stamps
         jitter = self._jitter
         for i in range(start, n):
             jitter.add(stamps[i], now)
@@ -128,17 +129,18 @@ class IncomingChannel(Channel[Any]):
         trip (``health().clock_error_ns``).
         """
         stamp, value = Channel.read(self, timeout)
-        return AgedValue(value, time.time_ns() + self._offset() - stamp if stamp else -1)
+        age = time.time_ns() + self._clock.offset_ns - stamp if stamp else -1
+        return _new_aged(AgedValue, (value, age))  # tuple.__new__: no Python-level __new__
 
     def write(self, value: Any, timeout: float | None = None) -> None:
         """A local write (tests, simulation): stamped now, in the server's clock."""
-        Channel.write(self, (time.time_ns() + self._offset(), value), timeout)
+        Channel.write(self, (time.time_ns() + self._clock.offset_ns, value), timeout)
 
     @property
     def age_ns(self) -> int:
         """Age of the newest value delivered (-1 before the first one), clock-corrected."""
         stamp = self.last_stamp_ns
-        return time.time_ns() + self._offset() - stamp if stamp else -1
+        return time.time_ns() + self._clock.offset_ns - stamp if stamp else -1
 
     @property
     def lost(self) -> int:
@@ -164,8 +166,11 @@ class IncomingChannel(Channel[Any]):
             overtaken=self._overtaken + tracker.stale,
             expired=self.expired,
             values=self._delivered,
-            clock_error_ns=link.clock.error_bound_ns if link is not None else -1,
+            clock_error_ns=self._clock.error_bound_ns,
         )
+
+
+_get_ident = threading.get_ident
 
 
 class SecondWriterError(ChannelMisuseError):
@@ -232,7 +237,7 @@ class OutgoingChannel:
         """Queue one value for the send thread; a full buffer drops its oldest value (counted)."""
         if self._closed:
             raise ChannelClosed(self.topic)
-        if threading.get_ident() != self._writer:
+        if _get_ident() != self._writer:
             self._check_writer()
         self._ring.push_stamped(time.time_ns(), value)
         if self.immediate:
@@ -244,7 +249,7 @@ class OutgoingChannel:
         """Queue a batch (one stamp for all): the cheapest way to move many values."""
         if self._closed:
             raise ChannelClosed(self.topic)
-        if threading.get_ident() != self._writer:
+        if _get_ident() != self._writer:
             self._check_writer()
         self._ring.push_many_stamped(time.time_ns(), values)
         if self.immediate:

@@ -41,13 +41,17 @@ class ClockSample:
 class ClockOffset:
     """Minimum-delay filter over the last ``window`` NTP-style samples (module docstring)."""
 
-    __slots__ = ("_best", "_samples", "samples_taken")
+    __slots__ = ("_samples", "error_bound_ns", "offset_ns", "samples_taken")
 
     def __init__(self, window: int = CLOCK_WINDOW) -> None:
         if window < 1:
             raise ValueError(f"clock filter window must be >= 1, got {window}")
         self._samples: deque[ClockSample] = deque(maxlen=window)
-        self._best: ClockSample | None = None
+        #: Peer clock minus our clock (0 until the first exchange). Plain attributes, not
+        #: properties: readers on a control loop's hot path pay one attribute load.
+        self.offset_ns = 0
+        #: How far :attr:`offset_ns` can be off: half the filtered round trip (-1: unknown).
+        self.error_bound_ns = -1
         self.samples_taken = 0
 
     def add(self, t1: int, t2: int, t3: int, t4: int) -> ClockSample | None:
@@ -61,25 +65,17 @@ class ClockOffset:
             return None
         sample = ClockSample(((t2 - t1) + (t3 - t4)) // 2, delay)
         self._samples.append(sample)
-        self._best = min(self._samples, key=lambda s: s.delay_ns)
+        best = min(self._samples, key=lambda s: s.delay_ns)
+        # Two single stores: a reader on another thread may pair a new offset with the
+        # previous bound for a moment (one sample apart), never a torn number.
+        self.offset_ns = best.offset_ns
+        self.error_bound_ns = best.delay_ns // 2
         self.samples_taken += 1
         return sample
 
     @property
     def known(self) -> bool:
-        return self._best is not None
-
-    @property
-    def offset_ns(self) -> int:
-        """Peer clock minus our clock (0 until the first exchange)."""
-        best = self._best
-        return best.offset_ns if best is not None else 0
-
-    @property
-    def error_bound_ns(self) -> int:
-        """How far :attr:`offset_ns` can be off: half the filtered round trip (-1: unknown)."""
-        best = self._best
-        return best.delay_ns // 2 if best is not None else -1
+        return self.error_bound_ns >= 0
 
 
 class InterarrivalJitter:
