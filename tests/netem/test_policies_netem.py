@@ -1,0 +1,116 @@
+"""Latest-value delivery over an emulated lossy link (real kernel TCP; needs root).
+
+The server runs in namespace a, the SDK client in namespace b; the a -> b direction drops
+packets, so the kernel retransmits and, without the policy, hands the reader a burst of stale
+values after each retransmission. Asserted is the mechanism (values overtaken instead of
+delivered, the newest one always arriving, plain TCP delivering everything), not timing; the
+ages are printed for a person and measured properly by the evaluation harness.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import textwrap
+from typing import Any
+
+import pytest
+
+from rlbridge.netem import EmulatedLink, Impairment, emulator_unavailable_reason
+
+pytestmark = [pytest.mark.netem, pytest.mark.timeout(90)]
+
+PORT = 7411
+COUNT = 300
+
+CLIENT = textwrap.dedent("""
+    import json, sys, threading, time
+    from rlbridge.csp.bridge import Bridge
+    from rlbridge.csp.connection import ConnectionFailed
+    host, port, latest, count = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "1", int(sys.argv[4])
+    deadline = time.monotonic() + 20
+    while True:
+        try:
+            bridge = Bridge.connect(host, port, nodelay=True, timeout=2.0)
+            break
+        except ConnectionFailed:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+    I64 = "std_msgs/msg/Int64"
+    sub = bridge.subscribe("/sp", I64, transport="tcp", blocking=True, buffer_size=1024,
+                           latest=latest)
+    out = bridge.publish("/sp", I64, transport="udp")
+    got, ages = [], []
+    def reader():
+        while True:
+            try:
+                value, age = sub.read_with_age(timeout=5.0)
+            except TimeoutError:
+                return
+            got.append(value)
+            ages.append(age)
+            if value == count - 1:
+                return
+    thread = threading.Thread(target=reader)
+    thread.start()
+    next_t = time.monotonic()
+    for i in range(count):
+        out.write(i)
+        next_t += 0.01
+        time.sleep(max(0.0, next_t - time.monotonic()))
+    thread.join(30)
+    h = sub.health()
+    channel = bridge.server_stats()["session"]["channels"][str(sub.channel_id)]
+    bridge.close()
+    print(json.dumps({"got": got, "ages": ages, "overtaken": h.overtaken, "lost": h.lost,
+                      "server_overtaken": channel["overtaken"], "clock_error": h.clock_error_ns}))
+""")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _require_emulator() -> None:
+    reason = emulator_unavailable_reason()
+    if reason is not None:
+        pytest.skip(f"network emulator unavailable: {reason}")
+
+
+def _run(latest: bool) -> dict[str, Any]:
+    lossy = Impairment(delay_ms=10.0, loss_pct=10.0)
+    clean = Impairment(delay_ms=10.0)
+    with EmulatedLink(a_to_b=lossy, b_to_a=clean, seed=7, max_lifetime_s=120.0) as link:
+        server = link.popen("a", [sys.executable, "-m", "rlbridge.cli", "serve", "--host",
+                                  link.addr_a, "--port", str(PORT), "--nodelay",
+                                  "--heartbeat-ms", "100", "--timeout-ms", "5000"])
+        try:
+            client = link.popen("b", [sys.executable, "-c", CLIENT, link.addr_a, str(PORT),
+                                      "1" if latest else "0", str(COUNT)],
+                                stdout=-1, stderr=-1, text=True)
+            out, err = client.communicate(timeout=70)
+            assert client.returncode == 0, err
+        finally:
+            server.terminate()
+            server.wait(10)
+    result: dict[str, Any] = json.loads(out.strip().splitlines()[-1])
+    ages = sorted(result["ages"])
+    print(f"latest={latest}: {len(ages)} delivered, overtaken {result['overtaken']} (SDK) + "
+          f"{result['server_overtaken']} (server), age p50 {statistics.median(ages) / 1e6:.1f} "
+          f"ms, p99 {ages[int(len(ages) * 0.99)] / 1e6:.1f} ms, max {ages[-1] / 1e6:.1f} ms")
+    return result
+
+
+def test_plain_tcp_delivers_every_value_late_or_not() -> None:
+    result = _run(latest=False)
+    assert result["got"] == list(range(COUNT))
+    assert result["overtaken"] == result["server_overtaken"] == 0
+
+
+def test_latest_tcp_skips_values_overtaken_during_retransmissions() -> None:
+    result = _run(latest=True)
+    got = result["got"]
+    assert got[-1] == COUNT - 1, "the newest value always arrives"
+    assert got == sorted(got)
+    assert result["lost"] == 0, "overtaken values leave no sequence gap"
+    assert result["overtaken"] + result["server_overtaken"] > 0
+    assert len(got) + result["overtaken"] + result["server_overtaken"] == COUNT
