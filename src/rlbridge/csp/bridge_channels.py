@@ -157,7 +157,7 @@ class IncomingChannel(Channel[Any]):
         link = self._link
         tracker = self._tracker
         return ChannelHealth(
-            rtt_ns=link.stats(0).rtt_ns if link is not None else -1,
+            rtt_ns=link.rtt_ns if link is not None else -1,
             one_way_ns=self._one_way,
             jitter_ns=self._jitter.jitter_ns if self._delivered else -1,
             lost=tracker.lost,
@@ -188,9 +188,9 @@ class SecondWriterError(ChannelMisuseError):
 class OutgoingChannel:
     """Control code -> middleware. ``write`` never blocks and never touches a socket."""
 
-    __slots__ = ("_bell", "_closed", "_expired", "_held", "_history", "_link", "_max_age_ns",
-                 "_next_seq", "_overtaken", "_ring", "_writer", "channel_id", "field",
-                 "immediate", "latest", "msg_type", "redundancy", "topic",
+    __slots__ = ("_bell", "_clock", "_closed", "_expired", "_held", "_history", "_link",
+                 "_max_age_ns", "_next_seq", "_overtaken", "_ring", "_writer", "channel_id",
+                 "field", "immediate", "latest", "msg_type", "redundancy", "topic",
                  "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
@@ -213,6 +213,7 @@ class OutgoingChannel:
         self.redundancy = redundancy if transport == "udp" else 0
         self._max_age_ns = max_age_ms * 1_000_000
         self._link = link
+        self._clock = link.clock if link is not None else _NO_CLOCK
         self._ring = StampedRing(buffer_size)
         self._bell = doorbell
         self._next_seq = 0
@@ -323,13 +324,13 @@ class OutgoingChannel:
         measured by the server (``Bridge.server_stats()``, per channel).
         """
         link = self._link
-        rtt = link.stats(0).rtt_ns if link is not None else -1
+        rtt = link.rtt_ns if link is not None else -1
         ring = self._ring
         return ChannelHealth(
             rtt_ns=rtt, one_way_ns=rtt // 2 if rtt >= 0 else -1, jitter_ns=-1, lost=-1,
             duplicates=0, overwritten=ring.overwritten, overtaken=self._overtaken,
             expired=self._expired, values=ring.written,
-            clock_error_ns=link.clock.error_bound_ns if link is not None else -1)
+            clock_error_ns=self._clock.error_bound_ns)
 
     @property
     def closed(self) -> bool:

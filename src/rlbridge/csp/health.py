@@ -9,12 +9,15 @@ each number comes from; the server reports the same counters per channel in ``St
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import msgspec
 
 
-@dataclass(frozen=True, slots=True)
-class ChannelHealth:
-    """One channel's delivery quality, in ns and counts (``-1``: not measured)."""
+class ChannelHealth(msgspec.Struct, frozen=True, gc=False):
+    """One channel's delivery quality, in ns and counts (``-1``: not measured).
+
+    A msgspec Struct rather than a frozen dataclass: built in C, ~10x cheaper to create,
+    which matters to a loop that reads it every cycle; ``msgspec.to_builtins`` makes a dict.
+    """
 
     #: Smoothed round-trip time of the session's link (heartbeats).
     rtt_ns: int

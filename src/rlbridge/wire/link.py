@@ -135,6 +135,11 @@ class LinkMonitor:
         candidates = [self._next_tx, *(t for t in (degraded_at, lost_at) if t > now_ns)]
         return max(now_ns, min(candidates))
 
+    @property
+    def rtt_ns(self) -> int:
+        """Smoothed round-trip time (-1 until measured); one load, for hot paths."""
+        return self._srtt
+
     def stats(self, now_ns: int) -> LinkStats:
         return LinkStats(
             state=self.state(now_ns),
