@@ -163,17 +163,22 @@ def test_plain_tcp_channel_delivers_the_whole_backlog(
     assert counters["overtaken"] == 0
 
 
-def test_inbound_policies_dedup_expire_and_keep_latest(
-        server: ServerThread, raw_tcp: Callable[..., Any]) -> None:
+def _pub_sub(raw_tcp: Callable[..., Any], topic: str, **publish: Any) -> tuple[Any, Any]:
+    """A raw subscriber (channel 1) and a raw publisher (channel 2, ``publish`` options)."""
     sub = raw_tcp()
     sub.hello("sub")
-    sub.send(TopicConnect(1, "subscribe", "/in/pol", F64, transport="tcp"))
+    sub.send(TopicConnect(1, "subscribe", topic, F64, transport="tcp"))
     sub.expect(TopicAck)
     pub = raw_tcp()
     pub.hello("pub")
-    pub.send(TopicConnect(2, "publish", "/in/pol", F64, transport="tcp", max_age_ms=1000,
-                          latest=True))
+    pub.send(TopicConnect(2, "publish", topic, F64, transport="tcp", **publish))
     pub.expect(TopicAck)
+    return sub, pub
+
+
+def test_inbound_policies_dedup_expire_and_keep_latest(
+        server: ServerThread, raw_tcp: Callable[..., Any]) -> None:
+    sub, pub = _pub_sub(raw_tcp, "/in/pol", max_age_ms=1000, latest=True)
     now = time.time_ns()
     old = now - 60_000_000_000
     pub.send(Batch(2, 0, [now, now, now], [1.0, 2.0, 3.0]))  # latest: only 3.0 published
@@ -230,14 +235,7 @@ def test_values_are_stamped_when_the_middleware_delivers_them() -> None:
 
 def test_outbound_puts_the_delivery_stamp_on_the_wire(
         server: ServerThread, raw_tcp: Callable[..., Any]) -> None:
-    sub = raw_tcp()
-    sub.hello("sub")
-    sub.send(TopicConnect(1, "subscribe", "/stamp", F64, transport="tcp"))
-    sub.expect(TopicAck)
-    pub = raw_tcp()
-    pub.hello("pub")
-    pub.send(TopicConnect(2, "publish", "/stamp", F64, transport="tcp"))
-    pub.expect(TopicAck)
+    sub, pub = _pub_sub(raw_tcp, "/stamp")
     before = time.time_ns()
     pub.send(Value(2, 0, before, 1.0))
     packet = sub.expect(Value)
