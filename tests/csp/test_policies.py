@@ -78,6 +78,15 @@ def test_read_with_age_pairs_each_value_with_its_own_stamp() -> None:
     assert ch.last_stamp_ns == now - 100 * MS
 
 
+def test_local_writes_are_stamped_too() -> None:
+    ch = incoming(blocking=True)
+    ch.write(1.0)
+    ch.deliver_many([2.0, 3.0])
+    assert [ch.read_with_age()[0] for _ in range(3)] == [1.0, 2.0, 3.0]
+    ch.write(4.0)
+    assert ch.read_with_age().age_ns >= 0
+
+
 def test_initial_value_has_no_age_and_reads_plainly() -> None:
     ch = incoming(initial=0.5)
     assert ch.read() == 0.5

@@ -107,7 +107,7 @@ class IncomingChannel(Channel[Any]):
         if self.latest and len(keep) > 1:
             self._overtaken += len(keep) - 1
             keep = keep[-1:]
-        self.deliver_many([(stamps[i], values[i]) for i in keep])
+        Channel.deliver_many(self, [(stamps[i], values[i]) for i in keep])
         self._delivered += len(keep)
         # Set after the value is in the ring: a reader pairing ``last_stamp_ns`` with a value
         # read just before may see an older stamp (age over-, never under-estimated);
@@ -135,6 +135,11 @@ class IncomingChannel(Channel[Any]):
     def write(self, value: Any, timeout: float | None = None) -> None:
         """A local write (tests, simulation): stamped now, in the server's clock."""
         Channel.write(self, (time.time_ns() + self._clock.offset_ns, value), timeout)
+
+    def deliver_many(self, values: Sequence[Any]) -> None:
+        """A local bulk write (tests, simulation): stamped now, in the server's clock."""
+        stamp = time.time_ns() + self._clock.offset_ns
+        Channel.deliver_many(self, [(stamp, v) for v in values])
 
     @property
     def age_ns(self) -> int:
