@@ -171,6 +171,10 @@ def test_latest_outgoing_sends_newest_and_holds_while_congested() -> None:
     first, _stamps, values, _ = ch.take()
     assert (first, values) == (1, [5.0])  # no sequence gap for the overtaken ones
     assert ch.health().overtaken == 3
+    ch.write(6.0)
+    ch.take(congested=True)
+    ch.close()  # the held value never left: counted, not silently lost
+    assert ch.statistics().dropped == 1
 
 
 def test_redundant_udp_take_repeats_previous_values() -> None:

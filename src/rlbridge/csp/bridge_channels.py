@@ -172,6 +172,7 @@ class IncomingChannel(Channel[Any]):
             expired=self.expired,
             values=self._delivered,
             clock_error_ns=self._clock.error_bound_ns,
+            clock_offset_ns=self._clock.offset_ns,
         )
 
 
@@ -193,10 +194,10 @@ class SecondWriterError(ChannelMisuseError):
 class OutgoingChannel:
     """Control code -> middleware. ``write`` never blocks and never touches a socket."""
 
-    __slots__ = ("_bell", "_clock", "_closed", "_expired", "_held", "_history", "_link",
-                 "_max_age_ns", "_next_seq", "_overtaken", "_ring", "_writer", "channel_id",
-                 "field", "immediate", "latest", "msg_type", "redundancy", "topic",
-                 "transport")  # fmt: skip
+    __slots__ = ("_bell", "_clock", "_closed", "_discarded", "_expired", "_held", "_history",
+                 "_link", "_max_age_ns", "_next_seq", "_overtaken", "_ring", "_writer",
+                 "channel_id", "field", "immediate", "latest", "msg_type", "redundancy",
+                 "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
@@ -230,6 +231,7 @@ class OutgoingChannel:
         self._history: deque[tuple[int, int, Any]] = deque(maxlen=max(self.redundancy, 1))
         self._overtaken = 0
         self._expired = 0
+        self._discarded = 0
 
     def _check_writer(self) -> None:
         """Slow path: a thread other than the recorded writer writes (module docstring)."""
@@ -318,7 +320,8 @@ class OutgoingChannel:
 
     def statistics(self) -> ChannelStatistics:
         ring = self._ring
-        return ChannelStatistics(buffered=len(ring), overwritten=ring.overwritten, dropped=0,
+        return ChannelStatistics(buffered=len(ring), overwritten=ring.overwritten,
+                                 dropped=self._discarded,
                                  written=ring.written, read=ring.popped, waiting_readers=0,
                                  waiting_writers=0, closed=self._closed)
 
@@ -335,11 +338,17 @@ class OutgoingChannel:
             rtt_ns=rtt, one_way_ns=rtt // 2 if rtt >= 0 else -1, jitter_ns=-1, lost=-1,
             duplicates=0, overwritten=ring.overwritten, overtaken=self._overtaken,
             expired=self._expired, values=ring.written,
-            clock_error_ns=self._clock.error_bound_ns)
+            clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns)
 
     @property
     def closed(self) -> bool:
         return self._closed
 
     def close(self) -> None:
+        """Refuse further writes. A latest value still held back is discarded, counted in
+        ``statistics().dropped`` (the Bridge flushes before closing, so only one that the
+        connection never let through)."""
         self._closed = True
+        if self._held is not None:
+            self._held = None
+            self._discarded += 1

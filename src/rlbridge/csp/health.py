@@ -41,3 +41,5 @@ class ChannelHealth(msgspec.Struct, frozen=True, gc=False):
     values: int
     #: Error bound of the clock offset the ages are corrected by (half the filtered RTT).
     clock_error_ns: int = -1
+    #: The server's clock minus this host's, as estimated from heartbeats (0: not yet).
+    clock_offset_ns: int = 0
