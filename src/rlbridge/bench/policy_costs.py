@@ -27,7 +27,25 @@ def _cases() -> dict[str, Callable[[], object]]:
     plain_out: Channel[float] = Channel(1024, blocking=True)
     bridge_out = OutgoingChannel(1, "/t", "std_msgs/msg/Float64", "data", transport="tcp",
                                  immediate=False, buffer_size=1024, doorbell=Doorbell())
+    # The receive thread's side: one packet's values in, then taken out again.
+    plain_rx: Channel[float] = Channel(1024, blocking=True)
+    bridge_rx = IncomingChannel(1, "/t", "std_msgs/msg/Float64", "data", transport="tcp",
+                                blocking=True, buffer_size=1024)
+    seq = [0]
+    stamps, values = [time.time_ns()] * 10, [1.0] * 10
+
+    def plain_packet() -> None:
+        plain_rx.deliver_many(values)
+        plain_rx.read_many()
+
+    def bridge_packet() -> None:
+        bridge_rx.deliver(seq[0], stamps, values)
+        seq[0] += 10
+        bridge_rx.read_many()
+
     return {
+        "Channel.deliver_many + read_many, 10 values (baseline)": plain_packet,
+        "IncomingChannel.deliver + read_many, 10 values": bridge_packet,
         "Channel.read (non-blocking, baseline)": plain_in.read,
         "IncomingChannel.read": bridge_in.read,
         "IncomingChannel.read_with_age": bridge_in.read_with_age,

@@ -26,6 +26,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
+from operator import itemgetter
 from typing import Any, NamedTuple
 
 from rlbridge.csp.channel import _MISSING, Channel, ChannelStatistics, Doorbell, _Missing
@@ -45,6 +46,7 @@ class AgedValue(NamedTuple):
 
 
 _new_aged = tuple.__new__
+_second = itemgetter(1)
 #: Stands in for a link's clock before (or without) one: offset 0, error unknown.
 _NO_CLOCK = ClockOffset()
 
@@ -84,42 +86,47 @@ class IncomingChannel(Channel[Any]):
         self.expired = 0
 
     def deliver(self, first_seq: int, stamps: list[int], values: list[Any]) -> None:
-        """Called by the receive thread with one packet's (or one read burst's) values."""
+        """Called by the receive thread with one packet's (or one read burst's) values.
+
+        Per value only C-level work (slices, ``zip``); the measurements (jitter, one-way
+        age) take the run's newest value, because a run's values share one arrival time.
+        """
         n = len(values)
         start = self._tracker.accept_run(first_seq, n)
-        if start >= n or self.closed:
+        if start >= n or self._closed:
             return
+        if start:
+            stamps, values = stamps[start:], values[start:]
         now = time.time_ns() + self._clock.offset_ns  # in the server's clock, like the stamps
-        jitter = self._jitter
-        for i in range(start, n):
-            jitter.add(stamps[i], now)
-        age = now - stamps[-1]
+        newest = stamps[-1]
+        self._jitter.add(newest, now)
+        age = now - newest
         self._one_way = age if self._one_way < 0 else self._one_way + (age - self._one_way) // 16
-        keep: Sequence[int]
-        if self._max_age_ns:
+        if self._max_age_ns and stamps[0] < now - self._max_age_ns:
             cutoff = now - self._max_age_ns
-            keep = [i for i in range(start, n) if stamps[i] >= cutoff]
-            self.expired += n - start - len(keep)
-            if not keep:
+            fresh = [(s, v) for s, v in zip(stamps, values, strict=True) if s >= cutoff]
+            self.expired += len(values) - len(fresh)
+            if not fresh:
                 return
-        else:
-            keep = range(start, n)
-        if self.latest and len(keep) > 1:
-            self._overtaken += len(keep) - 1
-            keep = keep[-1:]
-        Channel.deliver_many(self, [(stamps[i], values[i]) for i in keep])
-        self._delivered += len(keep)
+            stamps, values = [s for s, _ in fresh], [v for _, v in fresh]
+        count = len(values)
+        if self.latest and count > 1:
+            self._overtaken += count - 1
+            stamps, values, count = stamps[-1:], values[-1:], 1
+        # Equal lengths: a Batch with unequal ones does not decode (packets.py).
+        Channel.deliver_many(self, list(zip(stamps, values)))  # noqa: B905
+        self._delivered += count
         # Set after the value is in the ring: a reader pairing ``last_stamp_ns`` with a value
         # read just before may see an older stamp (age over-, never under-estimated);
         # read_with_age() is exact.
-        self.last_stamp_ns = stamps[keep[-1]]
+        self.last_stamp_ns = stamps[-1]
 
     # -- reading: the ring holds (stamp, value) pairs -----------------------------------------
     def read(self, timeout: float | None = None) -> Any:
         return Channel.read(self, timeout)[1]
 
     def read_many(self, max_items: int | None = None) -> list[Any]:
-        return [v for _, v in Channel.read_many(self, max_items)]
+        return list(map(_second, Channel.read_many(self, max_items)))
 
     def read_with_age(self, timeout: float | None = None) -> AgedValue:
         """Like :meth:`read`, with the value's age: now minus its stamp, across hosts.
