@@ -31,6 +31,7 @@ CLIENT = textwrap.dedent("""
     from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.connection import ConnectionFailed
     host, port, latest, count = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "1", int(sys.argv[4])
+    max_age = int(sys.argv[5])
     deadline = time.monotonic() + 20
     while True:
         try:
@@ -42,7 +43,7 @@ CLIENT = textwrap.dedent("""
             time.sleep(0.1)
     I64 = "std_msgs/msg/Int64"
     sub = bridge.subscribe("/sp", I64, transport="tcp", blocking=True, buffer_size=1024,
-                           latest=latest)
+                           latest=latest, max_age_ms=max_age)
     out = bridge.publish("/sp", I64, transport="udp")
     got, ages = [], []
     def reader():
@@ -53,7 +54,7 @@ CLIENT = textwrap.dedent("""
                 return
             got.append(value)
             ages.append(age)
-            if value == count - 1:
+            if value == count - 1:  # (expired with a max age: the read times out)
                 return
     thread = threading.Thread(target=reader)
     thread.start()
@@ -67,6 +68,7 @@ CLIENT = textwrap.dedent("""
     channel = bridge.server_stats()["session"]["channels"][str(sub.channel_id)]
     bridge.close()
     print(json.dumps({"got": got, "ages": ages, "overtaken": h.overtaken, "lost": h.lost,
+                      "expired": h.expired,
                       "server_overtaken": channel["overtaken"], "clock_error": h.clock_error_ns}))
 """)
 
@@ -128,13 +130,14 @@ def _run_client(script: str, args: list[str], a_to_b: Impairment,
     return str(out)
 
 
-def _run(latest: bool) -> dict[str, Any]:
-    out = _run_client(CLIENT, ["1" if latest else "0", str(COUNT)],
+def _run(latest: bool, max_age_ms: int = 0) -> dict[str, Any]:
+    out = _run_client(CLIENT, ["1" if latest else "0", str(COUNT), str(max_age_ms)],
                       Impairment(delay_ms=10.0, loss_pct=10.0), Impairment(delay_ms=10.0))
     result: dict[str, Any] = json.loads(out.strip().splitlines()[-1])
     ages = sorted(result["ages"])
-    print(f"latest={latest}: {len(ages)} delivered, overtaken {result['overtaken']} (SDK) + "
-          f"{result['server_overtaken']} (server), age p50 {statistics.median(ages) / 1e6:.1f} "
+    print(f"latest={latest} max_age={max_age_ms}: {len(ages)} delivered, overtaken "
+          f"{result['overtaken']} (SDK) + {result['server_overtaken']} (server), expired "
+          f"{result['expired']}, age p50 {statistics.median(ages) / 1e6:.1f} "
           f"ms, p99 {ages[int(len(ages) * 0.99)] / 1e6:.1f} ms, max {ages[-1] / 1e6:.1f} ms")
     return result
 
@@ -170,3 +173,13 @@ def test_sdk_udp_redundancy_recovers_lost_datagrams() -> None:
             assert channel["duplicates"] > 0
     assert lost[0] > 5
     assert lost[2] < lost[0] / 5
+
+
+def test_latest_with_max_age_accounts_for_every_value() -> None:
+    """Latest plus a 40 ms limit: each value is delivered, overtaken or expired, once."""
+    result = _run(latest=True, max_age_ms=40)
+    got = result["got"]
+    assert got == sorted(got)
+    assert result["lost"] == 0
+    accounted = len(got) + result["overtaken"] + result["server_overtaken"] + result["expired"]
+    assert accounted == COUNT
