@@ -26,12 +26,12 @@ pytestmark = [pytest.mark.netem, pytest.mark.timeout(90)]
 PORT = 7411
 COUNT = 300
 
-CLIENT = textwrap.dedent("""
+#: Both client scripts start alike: connect to the server (which may still be starting).
+CONNECT = textwrap.dedent("""
     import json, sys, threading, time
     from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.connection import ConnectionFailed
-    host, port, latest, count = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "1", int(sys.argv[4])
-    max_age = int(sys.argv[5])
+    host, port = sys.argv[1], int(sys.argv[2])
     deadline = time.monotonic() + 20
     while True:
         try:
@@ -41,6 +41,10 @@ CLIENT = textwrap.dedent("""
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.1)
+""")
+
+CLIENT = CONNECT + textwrap.dedent("""
+    latest, count, max_age = sys.argv[3] == "1", int(sys.argv[4]), int(sys.argv[5])
     I64 = "std_msgs/msg/Int64"
     sub = bridge.subscribe("/sp", I64, transport="tcp", blocking=True, buffer_size=1024,
                            latest=latest, max_age_ms=max_age)
@@ -73,20 +77,8 @@ CLIENT = textwrap.dedent("""
 """)
 
 
-PUBLISHER = textwrap.dedent("""
-    import json, sys, time
-    from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.connection import ConnectionFailed
-    host, port, k, count = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
-    deadline = time.monotonic() + 20
-    while True:
-        try:
-            bridge = Bridge.connect(host, port, nodelay=True, timeout=2.0)
-            break
-        except ConnectionFailed:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.1)
+PUBLISHER = CONNECT + textwrap.dedent("""
+    k, count = int(sys.argv[3]), int(sys.argv[4])
     out = bridge.publish("/cmd", "std_msgs/msg/Int64", transport="udp", redundancy=k)
     next_t = time.monotonic()
     for i in range(count):
