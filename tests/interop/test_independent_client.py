@@ -101,8 +101,8 @@ def test_scenario_values_arrive_intact_and_in_order(server: ServerThread) -> Non
     assert (r.topic_error.channel, r.topic_error.code) == (5, ic.UNKNOWN_TYPE)
 
     channels = r.stats["session"]["channels"]
-    assert channels["1"] == {"direction": "publish", "values_in": 8, "bad_values": 0,
-                             "lost": 0, "duplicates": 0}
+    assert channels["1"].items() >= {"direction": "publish", "values_in": 8, "bad_values": 0,
+                                     "lost": 0, "duplicates": 0}.items()
     assert channels["4"]["values_in"] == 5
     assert channels["2"]["values_out"] == channels["3"]["values_out"] == 13
     assert r.stats["session"]["rtt_us"] is not None, "our heartbeat echoes gave an RTT"
@@ -185,7 +185,7 @@ def test_shortest_and_longer_forms_are_accepted(client: ic.IndependentClient) ->
     client.send_tcp([ic.TAG_TOPIC_CONNECT, 1, "subscribe", topic, F64])  # field, transport...
     assert client.recv_tag(ic.TAG_TOPIC_ACK).fields == (1, F64, 0.0)
     client.send_tcp([ic.TAG_TOPIC_CONNECT, 2, "publish", topic, F64, "data", "tcp", 1, None,
-                     10, 0, 0, "a future field"])
+                     10, 0, 0, False, "a future field"])
     assert client.recv_tag(ic.TAG_TOPIC_ACK).field(1) == 2
     client.send_tcp([ic.TAG_VALUE, 2, 0, 0, 1.25, "extra"])
     assert client.collect(1, 1) == [1.25]

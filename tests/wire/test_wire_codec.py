@@ -469,7 +469,7 @@ def test_batch_constructor_refuses_mismatch() -> None:
 def test_unknown_trailing_fields_are_ignored() -> None:
     """Forward compatibility: a newer peer may append fields."""
     decoder = FrameDecoder()
-    assert decoder.feed(frame(body(10, 5, 6, "future", 1))) == [Heartbeat(5, 6)]
+    assert decoder.feed(frame(body(10, 5, 6, 7, 8, 9, "future", 1))) == [Heartbeat(5, 6, 7, 8, 9)]
 
 
 def test_header_layout() -> None:

@@ -126,9 +126,15 @@ class Bridge:
         buffer_size: int = 1,
         initial: Any = _MISSING,
         redundancy: int = 0,
+        latest: bool = False,
+        max_age_ms: int = 0,
         on_lost: OnLost = "hold",
     ) -> IncomingChannel:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
+
+        Policies (docs/policies.md): ``redundancy=k`` (UDP) repeats the previous k values in
+        each datagram; ``latest=True`` delivers the newest value instead of a backlog;
+        ``max_age_ms`` drops values older than that on arrival (``health().expired``).
 
         Non-blocking channels return the latest value on every read (or ``initial`` before the
         first one; with neither, ``NoValueYet``); blocking channels wait for a new value.
@@ -145,7 +151,8 @@ class Bridge:
         kind = IncomingChannel if guard is None else GuardedChannel
         channel = kind(ch_id, topic, msg_type, field, transport=transport,
                                   blocking=blocking, buffer_size=buffer_size,
-                                  initial=initial if not blocking else _MISSING)
+                                  initial=initial if not blocking else _MISSING,
+                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
         if isinstance(channel, GuardedChannel):
             channel.failsafe = guard
         with self._lock:
@@ -153,7 +160,7 @@ class Bridge:
         try:
             ack = self._conn.request_topic(TopicConnect(
                 ch_id, "subscribe", topic, msg_type, field, transport, buffer_size,
-                redundancy=redundancy))
+                max_age_ms=max_age_ms, redundancy=redundancy, latest=latest))
         except BaseException:
             with self._lock:
                 self._incoming.pop(ch_id, None)
@@ -171,21 +178,27 @@ class Bridge:
         through_buffer: bool = False,
         buffer_size: int = 1024,
         redundancy: int = 0,
+        latest: bool = False,
+        max_age_ms: int = 0,
     ) -> OutgoingChannel:
         """A channel whose values are published on ``topic``.
 
         ``through_buffer=False``: each ``write`` hands the value to the send thread at once.
         ``through_buffer=True``: values wait in the channel until :meth:`send` or the send loop.
         Either way ``write`` never blocks and never touches a socket; a full buffer drops its
-        oldest value and counts it (``statistics().overwritten``).
+        oldest value and counts it (``statistics().overwritten``). Policies as in
+        :meth:`subscribe`; ``max_age_ms`` is enforced here before sending and by the server
+        before publishing.
         """
         ch_id = next(self._ids)
+        channel = OutgoingChannel(ch_id, topic, msg_type, field, transport=transport,
+                                  immediate=not through_buffer, buffer_size=buffer_size,
+                                  doorbell=self._sender.doorbell, redundancy=redundancy,
+                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
         ack = self._conn.request_topic(TopicConnect(
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
-            redundancy=redundancy))
-        channel = OutgoingChannel(ch_id, topic, ack.msg_type, field, transport=transport,
-                                  immediate=not through_buffer, buffer_size=buffer_size,
-                                  doorbell=self._sender.doorbell)
+            max_age_ms=max_age_ms, redundancy=redundancy, latest=latest))
+        channel.msg_type = ack.msg_type
         with self._lock:
             self._outgoing[ch_id] = channel
         self._sender.add(channel)
@@ -327,6 +340,9 @@ class Bridge:
             incoming = self._incoming.get(req.channel)
             if incoming is not None:
                 incoming.restart_sequence()  # before the request: values may follow at once
+            channel = incoming or self._outgoing.get(req.channel)
+            if channel is not None:
+                channel.relink(self._conn.link)
             try:
                 self._conn.request_topic(req)
             except RemoteError as exc:

@@ -440,7 +440,7 @@ class Connection:
         sockets = [s for s in (self.tcp, self.udp, self._wake_r) if s is not None]
         try:
             if self.udp is not None and self.control == "tcp":
-                self.send_udp_packet(link.make_heartbeat(time.monotonic_ns()))
+                self.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
             while generation == self._generation and self.up:
                 now = time.monotonic_ns()
                 timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
@@ -507,7 +507,7 @@ class Connection:
             self._set_link(state, "heard from the server" if state is LinkState.CONNECTED
                            else f"nothing from the server for {silent_ms} ms")
         if link.heartbeat_due(now):
-            hb = link.make_heartbeat(now)
+            hb = link.make_heartbeat(now, time.time_ns())
             if self.tcp is not None:
                 self.send_tcp(self.codec.encode_frame(hb))
             if self.udp is not None:
@@ -526,7 +526,7 @@ class Connection:
                 self._gather(packet.channel, packet.first_seq, list(packet.stamps),
                              list(packet.values))
             case Heartbeat():
-                link.on_heartbeat(packet, now)
+                link.on_heartbeat(packet, now, time.time_ns())
             case TopicAck(channel=ch) | TopicError(channel=ch):
                 link.on_receive(now)
                 with self._pending_lock:

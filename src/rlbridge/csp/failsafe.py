@@ -26,8 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
-from rlbridge.csp.bridge_channels import IncomingChannel
-from rlbridge.csp.channel import Channel
+from rlbridge.csp.bridge_channels import AgedValue, IncomingChannel
 from rlbridge.csp.errors import ChannelError
 
 
@@ -91,7 +90,14 @@ class GuardedChannel(IncomingChannel):
         failsafe = self.failsafe
         if failsafe is not None and failsafe.active:
             return failsafe.read(self.name)
-        return Channel.read(self, timeout)
+        return IncomingChannel.read(self, timeout)
+
+    def read_with_age(self, timeout: float | None = None) -> AgedValue:
+        """As :meth:`read`; a safe value has no stamp, so its age is -1."""
+        failsafe = self.failsafe
+        if failsafe is not None and failsafe.active:
+            return AgedValue(failsafe.read(self.name), -1)
+        return IncomingChannel.read_with_age(self, timeout)
 
 
 def fail_safe(on_lost: OnLost, flag: LinkFlag) -> FailSafe | None:

@@ -12,6 +12,12 @@ channel (a Batch when there are several), TCP frames of all channels coalesced i
 While the link is down (:meth:`SendLoop.pause`, from the end of a session until its channels are
 bound again) the thread takes nothing: values wait in their channels' rings, which keep the
 newest (overflow counted in ``overwritten``), and go out on :meth:`SendLoop.resume`.
+
+Channel policies (docs/policies.md) are applied in ``OutgoingChannel.take``: a *latest*
+channel on TCP is handed the kernel's view of the connection (:mod:`rlbridge.tcpstate`) and,
+while it is backed up, holds its newest value instead of queueing a burst behind a
+retransmission; this thread then re-checks every ``HOLD_POLL_S`` until the value is out.
+UDP channels with ``redundancy`` k carry the previous k values in each datagram.
 """
 
 from __future__ import annotations
@@ -23,12 +29,15 @@ from typing import Protocol
 
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.connection import Connection
+from rlbridge.tcpstate import congested
 from rlbridge.wire import MAX_DATAGRAM, Batch, Packet, Value
 
 log = logging.getLogger("rlbridge.client")
 
 #: Largest datagram the send thread makes from a batch (fits a 1500-byte Ethernet MTU).
 DATAGRAM_BUDGET = 1400
+#: How often a held latest value re-checks whether the TCP connection has drained.
+HOLD_POLL_S = 0.001
 
 
 class OutgoingSource(Protocol):
@@ -37,9 +46,18 @@ class OutgoingSource(Protocol):
     channel_id: int
     transport: str
     immediate: bool
+    latest: bool
 
-    def take(self) -> tuple[int, list[int], list[object]]:
-        """Everything waiting: ``(first_seq, stamps, values)``; empty lists when nothing."""
+    def take(self, congested: bool = False) -> tuple[int, list[int], list[object], int]:
+        """What to send: ``(first_seq, stamps, values, repeated)``; empty lists when nothing.
+
+        ``repeated`` leading values are redundant copies of values sent before.
+        """
+        ...
+
+    @property
+    def holding(self) -> bool:
+        """A latest value is held back until the connection drains."""
         ...
 
     def pending(self) -> int:
@@ -68,7 +86,9 @@ class SendLoop:
         self._thread = threading.Thread(target=self._run, name="rlbridge-send", daemon=True)
         self.packets_sent = 0
         self.values_sent = 0
+        self.values_repeated = 0
         self.send_errors = 0
+        self._holding = False
 
     def start(self) -> None:
         self._thread.start()
@@ -114,6 +134,8 @@ class SendLoop:
         next_tick = time.monotonic() + period if period else None
         while not self._stop.is_set():
             timeout = None if next_tick is None else max(0.0, next_tick - time.monotonic())
+            if self._holding:
+                timeout = HOLD_POLL_S if timeout is None else min(timeout, HOLD_POLL_S)
             self.doorbell.wait_for(self._has_work, timeout)
             flush_all = self._flush_all
             self._flush_all = False
@@ -143,20 +165,30 @@ class SendLoop:
         codec = conn.codec
         frames = bytearray()
         token = conn.ack.token if conn.ack is not None else 0
+        backed_up: bool | None = None  # asked of the kernel once per round, if needed
+        holding = False
         for src in self._sources:
-            if not (flush_all or src.immediate):
+            if not (flush_all or src.immediate or src.holding):
                 continue
-            first_seq, stamps, values = src.take()
+            busy = False
+            if src.latest and src.transport == "tcp":
+                if backed_up is None:
+                    backed_up = conn.tcp is not None and congested(conn.tcp)
+                busy = backed_up
+            first_seq, stamps, values, repeated = src.take(busy)
+            holding = holding or src.holding
             n = len(values)
             if n == 0:
                 continue
-            self.values_sent += n
-            for packet in _packets(src.channel_id, first_seq, stamps, values, self._max_batch):
+            self.values_sent += n - repeated
+            self.values_repeated += repeated
+            for packet in packets_for(src.channel_id, first_seq, stamps, values, self._max_batch):
                 self.packets_sent += 1
                 if src.transport == "tcp":
                     codec.encode_frame_into(packet, frames)
                 else:
                     self._send_datagram(packet, token)
+        self._holding = holding
         if frames:
             conn.send_tcp(frames)
 
@@ -189,7 +221,7 @@ class SendLoop:
             self._thread.join(5.0)
 
 
-def _packets(channel: int, first_seq: int, stamps: list[int], values: list[object],
+def packets_for(channel: int, first_seq: int, stamps: list[int], values: list[object],
              max_batch: int) -> list[Packet]:
     if len(values) == 1:
         return [Value(channel, first_seq, stamps[0], values[0])]

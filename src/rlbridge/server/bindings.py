@@ -3,10 +3,19 @@
 ``Inbound`` carries client values into the middleware (the thesis's run-time binding
 publisher); ``Outbound`` carries middleware values to the client (its topic listener). Both are
 transport-agnostic: an outbound binding writes to whatever sink its channel chose.
+
+Channel policies (docs/policies.md) live here on the server side. Inbound: duplicates from
+redundant datagrams are dropped by sequence number, values older than ``max_age_ms``
+(clock-corrected) are dropped before publishing (``expired``), and a ``latest`` channel
+publishes only the newest value of each packet (``overtaken``). Outbound: values are stamped
+when the middleware delivered them; a ``latest`` channel whose TCP connection is backed up
+(:mod:`rlbridge.tcpstate`) holds only its newest value and writes it once the connection
+drains, counting every value it replaces (``overtaken``).
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -17,7 +26,11 @@ import msgspec
 from rlbridge.adapters.base import Publisher, Subscription, ValueSpec
 from rlbridge.server.sinks import PacketSink
 from rlbridge.wire import Batch, TopicConnect, Value
+from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
 from rlbridge.wire.sequence import SequenceTracker
+
+#: How often a held latest value re-checks whether its TCP connection has drained.
+HOLD_POLL_S = 0.001
 
 _SCALARS = (float, int, bool, str)
 
@@ -82,25 +95,56 @@ class Inbound:
     """Client -> middleware. Duplicates and overtaken values (UDP) are dropped and counted."""
 
     def __init__(
-        self, channel: int, spec: ValueSpec, publisher: Publisher, request: TopicConnect
+        self, channel: int, spec: ValueSpec, publisher: Publisher, request: TopicConnect,
+        clock: ClockOffset | None = None,
     ) -> None:
         self.channel = channel
         self.request = request
         self.spec = spec
         self._publisher = publisher
         self._convert = value_converter(spec)
+        self._clock = clock
+        self._max_age_ns = request.max_age_ms * 1_000_000
         self.tracker = SequenceTracker()
+        self.jitter = InterarrivalJitter()
+        self.one_way_ns = -1
         self.values_in = 0
         self.bad_values = 0
+        self.expired = 0
+        self.overtaken = 0
 
     def on_value(self, packet: Value) -> None:
         if self.tracker.accept(packet.seq):
-            self._publish([packet.value])
+            self._admit([packet.stamp_ns], [packet.value])
 
     def on_batch(self, packet: Batch) -> None:
         start = self.tracker.accept_run(packet.first_seq, len(packet.values))
         if start < len(packet.values):
-            self._publish(packet.values[start:] if start else packet.values)
+            if start:
+                self._admit(packet.stamps[start:], packet.values[start:])
+            else:
+                self._admit(packet.stamps, packet.values)
+
+    def _admit(self, stamps: list[int], values: list[Any]) -> None:
+        """New values: measure them, apply ``max_age_ms`` and ``latest``, publish the rest."""
+        clock = self._clock
+        now = time.time_ns() + (clock.offset_ns if clock is not None else 0)  # client clock
+        for stamp in stamps:
+            self.jitter.add(stamp, now)
+        age = now - stamps[-1]
+        self.one_way_ns = age if self.one_way_ns < 0 else self.one_way_ns + (
+            age - self.one_way_ns) // 16
+        if self._max_age_ns:
+            cutoff = now - self._max_age_ns
+            fresh = [v for s, v in zip(stamps, values, strict=True) if s >= cutoff]
+            self.expired += len(values) - len(fresh)
+            if not fresh:
+                return
+            values = fresh
+        if self.request.latest and len(values) > 1:
+            self.overtaken += len(values) - 1
+            values = values[-1:]
+        self._publish(values)
 
     def _publish(self, values: list[Any]) -> None:
         try:
@@ -110,6 +154,15 @@ class Inbound:
             raise
         self.values_in += len(converted)
         self._publisher.publish(converted)
+
+    def health(self, rtt_ns: int) -> dict[str, int]:
+        """Per-channel counters for ``Stats`` (names as in csp/health.py ChannelHealth)."""
+        t = self.tracker
+        return {"rtt_ns": rtt_ns, "one_way_ns": self.one_way_ns,
+                "jitter_ns": self.jitter.jitter_ns if self.values_in else -1, "lost": t.lost,
+                "duplicates": t.duplicates, "overwritten": 0,
+                "overtaken": self.overtaken + t.stale, "expired": self.expired,
+                "values": self.values_in}
 
     def close(self) -> None:
         self._publisher.close()
@@ -139,13 +192,54 @@ class Outbound:
         )
         self.values_out = 0
         self.dropped = 0
+        self.overtaken = 0
+        self._latest = request.latest
+        self._held: tuple[int, Any] | None = None
+        self._timer: asyncio.TimerHandle | None = None
 
-    def on_values(self, values: Sequence[Any]) -> None:
-        """Called on the loop thread with a batch from the middleware."""
+    def on_values(self, values: Sequence[Any], stamp_ns: int | None = None) -> None:
+        """Called on the loop thread with a batch from the middleware.
+
+        ``stamp_ns`` is when the middleware delivered the batch (LoopHandoff stamps it on the
+        callback's thread); without it, now.
+        """
         n = len(values)
         if n == 0:
             return
-        stamp = time.time_ns()
+        stamp = time.time_ns() if stamp_ns is None else stamp_ns
+        if self._latest:
+            self.overtaken += n - 1 + (self._held is not None)
+            self._held = (stamp, values[-1])
+            self._release()
+            return
+        self._emit(stamp, values)
+
+    def _release(self) -> None:
+        """Write the held latest value, or, while the connection is backed up, poll again."""
+        held = self._held
+        if held is None:
+            return
+        if self.sink.congested():
+            if self._timer is None:
+                try:
+                    loop = asyncio.get_running_loop()
+                except RuntimeError:  # not on a loop (a test driving it by hand): send now
+                    pass
+                else:
+                    self._timer = loop.call_later(HOLD_POLL_S, self._on_timer)
+                    return
+            else:
+                return
+        self._held = None
+        self._emit(held[0], [held[1]])
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        self._release()
+
+    def _emit(self, stamp: int, values: Sequence[Any]) -> None:
+        """Number values and send them (with the previous k in front, for redundancy)."""
+        n = len(values)
         seq = self._seq
         self._seq = seq + n
         self.values_out += n
@@ -170,7 +264,19 @@ class Outbound:
             if not self.sink.send(batch, data=True):
                 self.dropped += len(batch.values)
 
+    def health(self, rtt_ns: int) -> dict[str, int]:
+        """Per-channel counters for ``Stats``; loss, jitter and age are measured by the client."""
+        return {"rtt_ns": rtt_ns, "one_way_ns": -1, "jitter_ns": -1, "lost": -1,
+                "duplicates": 0, "overwritten": self.dropped, "overtaken": self.overtaken,
+                "expired": 0, "values": self.values_out}
+
     def close(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if self._held is not None:  # never sent: counted, not silently lost
+            self._held = None
+            self.dropped += 1
         if self.subscription is not None:
             self.subscription.close()
             self.subscription = None

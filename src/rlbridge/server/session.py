@@ -142,7 +142,7 @@ class Session:
             case Batch(channel=ch):
                 self._data(ch, packet, sink)
             case Heartbeat():
-                self.link.on_heartbeat(packet, time.monotonic_ns())
+                self.link.on_heartbeat(packet, time.monotonic_ns(), time.time_ns())
             case TopicConnect():
                 self._connect(packet, sink)
             case TopicClose(channel=ch):
@@ -213,7 +213,7 @@ class Session:
             spec = adapter.resolve(req.msg_type, req.field)
             if req.direction == "publish":
                 pub = adapter.create_publisher(req.topic, spec.msg_type, req.field, qos)
-                self.inbound[ch] = Inbound(ch, spec, pub, req)
+                self.inbound[ch] = Inbound(ch, spec, pub, req, self.link.clock)
             else:
                 out = Outbound(ch, spec, _ChannelSink(self, req.transport), cfg.max_batch,
                                req.redundancy if req.transport == "udp" else 0, req)
@@ -254,7 +254,7 @@ class Session:
                        f"{self.ctx.config.timeout_ms} ms", notify=True)
             return
         if self.link.heartbeat_due(now):
-            hb = self.link.make_heartbeat(now)
+            hb = self.link.make_heartbeat(now, time.time_ns())
             for sink in {id(s): s for s in (self.tcp, self.udp) if s is not None}.values():
                 sink.send(hb)
         self._arm_timer()
@@ -295,11 +295,11 @@ class Session:
             "errors_sent": self.errors_sent,
             "channels": {
                 **{str(c): {"direction": "publish", "values_in": b.values_in,
-                            "bad_values": b.bad_values, "lost": b.tracker.lost,
-                            "duplicates": b.tracker.duplicates}
+                            "bad_values": b.bad_values, **b.health(link.rtt_ns)}
                    for c, b in self.inbound.items()},
                 **{str(c): {"direction": "subscribe", "values_out": b.values_out,
-                            "dropped": b.dropped} for c, b in self.outbound.items()},
+                            "dropped": b.dropped, **b.health(link.rtt_ns)}
+                   for c, b in self.outbound.items()},
             },
         }
 
@@ -319,6 +319,10 @@ class _ChannelSink:
     @property
     def dropped(self) -> int:
         return self._dropped
+
+    def congested(self) -> bool:
+        sink = self._session.udp if self._udp else self._session.tcp
+        return sink is not None and sink.congested()
 
     def send(self, packet: Packet, *, data: bool = False) -> bool:
         s = self._session

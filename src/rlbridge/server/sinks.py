@@ -11,6 +11,10 @@ gathered in one buffer and handed to the transport once, at the end of the loop 
 (``call_soon``), so a burst of a hundred one-value packets costs one ``send`` system call, not a
 hundred. Control frames (acks, errors, heartbeats, goodbyes) flush what is corked and go out at
 once, so the order on the stream is the order of ``send`` calls and a close never loses them.
+
+``congested()`` tells latest-value channels (docs/policies.md) whether a value written now
+would queue: on TCP, bytes waiting in the transport's buffer or in the kernel's send queue
+(:mod:`rlbridge.tcpstate`); a UDP sink never queues.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from __future__ import annotations
 import asyncio
 from typing import Protocol
 
+from rlbridge.tcpstate import congested
 from rlbridge.wire import Batch, Packet, PacketCodec
 
 
@@ -28,6 +33,8 @@ class PacketSink(Protocol):
 
     @property
     def dropped(self) -> int: ...
+
+    def congested(self) -> bool: ...
 
 
 class TcpSink:
@@ -42,10 +49,18 @@ class TcpSink:
         self._corked = bytearray()
         self._corked_frames = 0
         self._dropped = 0
+        self._sock = transport.get_extra_info("socket")
 
     @property
     def dropped(self) -> int:
         return self._dropped
+
+    def congested(self) -> bool:
+        """A value written now would wait: in our buffer, or in the kernel's (module doc)."""
+        transport = self._transport
+        if transport.is_closing() or transport.get_write_buffer_size() > 0:
+            return True
+        return self._sock is not None and congested(self._sock)
 
     def send(self, packet: Packet, *, data: bool = False) -> bool:
         transport = self._transport
@@ -99,6 +114,9 @@ class UdpSink:
     @property
     def dropped(self) -> int:
         return self._dropped
+
+    def congested(self) -> bool:
+        return False
 
     def send(self, packet: Packet, *, data: bool = False) -> bool:
         if self._transport.is_closing():

@@ -7,6 +7,11 @@ refreshes ``last_rx``. The link is CONNECTED while the peer was heard within 1.5
 DEGRADED after that, and LOST once ``timeout_ns`` passes in silence (default: three periods, so a
 dead peer is noticed within three heartbeat periods). The I/O shim asks :meth:`next_deadline`,
 arms one timer for it, and calls :meth:`poll` when it fires; tests move a fake clock instead.
+
+Heartbeats also carry wall-clock stamps (``wall_ns`` and two echoes), from which
+:attr:`LinkMonitor.clock` estimates the peer's clock offset (wire/clock.py): callers that
+pass ``wall_ns`` to :meth:`make_heartbeat` and :meth:`on_heartbeat` get value ages that are
+correct across hosts to within half the round-trip time.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
+from rlbridge.wire.clock import ClockOffset
 from rlbridge.wire.packets import Heartbeat
 
 
@@ -35,6 +41,9 @@ class LinkStats:
     silence_ns: int
     heartbeats_sent: int
     heartbeats_received: int
+    #: Peer's wall clock minus ours (0 until measured) and its error bound (-1: unknown).
+    clock_offset_ns: int = 0
+    clock_error_ns: int = -1
 
 
 class LinkMonitor:
@@ -56,18 +65,30 @@ class LinkMonitor:
         self._sent = 0
         self._received = 0
         self._lost = False
+        self._peer_wall = 0
+        self._peer_wall_rx = 0
+        #: Peer clock minus ours, from the heartbeats' wall-clock fields.
+        self.clock = ClockOffset()
 
     def on_receive(self, now_ns: int) -> None:
         """Any packet from the peer proves it is alive."""
         self._last_rx = now_ns
         self._lost = False
 
-    def on_heartbeat(self, hb: Heartbeat, now_ns: int) -> None:
-        """Record the peer's stamp (to echo) and, if it echoed ours, a round-trip sample."""
+    def on_heartbeat(self, hb: Heartbeat, now_ns: int, wall_ns: int = 0) -> None:
+        """Record the peer's stamp (to echo) and, if it echoed ours, a round-trip sample.
+
+        ``wall_ns`` is our CLOCK_REALTIME now; with it, a heartbeat that echoes our wall
+        stamp is one clock-offset sample (0 skips the clock estimate).
+        """
         self.on_receive(now_ns)
         self._received += 1
         self._peer_sent = hb.sent_ns
         self._peer_rx_at = now_ns
+        if wall_ns and hb.wall_ns:
+            self._peer_wall, self._peer_wall_rx = hb.wall_ns, wall_ns
+            if hb.echo_wall_ns and hb.echo_rx_wall_ns:
+                self.clock.add(hb.echo_wall_ns, hb.echo_rx_wall_ns, hb.wall_ns, wall_ns)
         if hb.echo_ns > 0 and hb.echo_ns <= now_ns:
             sample = now_ns - hb.echo_ns
             if self._srtt < 0:
@@ -79,8 +100,13 @@ class LinkMonitor:
     def heartbeat_due(self, now_ns: int) -> bool:
         return now_ns >= self._next_tx
 
-    def make_heartbeat(self, now_ns: int) -> Heartbeat:
-        """The heartbeat to send now; it echoes the peer's last stamp, aged by our hold time."""
+    def make_heartbeat(self, now_ns: int, wall_ns: int = 0) -> Heartbeat:
+        """The heartbeat to send now; it echoes the peer's last stamp, aged by our hold time.
+
+        ``wall_ns`` (our CLOCK_REALTIME, 0: leave the clock fields out) lets the peer
+        estimate the clock offset: the heartbeat carries it and echoes the peer's last wall
+        stamp with the wall time it arrived.
+        """
         self._next_tx = now_ns + self.heartbeat_ns
         self._sent += 1
         echo = 0
@@ -88,7 +114,9 @@ class LinkMonitor:
             # The peer subtracts nothing: we echo its own stamp shifted by how long we held it,
             # so its RTT sample excludes our heartbeat-period wait.
             echo = self._peer_sent + (now_ns - self._peer_rx_at)
-        return Heartbeat(sent_ns=now_ns, echo_ns=echo)
+        if not wall_ns:
+            return Heartbeat(sent_ns=now_ns, echo_ns=echo)
+        return Heartbeat(now_ns, echo, wall_ns, self._peer_wall, self._peer_wall_rx)
 
     def state(self, now_ns: int) -> LinkState:
         silence = now_ns - self._last_rx
@@ -107,6 +135,11 @@ class LinkMonitor:
         candidates = [self._next_tx, *(t for t in (degraded_at, lost_at) if t > now_ns)]
         return max(now_ns, min(candidates))
 
+    @property
+    def rtt_ns(self) -> int:
+        """Smoothed round-trip time (-1 until measured); one load, for hot paths."""
+        return self._srtt
+
     def stats(self, now_ns: int) -> LinkStats:
         return LinkStats(
             state=self.state(now_ns),
@@ -115,4 +148,6 @@ class LinkMonitor:
             silence_ns=now_ns - self._last_rx,
             heartbeats_sent=self._sent,
             heartbeats_received=self._received,
+            clock_offset_ns=self.clock.offset_ns,
+            clock_error_ns=self.clock.error_bound_ns,
         )

@@ -82,6 +82,7 @@ class TopicConnect(_Packet, tag=4, frozen=True):
     depth: U16 = 10
     max_age_ms: U32 = 0
     redundancy: Annotated[int, msgspec.Meta(ge=0, le=16)] = 0
+    latest: bool = False
 
 
 class TopicAck(_Packet, tag=5, frozen=True):
@@ -135,6 +136,12 @@ class Heartbeat(_Packet, tag=10, frozen=True):
 
     sent_ns: I64
     echo_ns: I64 = 0
+    #: The sender's CLOCK_REALTIME when sending (0: not given); the peer's clock-offset
+    #: estimate (wire/clock.py) uses it with the two echo fields below, NTP-style.
+    wall_ns: I64 = 0
+    #: The peer's last ``wall_ns`` and the sender's CLOCK_REALTIME when it arrived.
+    echo_wall_ns: I64 = 0
+    echo_rx_wall_ns: I64 = 0
 
 
 class Disconnect(_Packet, tag=11, frozen=True):
