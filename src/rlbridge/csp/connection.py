@@ -12,6 +12,7 @@ frames never interleave.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import select
@@ -20,12 +21,13 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import msgspec
 
 from rlbridge.wire import (
     PROTOCOL_VERSION,
+    AuthChallenge,
     Batch,
     ConnectAck,
     ConnectError,
@@ -48,6 +50,9 @@ from rlbridge.wire import (
     error_from_code,
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
+
+if TYPE_CHECKING:
+    from rlbridge.csp.auth import ClientAuth
 
 log = logging.getLogger("rlbridge.client")
 
@@ -91,6 +96,11 @@ class Connection:
         self.control: Control = control
         self.timeout = timeout
         self.codec = PacketCodec()
+        #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.
+        self.psk: bytes | None = None
+        self.auth: ClientAuth | None = None
+        #: Datagrams the receive thread refused, by reason (bad_mac, replayed, bad_token, ...).
+        self.datagrams_dropped: collections.Counter[str] = collections.Counter()
         self.tcp: socket.socket | None = None
         self.udp: socket.socket | None = None
         self.tcp_lock = threading.Lock()
@@ -114,9 +124,14 @@ class Connection:
     # -- opening ---------------------------------------------------------------------------
     def open(self) -> ConnectAck:
         """Handshake, then start the receive thread. Raises :class:`ConnectionFailed`."""
-        hello = Hello(PROTOCOL_VERSION, self.name)
+        from rlbridge.csp.auth import ClientAuth
+
+        self.auth = ClientAuth(self.psk, self.name) if self.psk else None
+        hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
             ack = self._open_tcp(hello) if self.control == "tcp" else self._open_udp(hello)
+            if self.auth is not None:
+                self.codec = self.auth.sealed(ack)
         except OSError as exc:
             self._close_sockets()
             raise ConnectionFailed(
@@ -151,6 +166,9 @@ class Connection:
             if not data:
                 raise ConnectionFailed(f"{self.host}:{self.port} closed the connection")
             packets = decoder.feed(data)
+            if self.auth is not None and packets and isinstance(packets[0], AuthChallenge):
+                sock.sendall(self.codec.encode_frame(self.auth.answer(packets[0])))
+                packets = packets[1:]
             if packets:
                 first = packets[0]
                 break
@@ -170,7 +188,15 @@ class Connection:
             sock.send(datagram)
             ready, _, _ = select.select([sock], [], [], 0.2)
             if ready:
-                _f, _t, packet = self.codec.decode_datagram(sock.recv(65536))
+                try:
+                    data = sock.recv(65536)
+                    packet = (self.auth.decode(self.codec, data) if self.auth is not None
+                              else self.codec.decode_datagram(data)[2])
+                except RemoteProtocolError:
+                    continue  # not an answer to us (or forged): keep asking until the deadline
+                if isinstance(packet, AuthChallenge) and self.auth is not None:
+                    datagram = self.codec.encode_datagram(self.auth.answer(packet), 0)
+                    continue
                 self._leftover = []
                 return self._expect_ack(packet)
         raise ConnectionFailed(
@@ -190,7 +216,9 @@ class Connection:
         if isinstance(packet, ConnectAck):
             return packet
         if isinstance(packet, ConnectError):
-            raise ConnectionFailed(f"server refused the session: {packet.reason}")
+            from rlbridge.csp.auth import refused
+
+            raise refused(packet)
         raise ConnectionFailed(f"server answered the hello with {type(packet).__name__}")
 
     # -- sending (any SRT thread) ------------------------------------------------------------
@@ -325,9 +353,12 @@ class Connection:
                 _flags, got, packet = self.codec.decode_datagram(data)
             except RemoteProtocolError as exc:
                 log.debug("dropped datagram: %s", exc.reason)
+                self.datagrams_dropped[getattr(exc, "kind", "malformed")] += 1
                 continue
             if got == token:
                 self._dispatch(packet)
+            else:
+                self.datagrams_dropped["bad_token"] += 1
 
     def _tick(self, link: LinkMonitor) -> None:
         now = time.monotonic_ns()
