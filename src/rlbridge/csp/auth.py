@@ -20,6 +20,7 @@ from rlbridge.wire import AuthChallenge, AuthProof, ConnectAck, ConnectError, Er
 from rlbridge.wire.auth import (
     MIN_KEY_SIZE,
     NONCE_SIZE,
+    PSK_ENV,
     ClientHandshake,
     SealedCodec,
     parse_key,
@@ -28,7 +29,6 @@ from rlbridge.wire.auth import (
 from rlbridge.wire.codec import FLAG_MAC, PacketCodec, peek_header
 from rlbridge.wire.errors import AuthenticationFailed, RemoteProtocolError
 
-PSK_ENV = "RLBRIDGE_PSK"
 _AUTH_CODES = (ErrorCode.AUTH_FAILED, ErrorCode.NOT_ALLOWED)
 
 

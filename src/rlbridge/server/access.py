@@ -9,13 +9,14 @@ key, a bare ``<hex>`` line is the key for every other client name. ``#`` starts 
 from __future__ import annotations
 
 import ipaddress
+import logging
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from rlbridge.wire.auth import parse_key
+from rlbridge.wire.auth import PSK_ENV, parse_key
 
-PSK_ENV = "RLBRIDGE_PSK"
+log = logging.getLogger("rlbridge.server")
 
 IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
 
@@ -65,8 +66,12 @@ class KeyStore:
         if path is not None:
             try:
                 text = path.read_text()
+                mode = path.stat().st_mode
             except OSError as exc:
                 raise ValueError(f"cannot read the key file {path}: {exc.strerror}") from None
+            if mode & 0o077:
+                log.warning("key file %s is readable by others (mode %o); chmod 600 it",
+                            path, mode & 0o777)
             return cls.parse(text, str(path))
         env = environ.get(PSK_ENV)
         if env:

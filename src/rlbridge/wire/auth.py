@@ -35,6 +35,8 @@ from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, MAGIC, PacketCodec, c
 from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.packets import PROTOCOL_VERSION, AuthChallenge, AuthProof, Packet
 
+#: Environment variable holding a key in hex, read by the server and the SDK alike.
+PSK_ENV = "RLBRIDGE_PSK"
 NONCE_SIZE = 16
 #: Keys shorter than this are refused when loaded: a PSK is not a password.
 MIN_KEY_SIZE = 16
