@@ -256,9 +256,26 @@ def test_udp_hello_retransmission_and_stray_proofs(psk_server: ServerThread) -> 
         second = plain.decode_datagram(sock.recv(65536))[2]
         assert first == second
         assert isinstance(first, AuthChallenge)
-        sock.send(plain.encode_datagram(auth.answer(first), 0))
-        assert isinstance(auth.decode(plain, sock.recv(65536)), ConnectAck)
-    assert counters(psk_server)["udp_unexpected_proof"] == 1
+        proof = plain.encode_datagram(auth.answer(first), 0)
+        sock.send(proof)
+        ack = auth.decode(plain, sock.recv(65536))
+        assert isinstance(ack, ConnectAck)
+        sock.send(proof)  # the ack was "lost": the same proof gets the same session again
+        again = auth.decode(plain, sock.recv(65536))
+        while isinstance(again, Heartbeat):  # the session is live and sends heartbeats
+            again = auth.decode(plain, sock.recv(65536))
+        assert isinstance(again, ConnectAck)
+        assert again.token == ack.token
+        sock.send(plain.encode_datagram(AuthProof(bytes(32)), 0))  # another proof: refused
+        # The client restarts on the same address and name: a new nonce, a new handshake.
+        fresh = ClientAuth(KEY, "again")
+        sock.send(plain.encode_datagram(Hello(PROTOCOL_VERSION, "again", fresh.nonce), 0))
+        challenge = auth.decode(plain, sock.recv(65536))  # the old session's heartbeats
+        while isinstance(challenge, Heartbeat):           # are sealed with its keys
+            challenge = auth.decode(plain, sock.recv(65536))
+        assert isinstance(challenge, AuthChallenge)
+        assert challenge != first
+    assert counters(psk_server)["udp_unexpected_proof"] == 2
 
 
 def read_frames(sock: socket.socket, codec: PacketCodec) -> list[Any]:

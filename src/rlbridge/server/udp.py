@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import socket
+from dataclasses import dataclass
 from typing import cast
 
 from rlbridge.server.gate import Gate
@@ -40,9 +41,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         self._registry = registry
         self._transport: asyncio.DatagramTransport | None = None
         # A retransmitted hello (its ack was lost) gets the same session, not a second one.
-        self._hello_sessions: dict[tuple[tuple[str, int], str], int] = {}
+        self._hello_sessions: dict[tuple[tuple[str, int], str], tuple[int, Hello]] = {}
         self._gate = Gate(registry)
-        self._pending: dict[tuple[str, int], tuple[Hello, ServerHandshake]] = {}
+        self._pending: dict[tuple[str, int], _Pending] = {}
         registry.on_forget.append(lambda s: self.forget(s.id))
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -101,23 +102,20 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         session.handle(packet, "udp")
 
     def _hello(self, hello: Hello, addr: tuple[str, int]) -> None:
-        assert self._transport is not None
-        key = (addr, hello.name)
-        known = self._hello_sessions.get(key)
-        session = None
-        if known is not None:
-            session = next((s for s in self._registry if s.id == known and not s.closed), None)
-        if session is not None:
-            self._acknowledge(session, addr)
-            return
+        known = self._hello_sessions.get((addr, hello.name))
+        if known is not None and known[1] == hello:  # a retransmitted hello: same session
+            session = self._live(known[0])
+            if session is not None:
+                self._acknowledge(session, addr)
+                return
         pending = self._pending.get(addr)
-        if pending is not None and pending[0] == hello:  # a retransmitted hello
-            self._send(pending[1].challenge, addr)
+        if pending is not None and pending.hello == hello:  # its challenge was lost
+            self._send(pending.handshake.challenge, addr)
             return
         result = self._gate.hello(hello)
         if isinstance(result, ServerHandshake):
             self._pending.pop(addr, None)
-            self._pending[addr] = (hello, result)
+            self._pending[addr] = _Pending(hello, result)
             while len(self._pending) > MAX_PENDING:  # spoofed hellos evict the oldest
                 del self._pending[next(iter(self._pending))]
                 self._registry.ctx.count("udp_handshakes_evicted")
@@ -126,21 +124,35 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             self._opened(hello, result, addr)
 
     def _proof(self, proof: AuthProof, addr: tuple[str, int]) -> None:
-        pending = self._pending.pop(addr, None)
-        if pending is None:
-            # No challenge outstanding: a stray or replayed proof, or the ack was lost and the
-            # client retransmits. The latter finds its session by the hello cache.
+        pending = self._pending.get(addr)
+        if pending is None:  # no challenge outstanding: a stray or replayed proof
             self._registry.ctx.count("udp_unexpected_proof")
             return
-        hello, handshake = pending
-        self._opened(hello, self._gate.finish(handshake, hello, proof), addr)
+        if pending.session_id is not None:
+            # Proved already: the same proof again means our ack was lost; anything else is
+            # refused like any wrong proof would be.
+            session = self._live(pending.session_id)
+            if proof == pending.proof and session is not None:
+                self._acknowledge(session, addr)
+            else:
+                self._registry.ctx.count("udp_unexpected_proof")
+            return
+        result = self._gate.finish(pending.handshake, pending.hello, proof)
+        if isinstance(result, Session):
+            pending.session_id, pending.proof = result.id, proof
+        else:
+            del self._pending[addr]
+        self._opened(pending.hello, result, addr)
+
+    def _live(self, session_id: int) -> Session | None:
+        return next((s for s in self._registry if s.id == session_id and not s.closed), None)
 
     def _opened(self, hello: Hello, result: Session | ConnectError,
                 addr: tuple[str, int]) -> None:
         if isinstance(result, ConnectError):
             self._send(result, addr)
             return
-        self._hello_sessions[(addr, hello.name)] = result.id
+        self._hello_sessions[(addr, hello.name)] = (result.id, hello)
         log.info("session %d (%s) opened over UDP from %s", result.id, hello.name, addr)
         self._acknowledge(result, addr)
 
@@ -155,6 +167,19 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         self._transport.sendto(self._registry.ctx.codec.encode_datagram(packet, 0), addr)
 
     def forget(self, session_id: int) -> None:
-        for key, sid in list(self._hello_sessions.items()):
+        for key, (sid, _hello) in list(self._hello_sessions.items()):
             if sid == session_id:
                 del self._hello_sessions[key]
+        for addr, pending in list(self._pending.items()):
+            if pending.session_id == session_id:
+                del self._pending[addr]
+
+
+@dataclass
+class _Pending:
+    """A UDP key handshake: challenge sent; after the proof, the session it opened."""
+
+    hello: Hello
+    handshake: ServerHandshake
+    session_id: int | None = None
+    proof: AuthProof | None = None
