@@ -9,16 +9,10 @@ decoded packet re-encodes, and the decoder never buffers more than one frame's w
 from __future__ import annotations
 
 import contextlib
-import logging
-import sys
 
-if __name__ == "__main__":  # coverage feedback from rlbridge's own code only (fast start)
-    import atheris
+from _atheris import fuzz, instrumented
 
-    instrumented = atheris.instrument_imports(include=["rlbridge"])
-else:
-    instrumented = contextlib.nullcontext()
-with instrumented:
+with instrumented(__name__ == "__main__"):
     from rlbridge.wire import FrameDecoder, Malformed, PacketCodec, RemoteProtocolError
     from rlbridge.wire.auth import ReplayWindow, SealedCodec
     from rlbridge.wire.codec import FRAME_HEADER
@@ -56,13 +50,5 @@ def one_input(data: bytes) -> None:
         window.check(int.from_bytes(data[i : i + 2], "big"))
 
 
-def main() -> None:
-    import atheris
-
-    logging.disable(logging.WARNING)  # every refused input logs a warning: millions of lines
-    atheris.Setup(sys.argv, one_input)
-    atheris.Fuzz()
-
-
 if __name__ == "__main__":
-    main()
+    fuzz(one_input)

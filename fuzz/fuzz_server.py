@@ -13,18 +13,11 @@ writes is valid protocol, and once the sessions close no binding or topic is lef
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import logging
-import sys
 from typing import Any
 
-if __name__ == "__main__":
-    import atheris
+from _atheris import fuzz, instrumented
 
-    instrumented = atheris.instrument_imports(include=["rlbridge"])
-else:
-    instrumented = contextlib.nullcontext()
-with instrumented:
+with instrumented(__name__ == "__main__"):
     from rlbridge.adapters.inproc import InProcessBus
     from rlbridge.server.access import AllowList, KeyStore
     from rlbridge.server.config import ServerConfig
@@ -182,13 +175,5 @@ def one_input(data: bytes) -> None:
     assert world.bus.topics() == [], world.bus.topics()
 
 
-def main() -> None:
-    import atheris
-
-    logging.disable(logging.WARNING)  # every refused input logs a warning: millions of lines
-    atheris.Setup(sys.argv, one_input)
-    atheris.Fuzz()
-
-
 if __name__ == "__main__":
-    main()
+    fuzz(one_input)

@@ -29,7 +29,7 @@ from rlbridge.wire.auth import (
     parse_key,
     sealed_codec,
 )
-from rlbridge.wire.codec import FLAG_MAC, PacketCodec
+from rlbridge.wire.codec import FLAG_MAC, PacketCodec, peek_header
 
 KEY = bytes(range(32))
 OTHER = bytes(range(1, 33))
@@ -216,3 +216,26 @@ def test_parse_key() -> None:
         parse_key("not-hex", "the file, line 1")
     with pytest.raises(ValueError, match="too short"):
         parse_key("00" * 8, "x")
+
+
+@settings(deadline=None, max_examples=300)
+@given(st.lists(st.binary(max_size=80), max_size=20))
+def test_junk_raises_only_protocol_errors_and_never_moves_the_window(junk: list[bytes]) -> None:
+    """A forger cannot push the window ahead (which would make genuine datagrams 'old')."""
+    client, server = pair()
+    for data in junk:
+        # Make some of them look sealed, with a huge counter, to tempt the window.
+        forged = (DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, FLAG_MAC, 77)
+                  + COUNTER.pack(2**63) + data)
+        for datagram in (data, forged):
+            with pytest.raises(RemoteProtocolError):
+                server.decode_datagram(datagram)
+    assert server.decode_datagram(client.encode_datagram(Value(1, 2, 3, 4.5), 77))[1] == 77
+
+
+def test_peek_header() -> None:
+    data = PacketCodec().encode_datagram(Value(1, 2, 3, 4.5), 2**64 - 1, flags=FLAG_MAC)
+    assert peek_header(data) == (FLAG_MAC, 2**64 - 1)
+    assert peek_header(data[:11]) == (0, 0)
+    assert peek_header(b"XX" + data[2:]) == (0, 0)
+    assert peek_header(data[:2] + b"\x09" + data[3:]) == (0, 0)

@@ -21,6 +21,8 @@ HARNESSES = ["decoder", "server"]
 
 
 def harness(name: str) -> ModuleType:
+    if str(FUZZ) not in sys.path:  # the harnesses import their shared fuzz/_atheris.py
+        sys.path.insert(0, str(FUZZ))
     spec = importlib.util.spec_from_file_location(f"fuzz_{name}", FUZZ / f"fuzz_{name}.py")
     assert spec is not None
     assert spec.loader is not None
