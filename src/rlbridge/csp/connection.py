@@ -127,6 +127,7 @@ class Connection:
         from rlbridge.csp.auth import ClientAuth
 
         self.auth = ClientAuth(self.psk, self.name) if self.psk else None
+        self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
         hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
             ack = self._open_tcp(hello) if self.control == "tcp" else self._open_udp(hello)

@@ -107,6 +107,8 @@ class TcpConnection(asyncio.Protocol):
     def _hello(self, hello: Hello) -> None:
         assert self._sink is not None
         assert self._transport is not None
+        if self._transport.is_closing():  # refused (allow-list) or closing: no session
+            return
         result = self._gate.hello(hello)
         if isinstance(result, ServerHandshake):
             self._pending = (hello, result)
