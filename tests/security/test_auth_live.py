@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import socket
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,12 @@ def test_wrong_key_is_refused_and_counted(psk_server: ServerThread, control: Any
     assert exc.value.code == ErrorCode.AUTH_FAILED
     assert "could not prove it knows the pre-shared key" in str(exc.value)
     assert isinstance(exc.value, ConnectionFailed)  # the session did not open
+    # The client refused first and told the server why: it counts the failure too.
+    deadline = time.monotonic() + WAIT
+    while counters(psk_server).get("auth_failed", 0) < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert counters(psk_server)["auth_failed"] == 1
+    assert len(psk_server.server.registry or []) == 0
 
 
 def test_server_counts_a_wrong_proof(psk_server: ServerThread) -> None:
@@ -191,7 +198,7 @@ class SealedUdp:
         self.sock.send(self.plain.encode_datagram(Hello(PROTOCOL_VERSION, name, auth.nonce), 0))
         challenge = self.plain.decode_datagram(self.sock.recv(65536))[2]
         assert isinstance(challenge, AuthChallenge), challenge
-        self.sock.send(self.plain.encode_datagram(auth.answer(challenge), 0))
+        self.sock.send(self.plain.encode_datagram(auth.answer(challenge, self.sock), 0))
         ack = auth.decode(self.plain, self.sock.recv(65536))
         assert isinstance(ack, ConnectAck), ack
         self.ack = ack
@@ -256,7 +263,7 @@ def test_udp_hello_retransmission_and_stray_proofs(psk_server: ServerThread) -> 
         second = plain.decode_datagram(sock.recv(65536))[2]
         assert first == second
         assert isinstance(first, AuthChallenge)
-        proof = plain.encode_datagram(auth.answer(first), 0)
+        proof = plain.encode_datagram(auth.answer(first, sock), 0)
         sock.send(proof)
         ack = auth.decode(plain, sock.recv(65536))
         assert isinstance(ack, ConnectAck)

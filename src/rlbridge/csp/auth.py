@@ -11,12 +11,22 @@ datagram both ways is sealed with the derived session keys.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import socket
 from collections.abc import Mapping
 from pathlib import Path
 
 from rlbridge.csp.connection import ConnectionFailed
-from rlbridge.wire import AuthChallenge, AuthProof, ConnectAck, ConnectError, ErrorCode, Packet
+from rlbridge.wire import (
+    AuthChallenge,
+    AuthProof,
+    ConnectAck,
+    ConnectError,
+    Disconnect,
+    ErrorCode,
+    Packet,
+)
 from rlbridge.wire.auth import (
     MIN_KEY_SIZE,
     NONCE_SIZE,
@@ -71,11 +81,24 @@ class ClientAuth:
         """What the hello carries in its ``auth`` field."""
         return self._handshake.nonce
 
-    def answer(self, challenge: AuthChallenge) -> AuthProof:
-        """Our proof; raises :class:`AuthRefused` if the server does not know the key."""
+    def answer(self, challenge: AuthChallenge, sock: socket.socket) -> AuthProof:
+        """Our proof; raises :class:`AuthRefused` if the server does not know the key.
+
+        Before raising, a ``Disconnect(AUTH_FAILED)`` goes to the server over ``sock`` (the
+        handshake's TCP or UDP socket), so it can count and log the refusal: the client
+        refuses first, and never sends a proof to a server that has not proven the key.
+        """
         try:
             proof = self._handshake.answer(challenge)
         except RemoteProtocolError as exc:
+            goodbye = Disconnect(int(ErrorCode.AUTH_FAILED), "client refused the server's "
+                                 "proof: the two sides have different keys")
+            codec = PacketCodec()
+            with contextlib.suppress(OSError):
+                if sock.type == socket.SOCK_STREAM:
+                    sock.sendall(codec.encode_frame(goodbye))
+                else:
+                    sock.send(codec.encode_datagram(goodbye, 0))
             raise AuthRefused(int(exc.code), exc.reason) from None
         assert self._handshake.keys is not None
         if self._codec is None:

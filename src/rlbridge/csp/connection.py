@@ -168,7 +168,7 @@ class Connection:
                 raise ConnectionFailed(f"{self.host}:{self.port} closed the connection")
             packets = decoder.feed(data)
             if self.auth is not None and packets and isinstance(packets[0], AuthChallenge):
-                sock.sendall(self.codec.encode_frame(self.auth.answer(packets[0])))
+                sock.sendall(self.codec.encode_frame(self.auth.answer(packets[0], sock)))
                 packets = packets[1:]
             if packets:
                 first = packets[0]
@@ -196,7 +196,7 @@ class Connection:
                 except RemoteProtocolError:
                     continue  # not an answer to us (or forged): keep asking until the deadline
                 if isinstance(packet, AuthChallenge) and self.auth is not None:
-                    datagram = self.codec.encode_datagram(self.auth.answer(packet), 0)
+                    datagram = self.codec.encode_datagram(self.auth.answer(packet, sock), 0)
                     continue
                 self._leftover = []
                 return self._expect_ack(packet)

@@ -15,7 +15,14 @@ from collections.abc import Callable
 
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
-from rlbridge.wire import AuthProof, ConnectError, ErrorCode, Hello, RemoteProtocolError
+from rlbridge.wire import (
+    AuthProof,
+    ConnectError,
+    Disconnect,
+    ErrorCode,
+    Hello,
+    RemoteProtocolError,
+)
 from rlbridge.wire.auth import NONCE_SIZE, ServerHandshake, sealed_codec
 
 log = logging.getLogger("rlbridge.server")
@@ -66,6 +73,12 @@ class Gate:
             result.codec = sealed_codec(keys, server=True)
             self._registry.ctx.count("sessions_authenticated")
         return result
+
+    def abandoned(self, goodbye: Disconnect) -> None:
+        """The client hung up during the handshake; with AUTH_FAILED it refused our proof."""
+        if goodbye.code == ErrorCode.AUTH_FAILED:
+            self._registry.ctx.count("auth_failed")
+            log.warning("authentication refused by the client: %s", goodbye.reason)
 
     def _refuse(self, reason: str) -> ConnectError:
         self._registry.ctx.count("auth_failed")

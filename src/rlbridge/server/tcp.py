@@ -14,6 +14,7 @@ from rlbridge.server.sinks import TcpSink
 from rlbridge.wire import (
     AuthProof,
     ConnectError,
+    Disconnect,
     Error,
     ErrorCode,
     FrameDecoder,
@@ -98,6 +99,10 @@ class TcpConnection(asyncio.Protocol):
                 self._hello(packet)
             elif isinstance(packet, AuthProof) and self._pending is not None:
                 self._proof(packet)
+            elif isinstance(packet, Disconnect) and self._pending is not None:
+                self._gate.abandoned(packet)
+                self._opened(self._pending[0], None)
+                return
             else:
                 wanted = "an AuthProof" if self._pending else "a Hello first"
                 self._fatal(ErrorCode.UNEXPECTED,
@@ -121,13 +126,15 @@ class TcpConnection(asyncio.Protocol):
         hello, handshake = self._pending
         self._opened(hello, self._gate.finish(handshake, hello, proof))
 
-    def _opened(self, hello: Hello, result: Session | ConnectError) -> None:
+    def _opened(self, hello: Hello, result: Session | ConnectError | None) -> None:
+        """Attach the session, or send the refusal (if any) and close."""
         assert self._sink is not None
         assert self._transport is not None
         if self._deadline is not None:
             self._deadline.cancel()
-        if isinstance(result, ConnectError):
-            self._sink.send(result)
+        if not isinstance(result, Session):
+            if result is not None:
+                self._sink.send(result)
             self._transport.close()
             return
         result.attach_tcp(self._sink, self._transport.close)

@@ -13,7 +13,14 @@ from rlbridge.server.gate import Gate
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
-from rlbridge.wire import AuthProof, ConnectError, Hello, Packet, RemoteProtocolError
+from rlbridge.wire import (
+    AuthProof,
+    ConnectError,
+    Disconnect,
+    Hello,
+    Packet,
+    RemoteProtocolError,
+)
 from rlbridge.wire.auth import SEAL_OVERHEAD, DatagramRejected, ServerHandshake
 from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, peek_header
 
@@ -95,6 +102,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
                 self._hello(packet, addr)
             elif isinstance(packet, AuthProof):
                 self._proof(packet, addr)
+            elif isinstance(packet, Disconnect) and self._unproven(addr):
+                self._gate.abandoned(packet)
+                del self._pending[addr]
             else:
                 ctx.count("udp_no_token")
             return
@@ -143,6 +153,10 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         else:
             del self._pending[addr]
         self._opened(pending.hello, result, addr)
+
+    def _unproven(self, addr: tuple[str, int]) -> bool:
+        pending = self._pending.get(addr)
+        return pending is not None and pending.session_id is None
 
     def _live(self, session_id: int) -> Session | None:
         return next((s for s in self._registry if s.id == session_id and not s.closed), None)
