@@ -19,7 +19,7 @@ import pytest
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
-from rlbridge.wire import PacketCodec, Value
+from rlbridge.wire import PROTOCOL_VERSION, Hello, PacketCodec, Value
 from rlbridge.wire.codec import FLAG_MAC, peek_header
 
 F64 = "std_msgs/msg/Float64"
@@ -126,3 +126,19 @@ def test_with_a_key_forged_and_replayed_datagrams_are_dropped_both_ways(
         out = bridge.publish("/victim", F64, transport="udp")
         out.write(2.5)
         assert inbox.read(timeout=WAIT) == 2.5
+
+
+def test_spoofed_hellos_cannot_grow_the_pending_handshakes(
+        make_server: Callable[..., ServerThread], tmp_path: Path, wire: Wire) -> None:
+    """300 key hellos from forged source ports: at most 256 challenges remembered."""
+    keys = tmp_path / "keys"
+    keys.write_text(KEY.hex())
+    srv = make_server(psk_file=keys)
+    codec = PacketCodec()
+    hello = codec.encode_datagram(Hello(PROTOCOL_VERSION, "flood", b"n" * 16), 0)
+    for port in range(20000, 20300):
+        wire.inject(port, srv.port, hello)
+    with Bridge.connect("127.0.0.1", srv.port, psk=KEY, control="udp", timeout=WAIT) as bridge:
+        counts = bridge.server_stats()["server"]
+    assert counts["udp_handshakes_evicted"] >= 300 - 256
+    assert counts["sessions_opened"] == 1

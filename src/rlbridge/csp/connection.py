@@ -198,6 +198,8 @@ class Connection:
                 if isinstance(packet, AuthChallenge) and self.auth is not None:
                     datagram = self.codec.encode_datagram(self.auth.answer(packet, sock), 0)
                     continue
+                if isinstance(packet, Heartbeat):  # a live session whose ack was lost: ask again
+                    continue
                 self._leftover = []
                 return self._expect_ack(packet)
         raise ConnectionFailed(
