@@ -149,3 +149,16 @@ def test_many_bad_datagrams_do_not_disturb_a_session(raw_udp: Callable[..., Any]
     body = client.expect(Stats).body
     assert body["server"]["udp_malformed"] == 200
     assert body["session"]["malformed"] == 0  # none of them could claim to be this session
+
+
+def test_shutdown_closes_connections_still_in_their_hello(
+        make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
+        wait_until: Callable[..., Any]) -> None:
+    srv = make_server()
+    client = raw_tcp(srv.port)
+    client.send_bytes(b"RB")  # half a header, then nothing
+    registry = srv.server.registry
+    assert registry is not None
+    wait_until(lambda: len(registry.ctx.handshaking) == 1, what="the server to accept")
+    srv.stop()
+    assert client.wait_closed() == []  # closed by the server, not left to the loop's end

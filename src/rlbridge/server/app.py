@@ -164,6 +164,8 @@ class Server:
             tcp_server.close()
         for session in registry:
             session.close("server shutting down", notify=True, code=30)
+        for transport in list(registry.ctx.handshaking):
+            transport.close()
         await asyncio.sleep(0)  # let transports flush the goodbyes
         if udp_transport is not None:
             udp_transport.close()

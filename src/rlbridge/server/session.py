@@ -60,6 +60,8 @@ class ServerContext:
     udp_transport: asyncio.DatagramTransport | None = None
     counters: dict[str, int] = field(default_factory=dict)
     keys: KeyStore | None = None
+    #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
+    handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
     allow: AllowList = field(default_factory=lambda: AllowList(()))
 
     def count(self, name: str, n: int = 1) -> None:

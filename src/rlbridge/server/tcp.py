@@ -71,6 +71,7 @@ class TcpConnection(asyncio.Protocol):
             return
         # A connection that never completes its hello (or its proof) must not hold a socket.
         self._deadline = ctx.loop.call_later(HELLO_TIMEOUT, self._no_hello)
+        ctx.handshaking.add(t)
 
     def data_received(self, data: bytes) -> None:
         if len(data) >= YIELD_AFTER_BYTES and self._transport is not None:
@@ -132,6 +133,7 @@ class TcpConnection(asyncio.Protocol):
         assert self._transport is not None
         if self._deadline is not None:
             self._deadline.cancel()
+        self._registry.ctx.handshaking.discard(self._transport)
         if not isinstance(result, Session):
             if result is not None:
                 self._sink.send(result)
@@ -171,6 +173,8 @@ class TcpConnection(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         if self._deadline is not None:
             self._deadline.cancel()
+        if self._transport is not None:
+            self._registry.ctx.handshaking.discard(self._transport)
         if self._session is not None:
             self._session.close("TCP connection lost" if exc else "TCP connection closed",
                                 notify=False)
