@@ -5,7 +5,8 @@ a real :class:`~rlbridge.server.tcp.TcpConnection` and :class:`~rlbridge.server.
 over an in-memory transport (the only stand-in: no socket), on a server with the in-process
 bus, with and without pre-shared keys. The first byte picks the mode; the session is opened
 properly (hello, and the key handshake in keyed mode) unless the mode says raw, then the rest
-is fed as TCP chunks and as datagrams carrying the live token. Invariants checked per input:
+is fed as TCP chunks and as datagrams carrying the live token (in keyed mode also sealed
+with the session's key, so the bytes get past the MAC into the sealed session's decoding). Invariants checked per input:
 nothing but the server's own handling runs (any exception is a finding), everything the server
 writes is valid protocol, and once the sessions close no binding or topic is left behind.
 """
@@ -13,6 +14,7 @@ writes is valid protocol, and once the sessions close no binding or topic is lef
 from __future__ import annotations
 
 import asyncio
+import hashlib
 from typing import Any
 
 from _atheris import fuzz, instrumented
@@ -27,6 +29,7 @@ with instrumented(__name__ == "__main__"):
     from rlbridge.server.tcp import TcpConnection
     from rlbridge.server.udp import UdpEndpoint
     from rlbridge.wire import (
+        MAGIC,
         PROTOCOL_VERSION,
         AuthChallenge,
         FrameDecoder,
@@ -34,7 +37,7 @@ with instrumented(__name__ == "__main__"):
         Malformed,
         PacketCodec,
     )
-    from rlbridge.wire.auth import ClientHandshake, sealed_codec
+    from rlbridge.wire.auth import COUNTER, TAG_SIZE, ClientHandshake, SealedCodec, sealed_codec
     from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, peek_header
 
 KEY = bytes(range(32))
@@ -143,6 +146,14 @@ def _check_output(world: World, transport: MemoryTransport, client: PacketCodec)
     world.udp_transport.datagrams.clear()
 
 
+def _seal(client: SealedCodec, token: int, body: bytes) -> bytes:
+    """Arbitrary body bytes in a datagram that verifies under the client's key."""
+    head = (DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, FLAG_MAC, token)
+            + COUNTER.pack(next(client._counter)))
+    mac = hashlib.blake2s(head + body, key=client._send_key, digest_size=TAG_SIZE).digest()
+    return head + body + mac
+
+
 def one_input(data: bytes) -> None:
     if not data:
         return
@@ -165,6 +176,8 @@ def one_input(data: bytes) -> None:
             patched = bytearray(body)
             patched[4:12] = session.token.to_bytes(8, "big")
             world.udp.datagram_received(bytes(patched), PEER)
+            if isinstance(client, SealedCodec):  # past the MAC: the sealed session's decoding
+                world.udp.datagram_received(_seal(client, session.token, body[12:]), PEER)
     world.run_callbacks()
     _check_output(world, transport, client)
     conn.connection_lost(None)
