@@ -6,9 +6,10 @@ over an in-memory transport (the only stand-in: no socket), on a server with the
 bus, with and without pre-shared keys. The first byte picks the mode; the session is opened
 properly (hello, and the key handshake in keyed mode) unless the mode says raw, then the rest
 is fed as TCP chunks and as datagrams carrying the live token (in keyed mode also sealed
-with the session's key, so the bytes get past the MAC into the sealed session's decoding). Invariants checked per input:
-nothing but the server's own handling runs (any exception is a finding), everything the server
-writes is valid protocol, and once the sessions close no binding or topic is left behind.
+with the session's key, so the bytes get past the MAC into the sealed session's decoding).
+Invariants checked per input: nothing but the server's own handling runs (any exception is a
+finding), everything the server writes is valid protocol, and once the sessions close no
+binding or topic is left behind.
 """
 
 from __future__ import annotations
