@@ -108,8 +108,20 @@ def serve(
     node_name: Annotated[str, typer.Option(help="ROS 2 node name (adapter ros2).")]
     = "rlbridge",
     namespace: Annotated[str, typer.Option(help="ROS 2 namespace (adapter ros2).")] = "",
+    psk_file: Annotated[str | None, typer.Option(
+        help="Pre-shared keys, hex, one per line ('<hex>' or '<client-name> <hex>'); without "
+        "it $RLBRIDGE_PSK (hex); without both, no authentication. Never a key on the "
+        "command line.")] = None,
+    allow: Annotated[list[str] | None, typer.Option(
+        help="Client network allowed in (repeatable): 192.168.1.0/24, 127.0.0.1. Default: any.")]
+    = None,
+    max_rate: Annotated[float | None, typer.Option(
+        help="Values per second per session; excess dropped and counted.")] = None,
+    max_sessions: Annotated[int, typer.Option(help="Concurrent sessions.")] = 256,
+    max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
+    max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
 ) -> None:
-    """Run the bridge server until Ctrl-C / SIGTERM."""
+    """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md)."""
     from pydantic import ValidationError
 
     from rlbridge.server import Server, ServerConfig
@@ -117,7 +129,10 @@ def serve(
     try:
         config = ServerConfig(host=host, port=port, tcp=tcp, udp=udp, nodelay=nodelay,
                               adapter=adapter, heartbeat_ms=heartbeat_ms,
-                              timeout_ms=timeout_ms, node_name=node_name, namespace=namespace)
+                              timeout_ms=timeout_ms, node_name=node_name, namespace=namespace,
+                              psk_file=psk_file, allow=tuple(allow or ()), max_rate=max_rate,
+                              max_sessions=max_sessions, max_channels=max_channels,
+                              max_packet=max_packet)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "config"

@@ -69,8 +69,8 @@ def test_backoff_refuses_nonsense(kwargs: dict[str, float], message: str) -> Non
 class Serve:
     """``rlbridge serve`` on a fixed port that a test can kill and start again."""
 
-    def __init__(self, cli: Any, port: int, *extra: str) -> None:
-        self.cli, self.port, self.extra = cli, port, extra
+    def __init__(self, cli: Any, port: int, *extra: str, psk: bytes | None = None) -> None:
+        self.cli, self.port, self.extra, self.psk = cli, port, extra, psk
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self) -> Serve:
@@ -78,7 +78,8 @@ class Serve:
         deadline = time.monotonic() + WAIT
         while True:  # ready when a session can be opened (the loop serves, not just listens)
             try:
-                Bridge.connect("127.0.0.1", self.port, timeout=1.0, reconnect=False).close()
+                Bridge.connect("127.0.0.1", self.port, timeout=1.0, reconnect=False,
+                               psk=self.psk).close()
                 return self
             except Exception:
                 if self.proc.poll() is not None or time.monotonic() > deadline:
@@ -389,3 +390,31 @@ def test_udp_only_session_reconnects_over_udp(serve: Serve,
     serve.start()
     wait_for(reconnected(b), "the reconnect over UDP")
     assert roundtrip(out, inbox, 2.0)
+
+
+def test_keyed_session_reconnects_with_fresh_keys_and_link(
+        cli: Any, free_port: Callable[[], int], tmp_path: Any) -> None:
+    """With a pre-shared key the new session runs a new handshake: new nonces, new datagram
+    keys (sealed UDP flows again), and the channels read RTT from the new link monitor."""
+    key = os.urandom(32)
+    key_file = tmp_path / "psk"
+    key_file.write_text(key.hex())
+    key_file.chmod(0o600)
+    server = Serve(cli, free_port(), "--psk-file", str(key_file), psk=key).start()
+    b = Bridge.connect("127.0.0.1", server.port, psk=key, reconnect=FAST, timeout=5.0)
+    try:
+        inbox = b.subscribe("/keyed", F64, transport="udp", blocking=True, buffer_size=64)
+        out = b.publish("/keyed", F64, transport="udp")
+        assert roundtrip(out, inbox, 1.0)
+        first_link = b._conn.link
+        server.kill()
+        wait_for(lost(b), "the link lost")
+        server.start()
+        wait_for(reconnected(b), "the keyed reconnect")
+        assert roundtrip(out, inbox, 2.0)
+        assert b._conn.link is not first_link
+        assert inbox._link is b._conn.link
+        assert out._link is b._conn.link
+    finally:
+        b.close()
+        server.terminate()

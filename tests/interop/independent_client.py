@@ -295,13 +295,15 @@ TAG_HEARTBEAT = 10
 TAG_DISCONNECT = 11
 TAG_ERROR = 12
 TAG_STATS = 13
+TAG_AUTH_CHALLENGE = 14
+TAG_AUTH_PROOF = 15
 
 TAG_NAMES = {
     TAG_HELLO: "Hello", TAG_CONNECT_ACK: "ConnectAck", TAG_CONNECT_ERROR: "ConnectError",
     TAG_TOPIC_CONNECT: "TopicConnect", TAG_TOPIC_ACK: "TopicAck", TAG_TOPIC_ERROR: "TopicError",
     TAG_TOPIC_CLOSE: "TopicClose", TAG_VALUE: "Value", TAG_BATCH: "Batch",
     TAG_HEARTBEAT: "Heartbeat", TAG_DISCONNECT: "Disconnect", TAG_ERROR: "Error",
-    TAG_STATS: "Stats",
+    TAG_STATS: "Stats", TAG_AUTH_CHALLENGE: "AuthChallenge", TAG_AUTH_PROOF: "AuthProof",
 }
 
 # Error codes (doc section 12.2).

@@ -17,6 +17,8 @@ from rlbridge.wire import (
     FRAME_HEADER,
     MAGIC,
     PROTOCOL_VERSION,
+    AuthChallenge,
+    AuthProof,
     Batch,
     ConnectAck,
     ConnectError,
@@ -94,6 +96,9 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
     Disconnect: st.builds(Disconnect, U16, text(max_size=200)),
     Error: st.builds(Error, U16, text(max_size=200), st.none() | U32),
     Stats: st.builds(Stats, st.dictionaries(text(max_size=10), values, max_size=5)),
+    AuthChallenge: st.builds(AuthChallenge, st.binary(min_size=16, max_size=16),
+                             st.binary(min_size=32, max_size=32)),
+    AuthProof: st.builds(AuthProof, st.binary(min_size=32, max_size=32)),
 }
 PACKET_TYPES: tuple[type, ...] = Packet.__args__  # type: ignore[attr-defined]
 packets: st.SearchStrategy[Packet] = st.one_of(*packet_strategies.values())
@@ -120,6 +125,8 @@ SAMPLES: list[Packet] = [
     Disconnect(30, "bye"),
     Error(int(ErrorCode.BAD_VALUE), "not a float", 9),
     Stats({"server": {"sessions_opened": 3}}),
+    AuthChallenge(b"n" * 16, b"p" * 32),
+    AuthProof(b"q" * 32),
 ]
 
 

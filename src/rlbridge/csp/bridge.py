@@ -23,9 +23,11 @@ import sys
 import threading
 import warnings
 from collections.abc import Callable
+from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
+from rlbridge.csp.auth import resolve_key
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import _MISSING, Channel
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
@@ -79,6 +81,8 @@ class Bridge:
         timeout: float = 5.0,
         switch_interval: float | None = DEFAULT_SWITCH_INTERVAL,
         reconnect: bool | Backoff = True,
+        psk: bytes | None = None,
+        psk_file: str | Path | None = None,
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
 
@@ -95,12 +99,16 @@ class Bridge:
         ``switch_interval`` shortens CPython's process-wide GIL switch interval (5 ms by
         default) to this many seconds, never lengthens it: a control loop that wakes while
         another Python thread computes then waits at most that long for the GIL (docs/gil.md).
-        ``None`` leaves the interpreter's setting alone.
+        ``None`` leaves the interpreter's setting alone. ``psk`` (raw bytes), else ``psk_file``
+        (hex), else ``$RLBRIDGE_PSK`` (hex) is the pre-shared key for a server that requires
+        one; a wrong key raises :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
         """
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
             sys.setswitchinterval(switch_interval)
+        key = resolve_key(psk, psk_file)  # before any socket exists: a bad key leaks nothing
         conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
                           control=control, timeout=timeout)
+        conn.psk = key
         ack = conn.open()
         try:
             sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch)
@@ -340,16 +348,19 @@ class Bridge:
             incoming = self._incoming.get(req.channel)
             if incoming is not None:
                 incoming.restart_sequence()  # before the request: values may follow at once
-            channel = incoming or self._outgoing.get(req.channel)
-            if channel is not None:
-                channel.relink(self._conn.link)
+                incoming.relink(self._conn.link)
+            elif (outgoing := self._outgoing.get(req.channel)) is not None:
+                outgoing.relink(self._conn.link)
             try:
                 self._conn.request_topic(req)
             except RemoteError as exc:
                 log.warning("channel %d (%s) not bound again: %s", req.channel, req.topic, exc)
                 with self._lock:
-                    channel = self._incoming.pop(req.channel, None) or self._outgoing.pop(
+                    # Not ``a or b``: an empty channel is falsy (``len`` is its buffered count).
+                    channel: IncomingChannel | OutgoingChannel | None = self._incoming.pop(
                         req.channel, None)
+                    if channel is None:
+                        channel = self._outgoing.pop(req.channel, None)
                 self._conn.forget_topic(req.channel)
                 if channel is not None:
                     channel.close()

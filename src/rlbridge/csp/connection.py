@@ -19,6 +19,7 @@ Only :meth:`close` (or a session ending without ``keep_alive``) closes it for go
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import errno
 import logging
@@ -29,13 +30,14 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import msgspec
 
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.wire import (
     PROTOCOL_VERSION,
+    AuthChallenge,
     Batch,
     ConnectAck,
     ConnectError,
@@ -58,6 +60,9 @@ from rlbridge.wire import (
     error_from_code,
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
+
+if TYPE_CHECKING:
+    from rlbridge.csp.auth import ClientAuth
 
 log = logging.getLogger("rlbridge.client")
 
@@ -103,6 +108,11 @@ class Connection:
         self.control: Control = control
         self.timeout = timeout
         self.codec = PacketCodec()
+        #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.
+        self.psk: bytes | None = None
+        self.auth: ClientAuth | None = None
+        #: Datagrams the receive thread refused, by reason (bad_mac, replayed, bad_token, ...).
+        self.datagrams_dropped: collections.Counter[str] = collections.Counter()
         self.tcp: socket.socket | None = None
         self.udp: socket.socket | None = None
         self.tcp_lock = threading.Lock()
@@ -174,9 +184,16 @@ class Connection:
             if self.closed.is_set():
                 raise ConnectionClosed(f"connection closed: {self.close_reason}")
             self._handshaking = True
-        hello = Hello(PROTOCOL_VERSION, self.name)
+        from rlbridge.csp.auth import ClientAuth
+
+        self.auth = ClientAuth(self.psk, self.name) if self.psk else None
+        self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
+        hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
-            return self._open_tcp(hello) if self.control == "tcp" else self._open_udp(hello)
+            ack = self._open_tcp(hello) if self.control == "tcp" else self._open_udp(hello)
+            if self.auth is not None:
+                self.codec = self.auth.sealed(ack)
+            return ack
         except OSError as exc:
             self._close_session_sockets()
             raise ConnectionFailed(
@@ -253,6 +270,9 @@ class Connection:
             if not data:
                 raise ConnectionFailed(f"{self.host}:{self.port} closed the connection")
             packets = decoder.feed(data)
+            if self.auth is not None and packets and isinstance(packets[0], AuthChallenge):
+                sock.sendall(self.codec.encode_frame(self.auth.answer(packets[0], sock)))
+                packets = packets[1:]
             if packets:
                 first = packets[0]
                 break
@@ -272,7 +292,17 @@ class Connection:
             sock.send(datagram)
             ready, _, _ = select.select([sock], [], [], 0.2)
             if ready:
-                _f, _t, packet = self.codec.decode_datagram(sock.recv(65536))
+                try:
+                    data = sock.recv(65536)
+                    packet = (self.auth.decode(self.codec, data) if self.auth is not None
+                              else self.codec.decode_datagram(data)[2])
+                except RemoteProtocolError:
+                    continue  # not an answer to us (or forged): keep asking until the deadline
+                if isinstance(packet, AuthChallenge) and self.auth is not None:
+                    datagram = self.codec.encode_datagram(self.auth.answer(packet, sock), 0)
+                    continue
+                if isinstance(packet, Heartbeat):  # a live session whose ack was lost: ask again
+                    continue
                 self._leftover = []
                 return self._expect_ack(packet)
         raise ConnectionFailed(
@@ -317,7 +347,9 @@ class Connection:
         if isinstance(packet, ConnectAck):
             return packet
         if isinstance(packet, ConnectError):
-            raise ConnectionFailed(f"server refused the session: {packet.reason}")
+            from rlbridge.csp.auth import refused
+
+            raise refused(packet)
         raise ConnectionFailed(f"server answered the hello with {type(packet).__name__}")
 
     # -- sending (any SRT thread) ------------------------------------------------------------
@@ -490,9 +522,12 @@ class Connection:
                 _flags, got, packet = self.codec.decode_datagram(data)
             except RemoteProtocolError as exc:
                 log.debug("dropped datagram: %s", exc.reason)
+                self.datagrams_dropped[getattr(exc, "kind", "malformed")] += 1
                 continue
             if got == token:
                 self._dispatch(packet)
+            else:
+                self.datagrams_dropped["bad_token"] += 1
 
     def _tick(self, link: LinkMonitor, generation: int) -> None:
         now = time.monotonic_ns()

@@ -18,6 +18,7 @@ from types import TracebackType
 from typing import Any
 
 from rlbridge.adapters import MiddlewareAdapter, load_adapter
+from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.registry import SessionRegistry
@@ -89,11 +90,16 @@ class Server:
         self._loop = loop
         self._stop = asyncio.Event()
         cfg = self.config
+        try:  # before the adapter and the sockets: a bad key file is the operator's to fix
+            keys = KeyStore.load(cfg.psk_file)
+        except ValueError as exc:
+            raise ServerError(str(exc)) from None
         adapter = self._adapter or load_adapter(
             cfg.adapter, node_name=cfg.node_name, namespace=cfg.namespace,
             parameters={"use_tcp": cfg.tcp, "use_udp": cfg.udp, "disable_nagle": cfg.nodelay},
         )
-        ctx = ServerContext(cfg, adapter, PacketCodec(), loop, LoopHandoff(loop))
+        ctx = ServerContext(cfg, adapter, PacketCodec(), loop, LoopHandoff(loop),
+                            keys=keys, allow=AllowList(cfg.allow))
         self.registry = registry = SessionRegistry(ctx)
         tcp_server: asyncio.Server | None = None
         udp_transport: asyncio.DatagramTransport | None = None
@@ -101,8 +107,9 @@ class Server:
             tcp_server, udp_transport, port = await self._bind(loop, registry)
             self.address = BoundAddress(cfg.host, port, tcp_server is not None,
                                         udp_transport is not None)
-            log.info("rlbridge serving on %s:%d (tcp=%s udp=%s nodelay=%s adapter=%s)",
-                     cfg.host, port, cfg.tcp, cfg.udp, cfg.nodelay, adapter.name)
+            log.info("rlbridge serving on %s:%d (tcp=%s udp=%s nodelay=%s adapter=%s psk=%s)",
+                     cfg.host, port, cfg.tcp, cfg.udp, cfg.nodelay, adapter.name,
+                     keys is not None)
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     loop.add_signal_handler(sig, self._stop.set)
@@ -159,6 +166,8 @@ class Server:
             tcp_server.close()
         for session in registry:
             session.close("server shutting down", notify=True, code=30)
+        for transport in list(registry.ctx.handshaking):
+            transport.close()
         await asyncio.sleep(0)  # let transports flush the goodbyes
         if udp_transport is not None:
             udp_transport.close()

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import ipaddress
+from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from rlbridge.wire.codec import DEFAULT_MAX_PACKET, MAX_DATAGRAM
 
@@ -35,6 +37,25 @@ class ServerConfig(BaseModel):
         1400, ge=256, le=MAX_DATAGRAM, description="Largest UDP datagram the server sends."
     )
     use_uvloop: bool = True
+    # -- access and limits (docs/security.md) --
+    psk_file: Path | None = Field(
+        None, description="Pre-shared keys; without it $RLBRIDGE_PSK, without both no auth.")
+    allow: tuple[str, ...] = Field(
+        (), description="Client networks allowed in (CIDR or address); empty: any.")
+    max_rate: float | None = Field(
+        None, gt=0, description="Values per second per session (token bucket); None: no limit.")
+    max_topic_length: int = Field(256, ge=1, le=256, description="Characters in a topic name.")
+
+    @field_validator("allow")
+    @classmethod
+    def _networks(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for net in value:
+            try:
+                ipaddress.ip_network(net, strict=False)
+            except ValueError:
+                raise ValueError(f"{net!r} is not a network (e.g. 192.168.1.0/24, 127.0.0.1)"
+                                 ) from None
+        return value
 
     @model_validator(mode="after")
     def _check(self) -> ServerConfig:

@@ -19,9 +19,11 @@ from typing import Any
 import msgspec
 
 from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS, Reliability
+from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.wire import (
     Batch,
@@ -57,6 +59,10 @@ class ServerContext:
     handoff: LoopHandoff
     udp_transport: asyncio.DatagramTransport | None = None
     counters: dict[str, int] = field(default_factory=dict)
+    keys: KeyStore | None = None
+    #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
+    handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
+    allow: AllowList = field(default_factory=lambda: AllowList(()))
 
     def count(self, name: str, n: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + n
@@ -91,6 +97,10 @@ class Session:
         self.malformed = 0
         self.errors_sent = 0
         self.closed = False
+        #: Seals and opens this session's datagrams (the gate swaps in a SealedCodec).
+        self.codec: PacketCodec = ctx.codec
+        self.rate = (None if cfg.max_rate is None
+                     else RateLimiter(cfg.max_rate, time.monotonic_ns()))
         self._timer: asyncio.TimerHandle | None = None
         self._arm_timer()
 
@@ -106,7 +116,7 @@ class Session:
             return
         if self.udp is None:
             cfg = self.ctx.config
-            self.udp = UdpSink(transport, self.ctx.codec, self.token, addr, cfg.udp_payload)
+            self.udp = UdpSink(transport, self.codec, self.token, addr, cfg.udp_payload)
         elif self.udp.addr != addr:
             self.udp.addr = addr
 
@@ -174,6 +184,11 @@ class Session:
             what = "is bound for subscribing" if channel in self.outbound else "is not connected"
             self.error(code, f"channel {channel} {what}; cannot publish on it", channel, via)
             return
+        if self.rate is not None:
+            admitted = self._limit(packet, via)
+            if admitted is None:
+                return
+            packet = admitted
         try:
             if isinstance(packet, Value):
                 binding.on_value(packet)
@@ -183,6 +198,24 @@ class Session:
             self.error(ErrorCode.BAD_VALUE,
                        f"channel {channel} ({binding.spec.msg_type} field "
                        f"{binding.spec.field or '<whole message>'}): {exc}", channel, via)
+
+    def _limit(self, packet: Value | Batch, via: PacketSink | None) -> Value | Batch | None:
+        """The values ``--max-rate`` lets through (a batch's first ones); the rest counted."""
+        assert self.rate is not None
+        now = time.monotonic_ns()
+        n = 1 if isinstance(packet, Value) else len(packet.values)
+        ok = self.rate.admit(n, now)
+        if ok < n:
+            self.ctx.count("rate_dropped", n - ok)
+            if self.rate.should_warn(now):
+                self.error(ErrorCode.LIMIT, f"over the server's limit of {self.rate.rate:g} "
+                           f"values per second per session; {self.rate.dropped} values dropped "
+                           "so far", packet.channel, via)
+        if ok == n:
+            return packet
+        if ok == 0 or isinstance(packet, Value):
+            return None
+        return Batch(packet.channel, packet.first_seq, packet.stamps[:ok], packet.values[:ok])
 
     def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
         cfg = self.ctx.config
@@ -203,6 +236,9 @@ class Session:
                       "TCP channel on a session without a TCP connection")
         elif req.transport == "udp" and self.ctx.udp_transport is None:
             refuse = (ErrorCode.TRANSPORT_DISABLED, "this server runs without UDP (--no-udp)")
+        elif len(req.topic) > cfg.max_topic_length:
+            refuse = (ErrorCode.LIMIT, f"topic name of {len(req.topic)} characters is longer "
+                      f"than the server's limit of {cfg.max_topic_length}")
         if refuse is not None:
             self.send_control(TopicError(ch, int(refuse[0]), refuse[1]), via)
             return

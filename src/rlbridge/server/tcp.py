@@ -7,11 +7,14 @@ import logging
 import socket
 from typing import cast
 
+from rlbridge.server.gate import Gate
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
 from rlbridge.wire import (
+    AuthProof,
     ConnectError,
+    Disconnect,
     Error,
     ErrorCode,
     FrameDecoder,
@@ -19,11 +22,14 @@ from rlbridge.wire import (
     Malformed,
     RemoteProtocolError,
 )
+from rlbridge.wire.auth import ServerHandshake
 
 log = logging.getLogger("rlbridge.server")
 
 #: A read at least this large yields the loop before the connection is read again.
 YIELD_AFTER_BYTES = 64 << 10
+#: Seconds a new connection has to complete its hello (and proof) before it is closed.
+HELLO_TIMEOUT = 10.0
 
 
 class TcpConnection(asyncio.Protocol):
@@ -41,6 +47,10 @@ class TcpConnection(asyncio.Protocol):
         self._sink: TcpSink | None = None
         self._session: Session | None = None
         self._peer = "?"
+        self._gate = Gate(registry)
+        #: The hello and its handshake while a key-requiring server waits for the proof.
+        self._pending: tuple[Hello, ServerHandshake] | None = None
+        self._deadline: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = t = cast(asyncio.Transport, transport)
@@ -53,6 +63,15 @@ class TcpConnection(asyncio.Protocol):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, int(ctx.config.nodelay))
         t.set_write_buffer_limits(high=ctx.config.max_write_buffer)
         self._sink = TcpSink(t, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
+        peer = t.get_extra_info("peername")
+        refused = self._gate.allowed(peer[0] if peer else "?", "TCP connection")
+        if refused is not None:
+            self._sink.send(refused)
+            t.close()
+            return
+        # A connection that never completes its hello (or its proof) must not hold a socket.
+        self._deadline = ctx.loop.call_later(HELLO_TIMEOUT, self._no_hello)
+        ctx.handshaking.add(t)
 
     def data_received(self, data: bytes) -> None:
         if len(data) >= YIELD_AFTER_BYTES and self._transport is not None:
@@ -77,19 +96,47 @@ class TcpConnection(asyncio.Protocol):
                 session.malformed_packet(packet.error, self._sink)
             elif session is not None:
                 session.handle(packet, "tcp")
-            elif isinstance(packet, Hello):
+            elif isinstance(packet, Hello) and self._pending is None:
                 self._hello(packet)
+            elif isinstance(packet, AuthProof) and self._pending is not None:
+                self._proof(packet)
+            elif isinstance(packet, Disconnect) and self._pending is not None:
+                self._gate.abandoned(packet)
+                self._opened(self._pending[0], None)
+                return
             else:
+                wanted = "an AuthProof" if self._pending else "a Hello first"
                 self._fatal(ErrorCode.UNEXPECTED,
-                            f"expected a Hello first, got {type(packet).__name__}")
+                            f"expected {wanted}, got {type(packet).__name__}")
                 return
 
     def _hello(self, hello: Hello) -> None:
         assert self._sink is not None
         assert self._transport is not None
-        result = self._registry.open(hello)
-        if isinstance(result, ConnectError):
-            self._sink.send(result)
+        if self._transport.is_closing():  # refused (allow-list) or closing: no session
+            return
+        result = self._gate.hello(hello)
+        if isinstance(result, ServerHandshake):
+            self._pending = (hello, result)
+            self._sink.send(result.challenge)
+        else:
+            self._opened(hello, result)
+
+    def _proof(self, proof: AuthProof) -> None:
+        assert self._pending is not None
+        hello, handshake = self._pending
+        self._opened(hello, self._gate.finish(handshake, hello, proof))
+
+    def _opened(self, hello: Hello, result: Session | ConnectError | None) -> None:
+        """Attach the session, or send the refusal (if any) and close."""
+        assert self._sink is not None
+        assert self._transport is not None
+        if self._deadline is not None:
+            self._deadline.cancel()
+        self._registry.ctx.handshaking.discard(self._transport)
+        if not isinstance(result, Session):
+            if result is not None:
+                self._sink.send(result)
             self._transport.close()
             return
         result.attach_tcp(self._sink, self._transport.close)
@@ -113,12 +160,21 @@ class TcpConnection(asyncio.Protocol):
             self._session.close(reason, notify=True, code=int(code))
         self._transport.close()
 
+    def _no_hello(self) -> None:
+        if self._session is None and self._transport is not None:
+            self._registry.ctx.count("handshake_timeouts")
+            self._fatal(ErrorCode.UNEXPECTED, f"no complete hello within {HELLO_TIMEOUT:g} s")
+
     def _resume_reading(self) -> None:
         transport = self._transport
         if transport is not None and not transport.is_closing():
             transport.resume_reading()
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+        if self._transport is not None:
+            self._registry.ctx.handshaking.discard(self._transport)
         if self._session is not None:
             self._session.close("TCP connection lost" if exc else "TCP connection closed",
                                 notify=False)

@@ -6,16 +6,30 @@ import asyncio
 import contextlib
 import logging
 import socket
+from dataclasses import dataclass
 from typing import cast
 
+from rlbridge.server.gate import Gate
 from rlbridge.server.registry import SessionRegistry
+from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
-from rlbridge.wire import ConnectError, Hello, RemoteProtocolError
+from rlbridge.wire import (
+    AuthProof,
+    ConnectError,
+    Disconnect,
+    Hello,
+    Packet,
+    RemoteProtocolError,
+)
+from rlbridge.wire.auth import SEAL_OVERHEAD, DatagramRejected, ServerHandshake
+from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, peek_header
 
 log = logging.getLogger("rlbridge.server")
 
 #: Bytes of queued datagrams the server asks the kernel for (see ``connection_made``).
 RECEIVE_BUFFER = 4 << 20
+#: UDP handshakes (challenge sent, proof awaited) remembered at once; beyond, oldest go.
+MAX_PENDING = 256
 
 
 class UdpEndpoint(asyncio.DatagramProtocol):
@@ -25,14 +39,18 @@ class UdpEndpoint(asyncio.DatagramProtocol):
     and the reply carries the token. Any other datagram must carry a live token; its source
     address becomes the session's UDP address (also how a TCP session starts using UDP
     channels). Datagrams with unknown tokens are dropped and counted, never answered, so the
-    endpoint cannot be used to reflect traffic at a third party.
+    endpoint cannot be used to reflect traffic at a third party. With keys, the hello is
+    answered with a challenge, kept per source address until its proof arrives, and every
+    later datagram must carry a valid MAC and a fresh counter (:mod:`rlbridge.wire.auth`).
     """
 
     def __init__(self, registry: SessionRegistry) -> None:
         self._registry = registry
         self._transport: asyncio.DatagramTransport | None = None
         # A retransmitted hello (its ack was lost) gets the same session, not a second one.
-        self._hello_sessions: dict[tuple[tuple[str, int], str], int] = {}
+        self._hello_sessions: dict[tuple[tuple[str, int], str], tuple[int, Hello]] = {}
+        self._gate = Gate(registry)
+        self._pending: dict[tuple[str, int], _Pending] = {}
         registry.on_forget.append(lambda s: self.forget(s.id))
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -48,51 +66,134 @@ class UdpEndpoint(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         ctx = self._registry.ctx
+        if ctx.allow and not ctx.allow.allows(addr[0]):
+            ctx.count("udp_not_allowed")
+            return
+        if len(data) > ctx.config.max_packet + DATAGRAM_HEADER.size + SEAL_OVERHEAD:
+            ctx.count("udp_too_large")
+            return
+        # The token picks the session, and the session the codec: an authenticated session's
+        # datagrams must verify under its keys before their body is even decoded.
+        flags, token = peek_header(data)
+        session = self._registry.by_token(token) if token else None
+        if token and session is None and flags & FLAG_MAC:
+            ctx.count("udp_bad_token")  # sealed for a session that is gone: nothing to decode
+            return
+        codec = session.codec if session is not None else ctx.codec
         try:
-            _flags, token, packet = ctx.codec.decode_datagram(data)
+            _flags, token, packet = codec.decode_datagram(data)
+        except DatagramRejected as exc:
+            ctx.count(f"udp_{exc.kind}")  # forged, replayed or unsealed: never answered
+            log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            return
         except RemoteProtocolError as exc:
             ctx.count("udp_malformed")
             log.debug("dropped datagram from %s: %s", addr, exc.reason)
-            # A live token proves the sender is the client: tell it what was wrong.
-            known = self._registry.by_token(exc.token) if exc.token else None
-            if known is not None and known.udp is not None:
-                known.malformed_packet(exc, known.udp)
+            # A live token (verified, if the session has keys) proves the sender is the
+            # client: tell it what was wrong.
+            if session is not None and session.udp is not None:
+                session.malformed_packet(exc, session.udp)
             return
-        if token == 0:
+        if token and session is None:
+            ctx.count("udp_bad_token")
+            return
+        if session is None:
             if isinstance(packet, Hello):
                 self._hello(packet, addr)
+            elif isinstance(packet, AuthProof):
+                self._proof(packet, addr)
+            elif isinstance(packet, Disconnect) and self._unproven(addr):
+                self._gate.abandoned(packet)
+                del self._pending[addr]
             else:
                 ctx.count("udp_no_token")
-            return
-        session = self._registry.by_token(token)
-        if session is None:
-            ctx.count("udp_bad_token")
             return
         session.attach_udp(addr)
         session.handle(packet, "udp")
 
     def _hello(self, hello: Hello, addr: tuple[str, int]) -> None:
-        assert self._transport is not None
-        ctx = self._registry.ctx
-        key = (addr, hello.name)
-        known = self._hello_sessions.get(key)
-        session = None
-        if known is not None:
-            session = next((s for s in self._registry if s.id == known and not s.closed), None)
-        if session is None:
-            result = self._registry.open(hello)
-            if isinstance(result, ConnectError):
-                self._transport.sendto(ctx.codec.encode_datagram(result, 0), addr)
+        known = self._hello_sessions.get((addr, hello.name))
+        if known is not None and known[1] == hello:  # a retransmitted hello: same session
+            session = self._live(known[0])
+            if session is not None:
+                self._acknowledge(session, addr)
                 return
-            session = result
-            self._hello_sessions[key] = session.id
-            log.info("session %d (%s) opened over UDP from %s", session.id, hello.name, addr)
+        pending = self._pending.get(addr)
+        if pending is not None and pending.hello == hello:  # its challenge was lost
+            self._send(pending.handshake.challenge, addr)
+            return
+        result = self._gate.hello(hello)
+        if isinstance(result, ServerHandshake):
+            self._pending.pop(addr, None)
+            self._pending[addr] = _Pending(hello, result)
+            while len(self._pending) > MAX_PENDING:  # spoofed hellos evict the oldest
+                del self._pending[next(iter(self._pending))]
+                self._registry.ctx.count("udp_handshakes_evicted")
+            self._send(result.challenge, addr)
+        else:
+            self._opened(hello, result, addr)
+
+    def _proof(self, proof: AuthProof, addr: tuple[str, int]) -> None:
+        pending = self._pending.get(addr)
+        if pending is None:  # no challenge outstanding: a stray or replayed proof
+            self._registry.ctx.count("udp_unexpected_proof")
+            return
+        if pending.session_id is not None:
+            # Proved already: the same proof again means our ack was lost; anything else is
+            # refused like any wrong proof would be.
+            session = self._live(pending.session_id)
+            if proof == pending.proof and session is not None:
+                self._acknowledge(session, addr)
+            else:
+                self._registry.ctx.count("udp_unexpected_proof")
+            return
+        result = self._gate.finish(pending.handshake, pending.hello, proof)
+        if isinstance(result, Session):
+            pending.session_id, pending.proof = result.id, proof
+        else:
+            del self._pending[addr]
+        self._opened(pending.hello, result, addr)
+
+    def _unproven(self, addr: tuple[str, int]) -> bool:
+        pending = self._pending.get(addr)
+        return pending is not None and pending.session_id is None
+
+    def _live(self, session_id: int) -> Session | None:
+        return next((s for s in self._registry if s.id == session_id and not s.closed), None)
+
+    def _opened(self, hello: Hello, result: Session | ConnectError,
+                addr: tuple[str, int]) -> None:
+        if isinstance(result, ConnectError):
+            self._send(result, addr)
+            return
+        self._hello_sessions[(addr, hello.name)] = (result.id, hello)
+        log.info("session %d (%s) opened over UDP from %s", result.id, hello.name, addr)
+        self._acknowledge(result, addr)
+
+    def _acknowledge(self, session: Session, addr: tuple[str, int]) -> None:
         session.attach_udp(addr)
         sink = session.udp
         assert isinstance(sink, UdpSink)
         sink.send(self._registry.ack(session))
 
+    def _send(self, packet: Packet, addr: tuple[str, int]) -> None:
+        assert self._transport is not None
+        self._transport.sendto(self._registry.ctx.codec.encode_datagram(packet, 0), addr)
+
     def forget(self, session_id: int) -> None:
-        for key, sid in list(self._hello_sessions.items()):
+        for key, (sid, _hello) in list(self._hello_sessions.items()):
             if sid == session_id:
                 del self._hello_sessions[key]
+        for addr, pending in list(self._pending.items()):
+            if pending.session_id == session_id:
+                del self._pending[addr]
+
+
+@dataclass
+class _Pending:
+    """A UDP key handshake: challenge sent; after the proof, the session it opened."""
+
+    hello: Hello
+    handshake: ServerHandshake
+    session_id: int | None = None
+    proof: AuthProof | None = None

@@ -24,6 +24,8 @@ from rlbridge.wire.errors import (
 )
 from rlbridge.wire.packets import (
     PROTOCOL_VERSION,
+    AuthChallenge,
+    AuthProof,
     Batch,
     ConnectAck,
     ConnectError,
@@ -43,7 +45,8 @@ from rlbridge.wire.packets import (
 
 __all__ = [
     "DATAGRAM_HEADER", "DEFAULT_MAX_PACKET", "FRAME_HEADER", "MAGIC", "MAX_DATAGRAM",
-    "PROTOCOL_VERSION", "Batch", "ConnectAck", "ConnectError", "Disconnect", "Error",
+    "PROTOCOL_VERSION", "AuthChallenge", "AuthProof",
+    "Batch", "ConnectAck", "ConnectError", "Disconnect", "Error",
     "ErrorCode", "FrameDecoder", "Heartbeat", "Hello", "Limits", "LocalProtocolError",
     "Malformed", "Packet", "PacketCodec", "RemoteError", "RemoteProtocolError",
     "RlbridgeError", "Stats", "TopicAck", "TopicClose", "TopicConnect", "TopicError", "Value",

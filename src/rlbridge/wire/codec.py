@@ -108,6 +108,14 @@ class PacketCodec:
             raise
 
 
+def peek_header(data: bytes) -> tuple[int, int]:
+    """``(flags, token)`` of a datagram without decoding it; ``(0, 0)`` for a bad header."""
+    if len(data) < DATAGRAM_HEADER.size:
+        return 0, 0
+    magic, version, flags, token = DATAGRAM_HEADER.unpack_from(data)
+    return (flags, token) if magic == MAGIC and version == PROTOCOL_VERSION else (0, 0)
+
+
 def _salvage(body: bytes | memoryview) -> tuple[int | None, int | None]:
     """Tag and channel of an invalid body, if it is at least ``[int, int, ...]``."""
     try:

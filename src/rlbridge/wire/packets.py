@@ -165,9 +165,29 @@ class Stats(_Packet, tag=13, frozen=True):
     body: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
+Nonce = Annotated[bytes, msgspec.Meta(min_length=16, max_length=16)]
+Mac = Annotated[bytes, msgspec.Meta(min_length=32, max_length=32)]
+
+
+class AuthChallenge(_Packet, tag=14, frozen=True):
+    """Server -> client, instead of ConnectAck when a key is required (docs/security.md).
+
+    ``nonce`` is the server's fresh nonce; ``proof`` shows the server knows the key.
+    """
+
+    nonce: Nonce
+    proof: Mac
+
+
+class AuthProof(_Packet, tag=15, frozen=True):
+    """Client -> server: HMAC-SHA256 of the handshake transcript under the pre-shared key."""
+
+    proof: Mac
+
+
 Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
-    | Value | Batch | Heartbeat | Disconnect | Error | Stats
+    | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
 )
 
 #: Packets a value path carries; everything else is control.

@@ -1,0 +1,163 @@
+"""Write the seed corpus: valid packets of every type plus the known bad cases.
+
+Run: ``python fuzz/make_corpus.py`` (rewrites ``fuzz/corpus/decoder`` and ``fuzz/corpus/server``;
+file names are content hashes, so running it twice changes nothing). The first byte of every
+seed is the harness's mode byte (chunking for the decoder; keyed, raw and chunking for the
+server, see the harnesses' docstrings).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import msgspec
+
+from rlbridge.wire import (
+    DATAGRAM_HEADER,
+    FRAME_HEADER,
+    MAGIC,
+    PROTOCOL_VERSION,
+    AuthChallenge,
+    AuthProof,
+    Batch,
+    ConnectAck,
+    ConnectError,
+    Disconnect,
+    Error,
+    Heartbeat,
+    Hello,
+    Limits,
+    Packet,
+    PacketCodec,
+    Stats,
+    TopicAck,
+    TopicClose,
+    TopicConnect,
+    TopicError,
+    Value,
+)
+from rlbridge.wire.auth import SealedCodec
+
+HERE = Path(__file__).parent / "corpus"
+F64 = "std_msgs/msg/Float64"
+CODEC = PacketCodec()
+
+EVERY_TYPE: list[Packet] = [
+    Hello(PROTOCOL_VERSION, "seed", b"n" * 16),
+    ConnectAck(1, 2, 200, 600, Limits(1 << 20, 256, 4096)),
+    ConnectError(21, "no"),
+    TopicConnect(1, "publish", "/a", F64),
+    TopicAck(1, F64, 0.0),
+    TopicError(1, 10, "no"),
+    TopicClose(1),
+    Value(1, 0, 0, 1.5),
+    Batch(1, 0, [0, 0], [1.0, 2.0]),
+    Heartbeat(1, 0),
+    Disconnect(0, "bye"),
+    Error(2, "bad", 1),
+    Stats(),
+    AuthChallenge(b"n" * 16, b"p" * 32),
+    AuthProof(b"p" * 32),
+]
+
+#: A session's life as a client drives it: publish and subscribe on both transports.
+SESSION: list[Packet] = [
+    TopicConnect(1, "publish", "/a", F64),
+    TopicConnect(2, "subscribe", "/a", F64, transport="udp"),
+    TopicConnect(3, "publish", "/m", "geometry_msgs/msg/Twist", None),
+    Value(1, 0, 0, 1.5),
+    Batch(1, 1, [0, 0, 0], [1.0, 2.0, 3.0]),
+    Value(3, 0, 0, {"linear": {"x": 1.0}}),
+    Heartbeat(5, 0),
+    Stats(),
+    TopicClose(2),
+    Disconnect(0, "bye"),
+]
+
+
+def frame(body: bytes, length: int | None = None, magic: bytes = MAGIC,
+          version: int = PROTOCOL_VERSION) -> bytes:
+    return FRAME_HEADER.pack(magic, version, 0, len(body) if length is None else length) + body
+
+
+def body(*fields: object) -> bytes:
+    return msgspec.msgpack.encode(list(fields))
+
+
+#: Known bad inputs (each a byte string the server or decoder must survive).
+BAD: list[bytes] = [
+    frame(b"\xc1"),  # invalid msgpack
+    frame(b""),  # empty body
+    frame(body(99, 1)),  # unknown packet type
+    frame(body(8, 1, 0, 0)),  # Value missing its value
+    frame(body(8, 1, "seq", 0, 1.0)),  # wrong kind
+    frame(body(8, 77, 0, 0, 1.0)),  # unknown channel
+    frame(body(8, 1, 0, 0, "not a float")),  # wrong value kind for the channel
+    frame(body(9, 1, 0, [0], [1.0, 2.0])),  # batch stamps/values mismatch
+    frame(body(4, 5, "publish", "/" + "x" * 2000, F64)),  # huge topic name
+    frame(body(1, 1, "n" * 3000)),  # huge string (under the harness max_packet)
+    frame(b"\x91" * 3000 + b"\x01"),  # deeply nested arrays
+    frame(b"", length=0xFFFF_FFFF),  # absurd length
+    frame(body(10, 1, 0))[:-2],  # truncated frame
+    frame(body(10, 1, 0), magic=b"GE"),  # bad magic (an HTTP client)
+    frame(body(10, 1, 0), version=9),  # unsupported version
+    b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
+    frame(body(15, b"x" * 31)),  # proof of the wrong size
+    frame(body(13, {"k" * 10: [1] * 1000})),  # stats with a big body
+]
+
+
+def datagram(packet: Packet, token: int = 0) -> bytes:
+    return CODEC.encode_datagram(packet, token)
+
+
+def decoder_seeds() -> Iterator[bytes]:
+    sealed = SealedCodec(bytes(range(32)), bytes(32))  # the harness opens with the reverse
+    for packet in EVERY_TYPE:
+        yield b"\x00" + CODEC.encode_frame(packet)
+        yield b"\x00" + datagram(packet, 7)
+        yield b"\x00" + sealed.encode_datagram(packet, 7)
+    yield b"\x03" + b"".join(CODEC.encode_frame(p) for p in EVERY_TYPE)
+    for bad in BAD:
+        yield b"\x00" + bad
+        yield b"\x05" + bad
+    yield b"\x00" + DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 7)
+
+
+def server_seeds() -> Iterator[bytes]:
+    session = b"".join(CODEC.encode_frame(p) for p in SESSION)
+    for mode in (0, 1, 8 | 0, 8 | 1):  # plain and keyed; whole and chunked
+        yield bytes([mode]) + session
+        for packet in SESSION:
+            yield bytes([mode | 4]) + datagram(packet, 1)  # as a datagram with the live token
+        for bad in BAD:
+            yield bytes([mode]) + CODEC.encode_frame(SESSION[0]) + bad
+    for raw in (2, 3):  # no hello first: the handshake paths themselves
+        yield bytes([raw]) + CODEC.encode_frame(Hello(PROTOCOL_VERSION, "x", b"n" * 16))
+        yield bytes([raw]) + CODEC.encode_frame(AuthProof(b"p" * 32))
+        yield bytes([raw]) + CODEC.encode_frame(Value(1, 0, 0, 1.0))
+        yield bytes([raw | 4]) + datagram(Hello(PROTOCOL_VERSION, "udp", b"n" * 16))
+        yield bytes([raw | 4]) + datagram(AuthProof(b"p" * 32))
+
+
+def write(name: str, seeds: Iterator[bytes]) -> int:
+    target = HERE / name
+    shutil.rmtree(target, ignore_errors=True)
+    target.mkdir(parents=True)
+    count = 0
+    for seed in seeds:
+        (target / hashlib.sha1(seed).hexdigest()).write_bytes(seed)
+        count += 1
+    return count
+
+
+def main() -> None:
+    print("decoder seeds:", write("decoder", decoder_seeds()))
+    print("server seeds:", write("server", server_seeds()))
+
+
+if __name__ == "__main__":
+    main()

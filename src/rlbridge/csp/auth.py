@@ -1,0 +1,130 @@
+"""The client's half of pre-shared-key authentication (docs/security.md).
+
+Where the key comes from, in order: ``Bridge.connect(psk=...)`` (raw bytes), ``psk_file=``
+(a file holding the key in hex, the format ``rlbridge serve --psk-file`` reads for one key),
+the ``RLBRIDGE_PSK`` environment variable (hex). A client given a key insists on
+authentication: a server that answers the hello without a challenge (no key configured, or
+someone in the middle stripping it) is refused, so a key can never silently downgrade to a
+session anyone could spoof. Once the server has proven the key and accepted ours, every
+datagram both ways is sealed with the derived session keys.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+from collections.abc import Mapping
+from pathlib import Path
+
+from rlbridge.csp.connection import ConnectionFailed
+from rlbridge.wire import (
+    AuthChallenge,
+    AuthProof,
+    ConnectAck,
+    ConnectError,
+    Disconnect,
+    ErrorCode,
+    Packet,
+)
+from rlbridge.wire.auth import (
+    MIN_KEY_SIZE,
+    NONCE_SIZE,
+    PSK_ENV,
+    ClientHandshake,
+    SealedCodec,
+    parse_key,
+    sealed_codec,
+)
+from rlbridge.wire.codec import FLAG_MAC, PacketCodec, peek_header
+from rlbridge.wire.errors import AuthenticationFailed, RemoteProtocolError
+
+_AUTH_CODES = (ErrorCode.AUTH_FAILED, ErrorCode.NOT_ALLOWED)
+
+
+class AuthRefused(ConnectionFailed, AuthenticationFailed):
+    """Authentication failed: the server refused our key or network, or could not prove its key.
+
+    A :class:`ConnectionFailed` (the session did not open) and an
+    :class:`~rlbridge.wire.errors.AuthenticationFailed` (``code`` says which refusal); retrying
+    with the same key will not help.
+    """
+
+
+def resolve_key(psk: bytes | None = None, psk_file: str | Path | None = None,
+                environ: Mapping[str, str] = os.environ) -> bytes | None:
+    """The key to authenticate with, from the first source that has one (module docstring)."""
+    if psk is not None:
+        if len(psk) < MIN_KEY_SIZE:
+            raise ValueError(f"psk of {len(psk)} bytes is too short; use at least "
+                             f"{MIN_KEY_SIZE} random bytes")
+        return bytes(psk)
+    if psk_file is not None:
+        try:
+            text = Path(psk_file).read_text()
+        except OSError as exc:
+            raise ValueError(f"cannot read the key file {psk_file}: {exc.strerror}") from None
+        return parse_key(text.split("#", 1)[0], str(psk_file))
+    env = environ.get(PSK_ENV)
+    return parse_key(env, f"${PSK_ENV}") if env else None
+
+
+class ClientAuth:
+    """One connection attempt: a fresh nonce, the answer to the challenge, the sealed codec."""
+
+    def __init__(self, key: bytes, name: str, nonce: bytes | None = None) -> None:
+        self._handshake = ClientHandshake(key, name, nonce or os.urandom(NONCE_SIZE))
+        self._codec: SealedCodec | None = None
+
+    @property
+    def nonce(self) -> bytes:
+        """What the hello carries in its ``auth`` field."""
+        return self._handshake.nonce
+
+    def answer(self, challenge: AuthChallenge, sock: socket.socket) -> AuthProof:
+        """Our proof; raises :class:`AuthRefused` if the server does not know the key.
+
+        Before raising, a ``Disconnect(AUTH_FAILED)`` goes to the server over ``sock`` (the
+        handshake's TCP or UDP socket), so it can count and log the refusal: the client
+        refuses first, and never sends a proof to a server that has not proven the key.
+        """
+        try:
+            proof = self._handshake.answer(challenge)
+        except RemoteProtocolError as exc:
+            goodbye = Disconnect(int(ErrorCode.AUTH_FAILED), "client refused the server's "
+                                 "proof: the two sides have different keys")
+            codec = PacketCodec()
+            with contextlib.suppress(OSError):
+                if sock.type == socket.SOCK_STREAM:
+                    sock.sendall(codec.encode_frame(goodbye))
+                else:
+                    sock.send(codec.encode_datagram(goodbye, 0))
+            raise AuthRefused(int(exc.code), exc.reason) from None
+        assert self._handshake.keys is not None
+        if self._codec is None:
+            self._codec = sealed_codec(self._handshake.keys, server=False)
+        return proof
+
+    def decode(self, plain: PacketCodec, data: bytes) -> Packet:
+        """A handshake datagram: the challenge comes unsealed, the ack sealed (it holds the
+        token, so it must come from the server that proved the key)."""
+        flags, _token = peek_header(data)
+        codec = self._codec if self._codec is not None and flags & FLAG_MAC else plain
+        return codec.decode_datagram(data)[2]
+
+    def sealed(self, ack: ConnectAck) -> SealedCodec:
+        """The codec of the session ``ack`` opened; refuses a session opened without a proof."""
+        if self._codec is None:
+            raise AuthRefused(
+                int(ErrorCode.AUTH_FAILED),
+                f"server accepted session {ack.session} without authenticating; a key was "
+                "given, so an unauthenticated server is refused (configure the server's "
+                "--psk-file / RLBRIDGE_PSK, or connect without a key)")
+        return self._codec
+
+
+def refused(packet: ConnectError) -> ConnectionFailed:
+    """The exception a ConnectError becomes: :class:`AuthRefused` for auth and network."""
+    if packet.code in _AUTH_CODES:
+        return AuthRefused(packet.code, f"server refused the session: {packet.reason}")
+    return ConnectionFailed(f"server refused the session: {packet.reason}")

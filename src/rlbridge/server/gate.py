@@ -1,0 +1,86 @@
+"""The door every client passes, over TCP or UDP: network allow-list, then key, then session.
+
+Without keys a hello opens a session at once (the registry checks version and limits). With
+keys the hello gets an :class:`~rlbridge.wire.AuthChallenge` and only a correct
+:class:`~rlbridge.wire.AuthProof` opens the session, whose datagrams are then sealed with the
+derived keys (:mod:`rlbridge.wire.auth`). Every refusal is counted in the server's counters
+(``auth_failed``, ``not_allowed``) and answered with a ``ConnectError`` that says why.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable
+
+from rlbridge.server.registry import SessionRegistry
+from rlbridge.server.session import Session
+from rlbridge.wire import (
+    AuthProof,
+    ConnectError,
+    Disconnect,
+    ErrorCode,
+    Hello,
+    RemoteProtocolError,
+)
+from rlbridge.wire.auth import NONCE_SIZE, ServerHandshake, sealed_codec
+
+log = logging.getLogger("rlbridge.server")
+
+Outcome = Session | ConnectError | ServerHandshake
+
+
+class Gate:
+    """Stateless rules; the transport keeps a pending :class:`ServerHandshake` between steps."""
+
+    def __init__(self, registry: SessionRegistry,
+                 random: Callable[[int], bytes] = os.urandom) -> None:
+        self._registry = registry
+        self._random = random
+
+    def allowed(self, host: str, what: str) -> ConnectError | None:
+        """None if ``host`` may connect, else the refusal (counted)."""
+        ctx = self._registry.ctx
+        if ctx.allow.allows(host):
+            return None
+        ctx.count("not_allowed")
+        log.warning("refused %s from %s: not in the allow-list", what, host)
+        return ConnectError(int(ErrorCode.NOT_ALLOWED),
+                            f"client address {host} is not in this server's allow-list")
+
+    def hello(self, hello: Hello) -> Outcome:
+        """A session, a refusal, or (keys configured) the handshake to send a challenge for."""
+        keys = self._registry.ctx.keys
+        if keys is None:
+            return self._registry.open(hello)
+        key = keys.key_for(hello.name)
+        if key is None:
+            return self._refuse(f"no pre-shared key for client name {hello.name!r}")
+        try:
+            return ServerHandshake(key, hello.name, hello.auth, self._random(NONCE_SIZE))
+        except RemoteProtocolError as exc:
+            return self._refuse(exc.reason)
+
+    def finish(self, handshake: ServerHandshake, hello: Hello, proof: AuthProof
+               ) -> Session | ConnectError:
+        """Check the client's proof; open its session with sealed datagrams if right."""
+        try:
+            keys = handshake.verify(proof)
+        except RemoteProtocolError as exc:
+            return self._refuse(exc.reason)
+        result = self._registry.open(hello)
+        if isinstance(result, Session):
+            result.codec = sealed_codec(keys, server=True)
+            self._registry.ctx.count("sessions_authenticated")
+        return result
+
+    def abandoned(self, goodbye: Disconnect) -> None:
+        """The client hung up during the handshake; with AUTH_FAILED it refused our proof."""
+        if goodbye.code == ErrorCode.AUTH_FAILED:
+            self._registry.ctx.count("auth_failed")
+            log.warning("authentication refused by the client: %s", goodbye.reason)
+
+    def _refuse(self, reason: str) -> ConnectError:
+        self._registry.ctx.count("auth_failed")
+        log.warning("authentication refused: %s", reason)
+        return ConnectError(int(ErrorCode.AUTH_FAILED), reason)
