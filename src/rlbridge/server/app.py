@@ -171,6 +171,10 @@ class Server:
         await asyncio.sleep(0)  # let transports flush the goodbyes
         if udp_transport is not None:
             udp_transport.close()
+            endpoint = udp_transport.get_protocol()
+            if isinstance(endpoint, UdpEndpoint):
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(endpoint.closed.wait(), 2.0)
         if tcp_server is not None:
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(tcp_server.wait_closed(), 2.0)

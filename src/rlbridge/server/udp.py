@@ -52,6 +52,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         self._gate = Gate(registry)
         self._pending: dict[tuple[str, int], _Pending] = {}
         registry.on_forget.append(lambda s: self.forget(s.id))
+        #: Set when the transport has really closed; shutdown waits for it, else the loop
+        #: can end first and the socket is reaped by the garbage collector (ResourceWarning).
+        self.closed = asyncio.Event()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = cast(asyncio.DatagramTransport, transport)
@@ -63,6 +66,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             # caps the request at net.core.rmem_max; drops that remain show as sequence gaps.
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.closed.set()
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         ctx = self._registry.ctx
