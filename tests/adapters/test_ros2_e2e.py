@@ -295,3 +295,23 @@ def test_binding_errors_over_the_wire_leave_the_session_working(
             got.append(echo.read(0.1))
     sdk.unsubscribe(echo)
     sdk.unsubscribe(held)
+
+
+def test_sdk_qos_reaches_the_ros_graph(
+    sdk: Bridge, peer: PeerProcess, unique_topic: Callable[[str], str],
+) -> None:
+    """A UDP channel defaults to a best-effort publisher, which a reliable rclpy subscription
+    does not match; ``reliability="reliable"`` from the SDK makes the server's publisher
+    reliable, so the same subscription now receives."""
+    topic = unique_topic("qos")
+    handle = peer.call("sub", topic=topic, type="std_msgs/msg/Float64", field="data",
+                       reliability="reliable")
+    out = sdk.publish(topic, "std_msgs/msg/Float64", transport="udp", reliability="reliable",
+                      depth=5)
+    deadline = time.monotonic() + TIMEOUT
+    while not peer.wait_messages(handle, bool, 0.1):
+        assert time.monotonic() < deadline, "a reliable SDK publisher never reached rclpy"
+        out.write(1.5)
+    assert peer.wait_messages(handle, lambda got: 1.5 in got, TIMEOUT), peer.messages(handle)
+    sdk.unsubscribe(out)
+    peer.call("close", handle=handle)

@@ -38,6 +38,7 @@ from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
 from rlbridge.wire import RemoteError, TopicClose, TopicConnect
 from rlbridge.wire.link import LinkState
+from rlbridge.wire.packets import Reliability
 
 log = logging.getLogger("rlbridge.client")
 
@@ -136,6 +137,8 @@ class Bridge:
         redundancy: int = 0,
         latest: bool = False,
         max_age_ms: int = 0,
+        reliability: Reliability | None = None,
+        depth: int = 10,
         on_lost: OnLost = "hold",
     ) -> IncomingChannel:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
@@ -143,6 +146,9 @@ class Bridge:
         Policies (docs/policies.md): ``redundancy=k`` (UDP) repeats the previous k values in
         each datagram; ``latest=True`` delivers the newest value instead of a backlog;
         ``max_age_ms`` drops values older than that on arrival (``health().expired``).
+        ``reliability`` (``"reliable"`` / ``"best_effort"``) and ``depth`` are the middleware
+        QoS of the server's subscription (ROS 2); ``None`` picks by transport: best effort
+        for UDP channels, reliable for TCP ones.
 
         Non-blocking channels return the latest value on every read (or ``initial`` before the
         first one; with neither, ``NoValueYet``); blocking channels wait for a new value.
@@ -168,7 +174,8 @@ class Bridge:
         try:
             ack = self._conn.request_topic(TopicConnect(
                 ch_id, "subscribe", topic, msg_type, field, transport, buffer_size,
-                max_age_ms=max_age_ms, redundancy=redundancy, latest=latest))
+                max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
+                reliability=reliability, depth=depth))
         except BaseException:
             with self._lock:
                 self._incoming.pop(ch_id, None)
@@ -188,6 +195,8 @@ class Bridge:
         redundancy: int = 0,
         latest: bool = False,
         max_age_ms: int = 0,
+        reliability: Reliability | None = None,
+        depth: int = 10,
     ) -> OutgoingChannel:
         """A channel whose values are published on ``topic``.
 
@@ -196,7 +205,8 @@ class Bridge:
         Either way ``write`` never blocks and never touches a socket; a full buffer drops its
         oldest value and counts it (``statistics().overwritten``). Policies as in
         :meth:`subscribe`; ``max_age_ms`` is enforced here before sending and by the server
-        before publishing.
+        before publishing. ``reliability`` and ``depth``: the publisher's middleware QoS,
+        as in :meth:`subscribe`.
         """
         ch_id = next(self._ids)
         channel = OutgoingChannel(ch_id, topic, msg_type, field, transport=transport,
@@ -205,7 +215,8 @@ class Bridge:
                                   latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
         ack = self._conn.request_topic(TopicConnect(
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
-            max_age_ms=max_age_ms, redundancy=redundancy, latest=latest))
+            max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
+                reliability=reliability, depth=depth))
         channel.msg_type = ack.msg_type
         with self._lock:
             self._outgoing[ch_id] = channel
