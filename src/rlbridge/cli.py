@@ -108,6 +108,8 @@ def serve(
     node_name: Annotated[str, typer.Option(help="ROS 2 node name (adapter ros2).")]
     = "rlbridge",
     namespace: Annotated[str, typer.Option(help="ROS 2 namespace (adapter ros2).")] = "",
+    metrics_port: Annotated[int | None, typer.Option(
+        help="Serve Prometheus metrics at http://HOST:PORT/metrics (default: off).")] = None,
 ) -> None:
     """Run the bridge server until Ctrl-C / SIGTERM."""
     from pydantic import ValidationError
@@ -117,7 +119,8 @@ def serve(
     try:
         config = ServerConfig(host=host, port=port, tcp=tcp, udp=udp, nodelay=nodelay,
                               adapter=adapter, heartbeat_ms=heartbeat_ms,
-                              timeout_ms=timeout_ms, node_name=node_name, namespace=namespace)
+                              timeout_ms=timeout_ms, node_name=node_name, namespace=namespace,
+                              metrics_port=metrics_port)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "config"
@@ -282,12 +285,19 @@ def topic_list(
 
 @app.command()
 @one_line_errors
-def stats(host: Host = "127.0.0.1", port: Port = 7411) -> None:
-    """Print the server's counters (JSON)."""
+def stats(
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
+    = False,
+) -> None:
+    """Print the server's counters: totals, then per session and per channel."""
     from rlbridge.csp.bridge import Bridge
+    from rlbridge.server.report import format_stats
 
     with Bridge.connect(host, port, name="rlbridge-stats") as bridge:
-        typer.echo(json.dumps(bridge.server_stats(), indent=2, sort_keys=True))
+        body = bridge.server_stats()
+    typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 
 
 def main() -> None:

@@ -92,6 +92,8 @@ class Inbound:
         self.tracker = SequenceTracker()
         self.values_in = 0
         self.bad_values = 0
+        #: Packets for this channel that did not decode (counted by the session).
+        self.malformed = 0
 
     def on_value(self, packet: Value) -> None:
         if self.tracker.accept(packet.seq):
@@ -110,6 +112,14 @@ class Inbound:
             raise
         self.values_in += len(converted)
         self._publisher.publish(converted)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for ``rlbridge stats``; ``late`` = duplicates and overtaken values."""
+        t = self.tracker
+        return {"direction": "publish", "topic": self.request.topic,
+                "transport": self.request.transport, "values_in": self.values_in,
+                "bad_values": self.bad_values, "malformed": self.malformed,
+                "late": t.duplicates + t.stale, "lost": t.lost, "duplicates": t.duplicates}
 
     def close(self) -> None:
         self._publisher.close()
@@ -169,6 +179,12 @@ class Outbound:
             batch = Batch(self.channel, seq + i, stamps[i : i + step], values[i : i + step])
             if not self.sink.send(batch, data=True):
                 self.dropped += len(batch.values)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for ``rlbridge stats``: values offered to the client, and dropped of those."""
+        return {"direction": "subscribe", "topic": self.request.topic,
+                "transport": self.request.transport, "values_out": self.values_out,
+                "dropped": self.dropped}
 
     def close(self) -> None:
         if self.subscription is not None:

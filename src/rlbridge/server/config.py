@@ -35,6 +35,9 @@ class ServerConfig(BaseModel):
         1400, ge=256, le=MAX_DATAGRAM, description="Largest UDP datagram the server sends."
     )
     use_uvloop: bool = True
+    metrics_port: int | None = Field(
+        None, ge=0, le=65535, description="Serve Prometheus /metrics on this port of host."
+    )
 
     @model_validator(mode="after")
     def _check(self) -> ServerConfig:

@@ -68,6 +68,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         if session is None:
             ctx.count("udp_bad_token")
             return
+        session.bytes_in += len(data)
         session.attach_udp(addr)
         session.handle(packet, "udp")
 
