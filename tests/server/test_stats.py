@@ -66,7 +66,8 @@ def check_pattern(session: dict[str, Any]) -> None:
     assert session["malformed"] == 1
     assert session["bad_values"] == 1
     assert session["errors_sent"] == 3
-    assert session["bytes_in"] > 0 and session["bytes_out"] > 0
+    assert session["bytes_in"] > 0
+    assert session["bytes_out"] > 0
 
 
 def test_counters_over_tcp(raw_tcp: Callable[..., Any]) -> None:
@@ -76,7 +77,8 @@ def test_counters_over_tcp(raw_tcp: Callable[..., Any]) -> None:
     body = client.stats()
     check_pattern(body["session"])
     mine = [s for s in body["sessions"] if s["session"] == body["session"]["session"]]
-    assert len(mine) == 1 and mine[0]["channels"]["1"]["values_in"] == 8
+    assert len(mine) == 1
+    assert mine[0]["channels"]["1"]["values_in"] == 8
     assert body["server"]["values_in"] >= 8
     assert body["server"]["malformed"] >= 1
 

@@ -51,7 +51,8 @@ def test_scrape_reports_known_traffic(make_server: Callable[..., ServerThread],
                                       wait_until: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
     address = srv.server.address
-    assert address is not None and address.metrics_port
+    assert address is not None
+    assert address.metrics_port
     mport = address.metrics_port
     client = raw_tcp(srv.port)
     client.hello('pub "quoted"')
@@ -91,13 +92,15 @@ def test_bad_requests_get_http_errors(make_server: Callable[..., ServerThread]) 
 def test_metrics_off_by_default_and_closed_with_the_server() -> None:
     srv = ServerThread(ServerConfig(port=0)).start()
     try:
-        assert srv.server.address is not None and srv.server.address.metrics_port is None
+        assert srv.server.address is not None
+        assert srv.server.address.metrics_port is None
     finally:
         srv.stop()
     with_metrics = ServerThread(ServerConfig(port=0, metrics_port=0)).start()
     assert with_metrics.server.address is not None
     mport = with_metrics.server.address.metrics_port
-    assert mport is not None and scrape(mport)[0] == 200
+    assert mport is not None
+    assert scrape(mport)[0] == 200
     with_metrics.stop()
     with pytest.raises(ConnectionRefusedError):
         scrape(mport)
