@@ -1,0 +1,201 @@
+"""The child processes of ``rlbridge bench load`` and ``soak``: many clients, one slow consumer.
+
+A *clients* process hosts several SDK sessions (``Bridge``), each with ``channels`` outgoing
+channels published at ``rate_hz`` and the same topics subscribed back, so every value makes the
+deployed round trip: SDK -> server -> in-process bus -> server -> SDK. One ticker thread per
+process writes ``time.time()`` on every outgoing channel on an absolute schedule; when it falls
+behind it skips ticks (counted) instead of bursting, so the offered load is what it says.
+
+Latency is measured on channel 0 of every session: a thread per session blocks on that channel
+and records ``time.time() - value`` when a value becomes readable. The other channels are
+non-blocking latest-value channels (what a control loop reads) whose delivered values are
+counted from their ring's ``written`` counter, without a reader paying per value.
+
+The *slow* process is a raw protocol client (the wire codec on a plain socket, no SDK): it
+subscribes over TCP with a tiny receive buffer, reads the acks, then never reads again, so the
+server's queue to it fills and the server must drop, and count, what does not fit.
+
+The parent switches measurement phases (``phase`` commands); each process reports per-session
+counters and latency percentiles per phase at the end.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+from rlbridge.bench.common import Control, Params, Role, emit, hold, percentile
+
+F64 = "std_msgs/msg/Float64"
+
+
+def topic(session: int, channel: int) -> str:
+    return f"/load/s{session}/c{channel}"
+
+
+class _Session:
+    """One SDK session: ``channels`` publishers and their subscriptions, and a probe thread."""
+
+    def __init__(self, params: Params, index: int, phase: list[str]) -> None:
+        from rlbridge.csp.bridge import Bridge
+
+        self.index = index
+        transport = params["transport"]
+        self.bridge = Bridge.connect(params["host"], int(params["port"]), name=f"load-{index}",
+                                     timeout=30.0)
+        n = int(params["channels"])
+        self.subs = [self.bridge.subscribe(topic(index, c), F64, transport=transport,
+                                           blocking=c == 0, buffer_size=64 if c == 0 else 1)
+                     for c in range(n)]
+        self.pubs = [self.bridge.publish(topic(index, c), F64, transport=transport)
+                     for c in range(n)]
+        self.sent = 0
+        self.latency: dict[str, list[float]] = {}
+        self.marks: list[tuple[str, int, int, float]] = []  # phase, sent, received, time
+        self._phase = phase
+        self._running = True
+        self._probe = threading.Thread(target=self._read_probe, name=f"probe-{index}",
+                                       daemon=True)
+        self._probe.start()
+
+    def received(self) -> int:
+        return sum(ch.statistics().written for ch in self.subs)
+
+    def _read_probe(self) -> None:
+        probe, now = self.subs[0], time.time
+        while self._running:
+            try:
+                value = probe.read(0.2)
+            except TimeoutError:
+                continue
+            except Exception:  # the session closed under us: stop measuring, report the rest
+                return
+            self.latency.setdefault(self._phase[0], []).append((now() - value) * 1e6)
+
+    def write_all(self, stamp: float) -> None:
+        for ch in self.pubs:
+            ch.write(stamp)
+        self.sent += len(self.pubs)
+
+    def mark(self, phase: str) -> None:
+        self.marks.append((phase, self.sent, self.received(), time.monotonic()))
+
+    def result(self) -> Params:
+        """Per-phase sent/received and latency percentiles (µs), and the run's losses."""
+        self._running = False
+        self.mark("end")
+        phases: dict[str, Params] = {}
+        for (name, s0, r0, t0), (_n, s1, r1, t1) in zip(self.marks, self.marks[1:],
+                                                         strict=False):
+            lat = sorted(self.latency.get(name, []))
+            phases[name] = {"sent": s1 - s0, "received": r1 - r0, "seconds": t1 - t0,
+                            "n": len(lat),
+                            "p50": percentile(lat, 50), "p99": percentile(lat, 99)}
+        return {"session": self.index, "sent": self.sent, "received": self.received(),
+                "lost_seq": sum(ch.lost for ch in self.subs),
+                "overwritten": sum(ch.statistics().overwritten for ch in self.pubs),
+                "phases": phases}
+
+    def close(self) -> None:
+        self._running = False
+        self.bridge.close()
+
+
+def clients(params: Params) -> None:
+    """Sessions ``params["ids"]``; ticks until ``stop`` (or ``max_s``), then reports."""
+    control = Control()
+    phase = ["warmup"]
+    sessions = [_Session(params, i, phase) for i in params["ids"]]
+    emit("ready")
+    control.wait("go", float(params["max_s"]))
+    for s in sessions:
+        s.mark("warmup")
+    period = 1.0 / float(params["rate_hz"])
+    start = time.monotonic()
+    end = start + float(params["max_s"])
+    tick = skipped = 0
+    while True:
+        now = time.monotonic()
+        if now >= end or control.poll("stop") is not None:
+            break
+        msg = control.poll("phase")
+        if msg is not None:
+            phase[0] = str(msg["name"])
+            for s in sessions:
+                s.mark(phase[0])
+        stamp = time.time()
+        for s in sessions:
+            s.write_all(stamp)
+        tick += 1
+        due = start + tick * period
+        now = time.monotonic()
+        if now > due + period:  # behind by more than a tick: skip, do not burst
+            late = int((now - due) / period)
+            skipped += late
+            tick += late
+            due = start + tick * period
+        time.sleep(max(0.0, due - time.monotonic()))
+    time.sleep(float(params["drain_s"]))  # values still in flight arrive and are counted
+    emit("result", sessions=[s.result() for s in sessions], ticks=tick, skipped=skipped)
+    for s in sessions:
+        s.close()
+    hold(control)
+
+
+def slow(params: Params) -> None:
+    """Subscribe to ``params["topics"]`` over TCP, read the acks, then never read again."""
+    from rlbridge.wire import (
+        PROTOCOL_VERSION,
+        FrameDecoder,
+        Hello,
+        PacketCodec,
+        TopicAck,
+        TopicConnect,
+        TopicError,
+    )
+
+    control = Control()
+    codec = PacketCodec()
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect((params["host"], int(params["port"])))
+    sock.settimeout(30)
+    out = bytearray()
+    codec.encode_frame_into(Hello(PROTOCOL_VERSION, "slow-consumer"), out)
+    for ch, name in enumerate(params["topics"], start=1):
+        codec.encode_frame_into(TopicConnect(ch, "subscribe", name, F64, transport="tcp"), out)
+    sock.sendall(out)
+    decoder = FrameDecoder(codec)
+    acked = 0
+    while acked < len(params["topics"]):
+        for packet in decoder.feed(sock.recv(4096)):
+            if isinstance(packet, TopicError):
+                raise RuntimeError(f"slow consumer: {packet.reason}")
+            acked += isinstance(packet, TopicAck)
+    emit("ready", channels=acked)
+    hold(control)  # the socket is never read again; closed when the parent says so
+    sock.close()
+
+
+ROLES: dict[str, Role] = {"clients": clients, "slow": slow}
+
+
+def worker_main() -> None:
+    """Child entry point; ``common.worker_main`` only runs the modules it lists."""
+    import json
+    import os
+    import sys
+
+    role, params, lifetime = sys.argv[1:4]
+    timer = threading.Timer(float(lifetime), lambda: os._exit(4))
+    timer.daemon = True
+    timer.start()
+    try:
+        ROLES[role](json.loads(params))
+    except Exception as exc:
+        emit("error", message=f"{type(exc).__name__}: {exc}")
+        raise
+    sys.stdout.flush()
+    os._exit(0)
+
