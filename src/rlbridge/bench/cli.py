@@ -148,13 +148,15 @@ Clients = Annotated[int, typer.Option(help="Concurrent client sessions.")]
 Channels = Annotated[int, typer.Option(help="Channels per session (published and subscribed).")]
 RateHz = Annotated[float, typer.Option("--rate", help="Values/s per channel.")]
 Procs = Annotated[int, typer.Option(help="OS processes the client sessions are spread over.")]
-Via = Annotated[str, typer.Option(help="Transport of the client channels: udp or tcp.")]
+Via = Annotated[str, typer.Option(help="Transport of SDK client channels: udp or tcp.")]
+Client = Annotated[str, typer.Option(help="raw: protocol-level UDP sessions, one thread per "
+                                     "process; sdk: a Bridge per session.")]
 
 
 @bench_app.command("load")
 def load(
     ctx: typer.Context, clients: Clients = 100, channels: Channels = 10, rate: RateHz = 100.0,
-    processes: Procs = 4, transport: Via = "udp",
+    processes: Procs = 4, transport: Via = "udp", client: Client = "raw",
     phase_s: Annotated[float, typer.Option(help="Seconds per phase (base, slow, after).")]
     = 20.0,
     slow_topics: Annotated[int, typer.Option(help="Topics the slow consumer subscribes.")]
@@ -166,7 +168,7 @@ def load(
     from rlbridge.bench.common import progress
 
     s = ld.Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
-                    transport=transport, phase_s=phase_s, slow_topics=slow_topics,
+                    transport=transport, client=client, phase_s=phase_s, slow_topics=slow_topics,
                     warmup_s=min(5.0, phase_s))
     _run("load", lambda: ld.report(ld.run(s, ld.load_plan(s), progress), _command(ctx)), out)
 
@@ -176,7 +178,7 @@ def soak(
     ctx: typer.Context, minutes: Annotated[float, typer.Option(help="Length of the soak.")] = 5,
     interval_s: Annotated[float, typer.Option(help="Seconds per report row.")] = 30.0,
     clients: Clients = 50, channels: Channels = 10, rate: RateHz = 100.0, processes: Procs = 2,
-    transport: Via = "udp", out: Out = Path("docs/load.md"),
+    transport: Via = "udp", client: Client = "raw", out: Out = Path("docs/load.md"),
 ) -> None:
     """Load held for MINUTES: server RSS and latency per interval (a leak shows as a trend)."""
     from rlbridge.bench import soak as sk
@@ -184,6 +186,6 @@ def soak(
     from rlbridge.bench.load import Settings
 
     s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
-                 transport=transport, warmup_s=min(5.0, interval_s))
+                 transport=transport, client=client, warmup_s=min(5.0, interval_s))
     _run("soak", lambda: sk.report(sk.measure(s, minutes, interval_s, progress),
                                    _command(ctx)), out)

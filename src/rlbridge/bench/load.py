@@ -81,6 +81,8 @@ class Settings:
     rate_hz: float = 100.0
     processes: int = 4
     transport: str = "udp"
+    #: ``raw``: protocol-level sessions, one thread per process (``load_raw``); ``sdk``: Bridge.
+    client: str = "raw"
     phase_s: float = 20.0
     warmup_s: float = 5.0
     slow_topics: int = 100
@@ -154,7 +156,8 @@ def _run(group: LoadGroup, s: Settings, plan: Plan, progress: Callable[[str], No
     per = [ids[i :: s.processes] for i in range(s.processes)]
     common = {"host": host, "port": port, "channels": s.channels, "rate_hz": s.rate_hz,
               "transport": s.transport, "max_s": total_s + 60, "drain_s": s.drain_s}
-    workers = [group.start(f"clients-{i}", "b", MODULE, "clients", {**common, "ids": chunk})
+    role = "raw" if s.client == "raw" else "clients"
+    workers = [group.start(f"clients-{i}", "b", MODULE, role, {**common, "ids": chunk})
                for i, chunk in enumerate(per) if chunk]
     for w in workers:
         w.expect("ready", 300)
@@ -249,14 +252,21 @@ def totals_line(r: Run) -> str:
             f"(behind schedule) {r.skipped_ticks:,}.")
 
 
+def describe(s: Settings) -> str:
+    """How the clients were run, for the report."""
+    who = ("protocol-level UDP sessions (`--client raw`, one thread per process)"
+           if s.client == "raw" else f"SDK sessions (`--client sdk`, Bridge over {s.transport})")
+    return (f"as {who} in {s.processes} client processes, one server process, loopback; "
+            "each value goes client -> server -> client (the clients subscribe to their own "
+            "topics)")
+
+
 def report(r: Run, command: Sequence[str]) -> str:
     s = r.settings
     slow = next((p for p in r.phases if p.name == "slow"), None)
     lines = [report_header("Load: many clients on one server", command), "",
              f"{s.clients} sessions x {s.channels} channels at {s.rate_hz:g} Hz "
-             f"(offered {s.offered:,.0f} values/s) over {s.transport.upper()}, in {s.processes} "
-             f"client processes, one server process, loopback. Each value goes SDK -> server -> "
-             f"SDK (the clients subscribe to their own topics). Server `max_write_buffer` "
+             f"(offered {s.offered:,.0f} values/s) {describe(s)}. Server `max_write_buffer` "
              f"{s.max_write_buffer >> 10} KiB; watchdog 500/5000 ms.", "",
              phase_table(r), "", totals_line(r),
              f"Load average before: {', '.join(f'{x:.2f}' for x in r.load_before)}; after: "

@@ -24,6 +24,9 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from array import array
+from collections.abc import Callable, Sequence
+from typing import Protocol
 
 from rlbridge.bench.common import Control, Params, Role, emit, hold, percentile
 
@@ -34,26 +37,65 @@ def topic(session: int, channel: int) -> str:
     return f"/load/s{session}/c{channel}"
 
 
-class _Session:
+class Book:
+    """A session's counters and latency samples, cut into the phases the parent announces."""
+
+    def __init__(self, index: int, phase: list[str]) -> None:
+        self.index = index
+        self.sent = 0
+        self.latency: dict[str, array[float]] = {}
+        self.marks: list[tuple[str, int, int, float]] = []  # phase, sent, received, time
+        self._phase = phase
+
+    def received(self) -> int:
+        raise NotImplementedError
+
+    def extra(self) -> Params:
+        return {}
+
+    def record(self, latency_us: float) -> None:
+        phase = self._phase[0]
+        samples = self.latency.get(phase)
+        if samples is None:
+            samples = self.latency[phase] = array("f")
+        samples.append(latency_us)
+
+    def mark(self, phase: str) -> None:
+        self.marks.append((phase, self.sent, self.received(), time.monotonic()))
+
+    def result(self) -> Params:
+        """Per-phase sent/received and latency percentiles (µs), and the run's losses."""
+        self.mark("end")
+        phases: dict[str, Params] = {}
+        for (name, s0, r0, t0), (_n, s1, r1, t1) in zip(self.marks, self.marks[1:],
+                                                         strict=False):
+            lat = sorted(self.latency.get(name, []))
+            phases[name] = {"sent": s1 - s0, "received": r1 - r0, "seconds": t1 - t0,
+                            "n": len(lat), "p50": percentile(lat, 50),
+                            "p99": percentile(lat, 99)}
+        return {"session": self.index, "sent": self.sent, "received": self.received(),
+                "phases": phases, **self.extra()}
+
+
+class _SdkSession(Book):
     """One SDK session: ``channels`` publishers and their subscriptions, and a probe thread."""
 
     def __init__(self, params: Params, index: int, phase: list[str]) -> None:
         from rlbridge.csp.bridge import Bridge
 
-        self.index = index
+        super().__init__(index, phase)
         transport = params["transport"]
+        # switch_interval=None: a hundred SDK threads in one process hand the GIL over at
+        # CPython's default pace; the shortened interval the SDK sets for HRT loops thrashes.
         self.bridge = Bridge.connect(params["host"], int(params["port"]), name=f"load-{index}",
-                                     timeout=30.0)
+                                     timeout=30.0, switch_interval=None)
         n = int(params["channels"])
         self.subs = [self.bridge.subscribe(topic(index, c), F64, transport=transport,
                                            blocking=c == 0, buffer_size=64 if c == 0 else 1)
                      for c in range(n)]
-        self.pubs = [self.bridge.publish(topic(index, c), F64, transport=transport)
+        self.pubs = [self.bridge.publish(topic(index, c), F64, transport=transport,
+                                         through_buffer=True, buffer_size=16)
                      for c in range(n)]
-        self.sent = 0
-        self.latency: dict[str, list[float]] = {}
-        self.marks: list[tuple[str, int, int, float]] = []  # phase, sent, received, time
-        self._phase = phase
         self._running = True
         self._probe = threading.Thread(target=self._read_probe, name=f"probe-{index}",
                                        daemon=True)
@@ -61,6 +103,11 @@ class _Session:
 
     def received(self) -> int:
         return sum(ch.statistics().written for ch in self.subs)
+
+    def extra(self) -> Params:
+        self._running = False
+        return {"lost_seq": sum(ch.lost for ch in self.subs),
+                "overwritten": sum(ch.statistics().overwritten for ch in self.pubs)}
 
     def _read_probe(self) -> None:
         probe, now = self.subs[0], time.time
@@ -71,42 +118,30 @@ class _Session:
                 continue
             except Exception:  # the session closed under us: stop measuring, report the rest
                 return
-            self.latency.setdefault(self._phase[0], []).append((now() - value) * 1e6)
+            self.record((now() - value) * 1e6)
 
     def write_all(self, stamp: float) -> None:
         for ch in self.pubs:
             ch.write(stamp)
+        self.bridge.send()  # one hand-off to the send thread per tick, as a control loop does
         self.sent += len(self.pubs)
-
-    def mark(self, phase: str) -> None:
-        self.marks.append((phase, self.sent, self.received(), time.monotonic()))
-
-    def result(self) -> Params:
-        """Per-phase sent/received and latency percentiles (µs), and the run's losses."""
-        self._running = False
-        self.mark("end")
-        phases: dict[str, Params] = {}
-        for (name, s0, r0, t0), (_n, s1, r1, t1) in zip(self.marks, self.marks[1:],
-                                                         strict=False):
-            lat = sorted(self.latency.get(name, []))
-            phases[name] = {"sent": s1 - s0, "received": r1 - r0, "seconds": t1 - t0,
-                            "n": len(lat),
-                            "p50": percentile(lat, 50), "p99": percentile(lat, 99)}
-        return {"session": self.index, "sent": self.sent, "received": self.received(),
-                "lost_seq": sum(ch.lost for ch in self.subs),
-                "overwritten": sum(ch.statistics().overwritten for ch in self.pubs),
-                "phases": phases}
 
     def close(self) -> None:
         self._running = False
         self.bridge.close()
 
 
-def clients(params: Params) -> None:
-    """Sessions ``params["ids"]``; ticks until ``stop`` (or ``max_s``), then reports."""
+class _Sessions(Protocol):
+    def write_all(self, stamp: float) -> None: ...
+    def mark(self, phase: str) -> None: ...
+    def result(self) -> Params: ...
+    def close(self) -> None: ...
+
+
+def tick_loop(params: Params, sessions: Sequence[_Sessions], phase: list[str],
+              wait_until: Callable[[float], None]) -> None:
+    """The shared ticker: go, phases, stop (or ``max_s``), drain, report, hold."""
     control = Control()
-    phase = ["warmup"]
-    sessions = [_Session(params, i, phase) for i in params["ids"]]
     emit("ready")
     control.wait("go", float(params["max_s"]))
     for s in sessions:
@@ -135,12 +170,21 @@ def clients(params: Params) -> None:
             skipped += late
             tick += late
             due = start + tick * period
-        time.sleep(max(0.0, due - time.monotonic()))
-    time.sleep(float(params["drain_s"]))  # values still in flight arrive and are counted
+        wait_until(due)
+    for s in sessions:
+        s.mark("drain")  # the last phase ends here; in-flight values count in the totals only
+    wait_until(time.monotonic() + float(params["drain_s"]))
     emit("result", sessions=[s.result() for s in sessions], ticks=tick, skipped=skipped)
     for s in sessions:
         s.close()
     hold(control)
+
+
+def clients(params: Params) -> None:
+    """SDK sessions ``params["ids"]`` in this process (``Bridge``, its threads, its channels)."""
+    phase = ["warmup"]
+    sessions = [_SdkSession(params, i, phase) for i in params["ids"]]
+    tick_loop(params, sessions, phase, lambda due: time.sleep(max(0.0, due - time.monotonic())))
 
 
 def slow(params: Params) -> None:
@@ -178,7 +222,16 @@ def slow(params: Params) -> None:
     sock.close()
 
 
-ROLES: dict[str, Role] = {"clients": clients, "slow": slow}
+def raw_clients(params: Params) -> None:
+    """Protocol-level sessions (``load_raw``): one thread drives them all."""
+    from rlbridge.bench.load_raw import RawSessions
+
+    phase = ["warmup"]
+    raw = RawSessions(params, phase)
+    tick_loop(params, raw.sessions, phase, raw.wait_until)
+
+
+ROLES: dict[str, Role] = {"clients": clients, "raw": raw_clients, "slow": slow}
 
 
 def worker_main() -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from rlbridge.bench.common import fmt, markdown_table, report_header
-from rlbridge.bench.load import Plan, Run, Settings, phase_row, run, totals_line
+from rlbridge.bench.load import Plan, Run, Settings, describe, phase_row, run, totals_line
 
 
 def soak_plan(minutes: float, interval_s: float) -> Plan:
@@ -40,8 +40,7 @@ def report(r: Run, command: Sequence[str]) -> str:
     return "\n".join([
         report_header("Soak: load held over time", command), "",
         f"{s.clients} sessions x {s.channels} channels at {s.rate_hz:g} Hz (offered "
-        f"{s.offered:,.0f} values/s) over {s.transport.upper()}, {s.processes} client "
-        f"processes, loopback; a row every {r.phases[0].seconds:.0f} s after "
+        f"{s.offered:,.0f} values/s) {describe(s)}; a row every {r.phases[0].seconds:.0f} s after "
         f"{s.warmup_s:g} s of warm-up." if r.phases else "", "",
         markdown_table(headers, rows), "", totals_line(r), growth,
         f"Load average before: {', '.join(f'{v:.2f}' for v in r.load_before)}; after: "
