@@ -101,6 +101,7 @@ class Phase:
     name: str
     seconds: float
     cpu_s: float
+    clients_cpu_s: float
     rss: list[int]
     stats0: Params
     stats1: Params
@@ -193,6 +194,8 @@ def _phase(name: str, seconds: float, workers: list[Worker], server: Worker,
     for w in workers:
         w.send("phase", name=name)
     stats0 = probe.server_stats()
+    for w in workers:
+        w.mark_cpu()
     cpu0 = cpu_seconds(server.pid)
     t0 = time.monotonic()
     rss = [rss_bytes(server.pid)]
@@ -200,8 +203,9 @@ def _phase(name: str, seconds: float, workers: list[Worker], server: Worker,
         time.sleep(min(1.0, left))
         rss.append(rss_bytes(server.pid))
     cpu = cpu_seconds(server.pid) - cpu0
+    clients_cpu = sum(w.cpu_since_mark() for w in workers)
     elapsed = time.monotonic() - t0
-    return Phase(name, elapsed, cpu, rss, stats0, probe.server_stats())
+    return Phase(name, elapsed, cpu, clients_cpu, rss, stats0, probe.server_stats())
 
 
 # -- report --------------------------------------------------------------------------------
@@ -218,6 +222,7 @@ def phase_row(phase: Phase) -> dict[str, float]:
         "p99": median(p99s),
         "p99_worst": max((v for v in p99s if not math.isnan(v)), default=math.nan),
         "cpu_pct": 100 * phase.cpu_s / phase.seconds,
+        "clients_cpu_pct": 100 * phase.clients_cpu_s / phase.seconds,
         "rss0": phase.rss[0] / MiB,
         "rss1": phase.rss[-1] / MiB,
         "rss_max": max(phase.rss) / MiB,
@@ -230,13 +235,13 @@ def phase_table(r: Run) -> str:
     headers = ["phase", "s", "offered values/s", "delivered values/s", "server in values/s",
                "latency p50 µs (median session)", "p99 µs (median session)",
                "p99 µs (worst session)", "server dropped", "server CPU %",
-               "server RSS MiB start / max / end"]
+               "clients CPU % (all processes)", "server RSS MiB start / max / end"]
     rows = []
     for ph in r.phases:
         x = phase_row(ph)
         rows.append([ph.name, fmt(ph.seconds, 1), fmt(x["offered"]), fmt(x["delivered"]),
                      fmt(x["server_in"]), fmt(x["p50"]), fmt(x["p99"]), fmt(x["p99_worst"]),
-                     fmt(x["dropped"]), fmt(x["cpu_pct"]),
+                     fmt(x["dropped"]), fmt(x["cpu_pct"]), fmt(x["clients_cpu_pct"]),
                      f"{x['rss0']:.1f} / {x['rss_max']:.1f} / {x['rss1']:.1f}"])
     return markdown_table(headers, rows)
 
