@@ -228,6 +228,9 @@ def phase_row(phase: Phase) -> dict[str, float]:
         "rss_max": max(phase.rss) / MiB,
         "server_in": phase.server_delta("values_in") / phase.seconds,
         "dropped": phase.server_delta("dropped"),
+        # CPU the server spends per value it takes in and hands back out: the figure that
+        # says what one core can carry, whatever share of it this machine gave the server.
+        "cpu_us_per_value": phase.cpu_s * 1e6 / max(1, phase.server_delta("values_in")),
     }
 
 
@@ -235,15 +238,25 @@ def phase_table(r: Run) -> str:
     headers = ["phase", "s", "offered values/s", "delivered values/s", "server in values/s",
                "latency p50 µs (median session)", "p99 µs (median session)",
                "p99 µs (worst session)", "server dropped", "server CPU %",
+               "server CPU µs per value (in + out)",
                "clients CPU % (all processes)", "server RSS MiB start / max / end"]
     rows = []
     for ph in r.phases:
         x = phase_row(ph)
         rows.append([ph.name, fmt(ph.seconds, 1), fmt(x["offered"]), fmt(x["delivered"]),
                      fmt(x["server_in"]), fmt(x["p50"]), fmt(x["p99"]), fmt(x["p99_worst"]),
-                     fmt(x["dropped"]), fmt(x["cpu_pct"]), fmt(x["clients_cpu_pct"]),
+                     fmt(x["dropped"]), fmt(x["cpu_pct"]), fmt(x["cpu_us_per_value"], 1),
+                     fmt(x["clients_cpu_pct"]),
                      f"{x['rss0']:.1f} / {x['rss_max']:.1f} / {x['rss1']:.1f}"])
     return markdown_table(headers, rows)
+
+
+def first_hop_lost(r: Run) -> int:
+    """Values that never reached the server (sequence gaps its publish channels counted)."""
+    if not r.phases:
+        return 0
+    return sum(int(c.get("lost", 0)) for s in r.phases[-1].stats1.get("sessions", [])
+               for c in s["channels"].values())
 
 
 def totals_line(r: Run) -> str:
@@ -252,7 +265,9 @@ def totals_line(r: Run) -> str:
     lost = sent - received
     pct = 100 * lost / sent if sent else 0.0
     return (f"Whole run: {sent:,} values written, {received:,} delivered to the subscribing "
-            f"channels, {lost:,} not delivered ({pct:.2f} %); sequence gaps seen by the clients "
+            f"channels, {lost:,} not delivered ({pct:.2f} %), of which {first_hop_lost(r):,} never "
+            f"reached the server (its sequence gaps, by the end of the last phase); gaps seen "
+            f"by the clients "
             f"{sum(int(x['lost_seq']) for x in r.results):,}; ticks the clients skipped "
             f"(behind schedule) {r.skipped_ticks:,}.")
 
