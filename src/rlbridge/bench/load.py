@@ -65,6 +65,12 @@ class LoadGroup(ProcessGroup):
         return worker
 
 
+def run_delay_s(pid: int) -> float:
+    """Seconds the process's main thread was runnable but waiting for a CPU (schedstat)."""
+    with open(f"/proc/{pid}/schedstat") as f:
+        return int(f.read().split()[1]) / 1e9
+
+
 def rss_bytes(pid: int) -> int:
     """Resident set size of a live process (``VmRSS`` in ``/proc/<pid>/status``)."""
     with open(f"/proc/{pid}/status") as f:
@@ -102,6 +108,7 @@ class Phase:
     seconds: float
     cpu_s: float
     clients_cpu_s: float
+    wait_s: float
     rss: list[int]
     stats0: Params
     stats1: Params
@@ -197,6 +204,7 @@ def _phase(name: str, seconds: float, workers: list[Worker], server: Worker,
     for w in workers:
         w.mark_cpu()
     cpu0 = cpu_seconds(server.pid)
+    wait0 = run_delay_s(server.pid)
     t0 = time.monotonic()
     rss = [rss_bytes(server.pid)]
     while (left := t0 + seconds - time.monotonic()) > 0:
@@ -205,7 +213,8 @@ def _phase(name: str, seconds: float, workers: list[Worker], server: Worker,
     cpu = cpu_seconds(server.pid) - cpu0
     clients_cpu = sum(w.cpu_since_mark() for w in workers)
     elapsed = time.monotonic() - t0
-    return Phase(name, elapsed, cpu, clients_cpu, rss, stats0, probe.server_stats())
+    wait = run_delay_s(server.pid) - wait0
+    return Phase(name, elapsed, cpu, clients_cpu, wait, rss, stats0, probe.server_stats())
 
 
 # -- report --------------------------------------------------------------------------------
@@ -223,6 +232,7 @@ def phase_row(phase: Phase) -> dict[str, float]:
         "p99_worst": max((v for v in p99s if not math.isnan(v)), default=math.nan),
         "cpu_pct": 100 * phase.cpu_s / phase.seconds,
         "clients_cpu_pct": 100 * phase.clients_cpu_s / phase.seconds,
+        "wait_pct": 100 * phase.wait_s / phase.seconds,
         "rss0": phase.rss[0] / MiB,
         "rss1": phase.rss[-1] / MiB,
         "rss_max": max(phase.rss) / MiB,
@@ -238,7 +248,7 @@ def phase_table(r: Run) -> str:
     headers = ["phase", "s", "offered values/s", "delivered values/s", "server in values/s",
                "latency p50 µs (median session)", "p99 µs (median session)",
                "p99 µs (worst session)", "server dropped", "server CPU %",
-               "server CPU µs per value (in + out)",
+               "server CPU µs per value (in + out)", "server waited for a CPU %",
                "clients CPU % (all processes)", "server RSS MiB start / max / end"]
     rows = []
     for ph in r.phases:
@@ -246,6 +256,7 @@ def phase_table(r: Run) -> str:
         rows.append([ph.name, fmt(ph.seconds, 1), fmt(x["offered"]), fmt(x["delivered"]),
                      fmt(x["server_in"]), fmt(x["p50"]), fmt(x["p99"]), fmt(x["p99_worst"]),
                      fmt(x["dropped"]), fmt(x["cpu_pct"]), fmt(x["cpu_us_per_value"], 1),
+                     fmt(x["wait_pct"]),
                      fmt(x["clients_cpu_pct"]),
                      f"{x['rss0']:.1f} / {x['rss_max']:.1f} / {x['rss1']:.1f}"])
     return markdown_table(headers, rows)
