@@ -169,7 +169,7 @@ def load(
 
     s = ld.Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                     transport=transport, client=client, phase_s=phase_s, slow_topics=slow_topics,
-                    warmup_s=min(5.0, phase_s))
+                    warmup_s=min(10.0, phase_s))
     _run("load", lambda: ld.report(ld.run(s, ld.load_plan(s), progress), _command(ctx)), out)
 
 
@@ -186,6 +186,6 @@ def soak(
     from rlbridge.bench.load import Settings
 
     s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
-                 transport=transport, client=client, warmup_s=min(5.0, interval_s))
+                 transport=transport, client=client, warmup_s=min(10.0, interval_s))
     _run("soak", lambda: sk.report(sk.measure(s, minutes, interval_s, progress),
                                    _command(ctx)), out)

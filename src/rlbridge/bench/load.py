@@ -92,6 +92,8 @@ class Settings:
     phase_s: float = 20.0
     warmup_s: float = 5.0
     slow_topics: int = 100
+    #: Values/s fed (in batches) to a bulk topic only the slow consumer subscribes to.
+    bulk_rate: float = 40_000.0
     max_write_buffer: int = 256 << 10
     drain_s: float = 2.0
 
@@ -181,7 +183,9 @@ def _run(group: LoadGroup, s: Settings, plan: Plan, progress: Callable[[str], No
                 topics = [f"/load/s{i % s.clients}/c{1 + (i // s.clients) % max(1, s.channels - 1)}"
                           for i in range(s.slow_topics)]
                 slow, _ = group.spawn("slow", "b", MODULE, "slow",
-                                      {"host": host, "port": port, "topics": topics}, timeout=60)
+                                      {"host": host, "port": port, "topics": topics,
+                                       "bulk_rate": s.bulk_rate, "max_s": total_s + 60},
+                                      timeout=60)
             elif action == "stop" and slow is not None:
                 slow.stop()
                 slow = None
@@ -279,8 +283,8 @@ def totals_line(r: Run) -> str:
             f"channels, {lost:,} not delivered ({pct:.2f} %), of which {first_hop_lost(r):,} never "
             f"reached the server (its sequence gaps, by the end of the last phase); gaps seen "
             f"by the clients "
-            f"{sum(int(x['lost_seq']) for x in r.results):,}; ticks the clients skipped "
-            f"(behind schedule) {r.skipped_ticks:,}.")
+            f"{sum(int(x['lost_seq']) for x in r.results):,}; session writes the clients "
+            f"skipped (behind schedule) {r.skipped_ticks:,}.")
 
 
 def describe(s: Settings) -> str:
@@ -305,8 +309,9 @@ def report(r: Run, command: Sequence[str]) -> str:
     if slow is not None:
         st = slow.named("slow-consumer")
         if st is not None:
-            lines += ["", f"Slow consumer (subscribed to {s.slow_topics} topics over TCP, never "
-                      f"reads): {st['values_out']:,} values offered to it, {st['dropped']:,} "
-                      f"dropped and counted, {st['tcp_queued_bytes']:,} bytes queued at the end "
-                      f"of the phase (bound {s.max_write_buffer:,})."]
+            lines += ["", f"Slow consumer (subscribed over TCP to {s.slow_topics} of the "
+                      f"clients' topics and to a bulk topic fed at {s.bulk_rate:,.0f} values/s "
+                      f"in batches; never reads): {st['values_out']:,} values offered to it, "
+                      f"{st['dropped']:,} dropped and counted, {st['tcp_queued_bytes']:,} bytes "
+                      f"queued at the end of the phase (bound {s.max_write_buffer:,})."]
     return "\n".join(lines) + "\n"

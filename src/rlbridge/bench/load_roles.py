@@ -26,11 +26,13 @@ import threading
 import time
 from array import array
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 from rlbridge.bench.common import Control, Params, Role, emit, hold, percentile
+from rlbridge.wire import PacketCodec
 
 F64 = "std_msgs/msg/Float64"
+BULK_TOPIC = "/load/bulk"
 
 
 def topic(session: int, channel: int) -> str:
@@ -146,35 +148,36 @@ def tick_loop(params: Params, sessions: Sequence[_Sessions], phase: list[str],
     control.wait("go", float(params["max_s"]))
     for s in sessions:
         s.mark("warmup")
-    period = 1.0 / float(params["rate_hz"])
+    # Sessions are staggered over the period, as independent clients would be: session j of
+    # n writes at j/n of each period, so the server sees a steady stream, not a burst per tick.
+    step = 1.0 / float(params["rate_hz"]) / len(sessions)
     start = time.monotonic()
     end = start + float(params["max_s"])
-    tick = skipped = 0
+    k = skipped = 0
     while True:
         now = time.monotonic()
         if now >= end or control.poll("stop") is not None:
             break
-        msg = control.poll("phase")
-        if msg is not None:
-            phase[0] = str(msg["name"])
-            for s in sessions:
-                s.mark(phase[0])
-        stamp = time.time()
-        for s in sessions:
-            s.write_all(stamp)
-        tick += 1
-        due = start + tick * period
+        if k % len(sessions) == 0:
+            msg = control.poll("phase")
+            if msg is not None:
+                phase[0] = str(msg["name"])
+                for s in sessions:
+                    s.mark(phase[0])
+        sessions[k % len(sessions)].write_all(time.time())
+        k += 1
+        due = start + k * step
         now = time.monotonic()
-        if now > due + period:  # behind by more than a tick: skip, do not burst
-            late = int((now - due) / period)
+        if now > due + step * len(sessions):  # behind by a whole period: skip, do not burst
+            late = int((now - due) / step)
             skipped += late
-            tick += late
-            due = start + tick * period
+            k += late
+            due = start + k * step
         wait_until(due)
     for s in sessions:
         s.mark("drain")  # the last phase ends here; in-flight values count in the totals only
     wait_until(time.monotonic() + float(params["drain_s"]))
-    emit("result", sessions=[s.result() for s in sessions], ticks=tick, skipped=skipped)
+    emit("result", sessions=[s.result() for s in sessions], writes=k, skipped=skipped)
     for s in sessions:
         s.close()
     hold(control)
@@ -187,39 +190,59 @@ def clients(params: Params) -> None:
     tick_loop(params, sessions, phase, lambda due: time.sleep(max(0.0, due - time.monotonic())))
 
 
-def slow(params: Params) -> None:
-    """Subscribe to ``params["topics"]`` over TCP, read the acks, then never read again."""
-    from rlbridge.wire import (
-        PROTOCOL_VERSION,
-        FrameDecoder,
-        Hello,
-        PacketCodec,
-        TopicAck,
-        TopicConnect,
-        TopicError,
-    )
+def _tcp_session(params: Params, name: str, requests: list[Any],
+                 rcvbuf: int | None = None) -> socket.socket:
+    """A raw TCP session with ``requests`` (TopicConnects) acknowledged; raises on a refusal."""
+    from rlbridge.wire import PROTOCOL_VERSION, FrameDecoder, Hello, TopicAck, TopicError
 
-    control = Control()
     codec = PacketCodec()
     sock = socket.socket()
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    if rcvbuf is not None:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
     sock.connect((params["host"], int(params["port"])))
     sock.settimeout(30)
     out = bytearray()
-    codec.encode_frame_into(Hello(PROTOCOL_VERSION, "slow-consumer"), out)
-    for ch, name in enumerate(params["topics"], start=1):
-        codec.encode_frame_into(TopicConnect(ch, "subscribe", name, F64, transport="tcp"), out)
+    codec.encode_frame_into(Hello(PROTOCOL_VERSION, name), out)
+    for request in requests:
+        codec.encode_frame_into(request, out)
     sock.sendall(out)
     decoder = FrameDecoder(codec)
     acked = 0
-    while acked < len(params["topics"]):
+    while acked < len(requests):
         for packet in decoder.feed(sock.recv(4096)):
             if isinstance(packet, TopicError):
-                raise RuntimeError(f"slow consumer: {packet.reason}")
+                raise RuntimeError(f"{name}: {packet.reason}")
             acked += isinstance(packet, TopicAck)
-    emit("ready", channels=acked)
-    hold(control)  # the socket is never read again; closed when the parent says so
-    sock.close()
+    return sock
+
+
+def slow(params: Params) -> None:
+    """Subscribe over TCP, read the acks, then never read again (module docstring).
+
+    The consumer subscribes to ``params["topics"]`` (the clients' topics) and to a bulk topic
+    that a second session of this process feeds with ``bulk_rate`` values/s in batches, so
+    that its queue fills within seconds whatever rate the clients' topics reach here.
+    """
+    from rlbridge.wire import Batch, TopicConnect
+
+    control = Control()
+    subs = [TopicConnect(ch, "subscribe", name, F64, transport="tcp")
+            for ch, name in enumerate([BULK_TOPIC, *params["topics"]], start=1)]
+    stalled = _tcp_session(params, "slow-consumer", subs, rcvbuf=4096)
+    feeder = _tcp_session(params, "bulk-feeder",
+                          [TopicConnect(1, "publish", BULK_TOPIC, F64, transport="tcp")])
+    emit("ready", channels=len(subs))
+    codec, hz, n = PacketCodec(), 20.0, max(1, int(params["bulk_rate"] / 20))
+    values, seq = [1.0] * n, 0
+    start = time.monotonic()
+    end = start + float(params["max_s"])
+    while time.monotonic() < end:  # ends earlier when the parent closes stdin (Control)
+        feeder.sendall(codec.encode_frame(Batch(1, seq, [time.time_ns()] * n, values)))
+        seq += n
+        time.sleep(max(0.0, start + seq / n / hz - time.monotonic()))
+    hold(control)
+    stalled.close()
+    feeder.close()
 
 
 def raw_clients(params: Params) -> None:
