@@ -1,19 +1,20 @@
 """``rlbridge bench load``: many concurrent clients on one server, and a consumer that stalls.
 
-``clients`` SDK sessions with ``channels`` channels each publish at ``rate_hz`` and subscribe to
-what they publish (``rlbridge.bench.load_roles``), spread over ``processes`` OS processes, all on
-one server process on loopback. The run is cut into phases of equal length, measured one after
-the other in the same run:
+``clients`` sessions with ``channels`` channels each publish at ``rate_hz`` and subscribe to what
+they publish, spread over ``processes`` OS processes (``load_roles``: SDK sessions; ``load_raw``:
+protocol-level sessions), all on one server process on loopback. The run is cut into phases of
+equal length, measured one after the other in the same run:
 
 * ``base``: the clients alone;
-* ``slow``: plus a consumer that subscribes over TCP to ``slow_topics`` busy topics and never
-  reads: the server's queue to it must stay bounded (``max_write_buffer``), the excess be
-  dropped and counted, the server's memory stay flat, and the other sessions' latency stay;
+* ``slow``: plus a consumer that subscribes over TCP to ``slow_topics`` of the clients' topics
+  and to a bulk topic, and never reads: the server's queue to it must stay bounded
+  (``max_write_buffer``), the excess be dropped and counted, the server's memory stay flat, and
+  the other sessions' latency stay;
 * ``after``: the slow consumer has gone again (a second baseline, for the noise).
 
-Per phase: offered and delivered values/s, latency p50/p99 per session (channel 0 of every
-session, see ``load_roles``), server CPU and RSS (sampled every second), and the server's own
-counters (``Stats``). The parent only coordinates: it sleeps between samples.
+Per phase: offered and delivered values/s, latency p50/p99 per session, server CPU (and the
+time it waited for one: this machine is shared) and RSS sampled every second, and the server's
+own counters (``Stats``). The parent only coordinates: it sleeps between samples.
 """
 
 from __future__ import annotations

@@ -223,7 +223,7 @@ def slow(params: Params) -> None:
     that a second session of this process feeds with ``bulk_rate`` values/s in batches, so
     that its queue fills within seconds whatever rate the clients' topics reach here.
     """
-    from rlbridge.wire import Batch, TopicConnect
+    from rlbridge.wire import Batch, Heartbeat, TopicConnect
 
     control = Control()
     subs = [TopicConnect(ch, "subscribe", name, F64, transport="tcp")
@@ -238,6 +238,8 @@ def slow(params: Params) -> None:
     end = start + float(params["max_s"])
     while time.monotonic() < end:  # ends earlier when the parent closes stdin (Control)
         feeder.sendall(codec.encode_frame(Batch(1, seq, [time.time_ns()] * n, values)))
+        # A stalled reader is still alive: it writes heartbeats, so the watchdog keeps it.
+        stalled.sendall(codec.encode_frame(Heartbeat(time.monotonic_ns())))
         seq += n
         time.sleep(max(0.0, start + seq / n / hz - time.monotonic()))
     hold(control)
