@@ -52,7 +52,7 @@ def test_load_runs_every_phase(tmp_path: Path, client: str) -> None:
         "--phase-s", "1", "--slow-topics", "3", "--client", client, "--out", str(out)])
     assert result.exit_code == 0, result.output
     rows = _table(result.output)
-    assert set(rows) == {"base", "slow", "after"}
+    assert set(rows) == {"base", "reader", "slow", "after"}
     for row in rows.values():
         assert float(row[3].replace(",", "")) > 0, row  # values delivered
     assert "Slow consumer (subscribed over TCP to 3 of the clients' topics" in result.output

@@ -6,7 +6,9 @@ protocol-level sessions), all on one server process on loopback. The run is cut 
 equal length, measured one after the other in the same run:
 
 * ``base``: the clients alone;
-* ``slow``: plus a consumer that subscribes over TCP to ``slow_topics`` of the clients' topics
+* ``reader``: plus a consumer of the same topics as the slow one below, fed the same way,
+  that reads everything: the control for ``slow`` (the same server work, minus the stall);
+* ``slow``: instead, a consumer that subscribes over TCP to ``slow_topics`` of the clients' topics
   and to a bulk topic, and never reads: the server's queue to it must stay bounded
   (``max_write_buffer``), the excess be dropped and counted, the server's memory stay flat, and
   the other sessions' latency stay;
@@ -139,8 +141,8 @@ Plan = Sequence[tuple[str, float, str | None]]
 
 
 def load_plan(s: Settings) -> Plan:
-    return [("base", s.phase_s, None), ("slow", s.phase_s, "start"),
-            ("after", s.phase_s, "stop")]
+    return [("base", s.phase_s, None), ("reader", s.phase_s, "reader"),
+            ("slow", s.phase_s, "stalled"), ("after", s.phase_s, None)]
 
 
 def run(settings: Settings, plan: Plan, progress: Callable[[str], None],
@@ -180,16 +182,16 @@ def _run(group: LoadGroup, s: Settings, plan: Plan, progress: Callable[[str], No
         phases: list[Phase] = []
         slow: Worker | None = None
         for name, seconds, action in plan:
-            if action == "start":
+            if slow is not None:
+                slow.stop()
+                slow = None
+            if action is not None:
                 topics = [f"/load/s{i % s.clients}/c{1 + (i // s.clients) % max(1, s.channels - 1)}"
                           for i in range(s.slow_topics)]
                 slow, _ = group.spawn("slow", "b", MODULE, "slow",
                                       {"host": host, "port": port, "topics": topics,
-                                       "bulk_rate": s.bulk_rate, "max_s": total_s + 60},
-                                      timeout=60)
-            elif action == "stop" and slow is not None:
-                slow.stop()
-                slow = None
+                                       "bulk_rate": s.bulk_rate, "max_s": total_s + 60,
+                                       "stall": action == "stalled"}, timeout=60)
             phases.append(_phase(name, seconds, workers, server, probe))
             progress(f"phase {name}: done")
         for w in workers:

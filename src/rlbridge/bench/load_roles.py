@@ -21,6 +21,7 @@ counters and latency percentiles per phase at the end.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
@@ -216,8 +217,14 @@ def _tcp_session(params: Params, name: str, requests: list[Any],
     return sock
 
 
+def _discard(sock: socket.socket) -> None:
+    with contextlib.suppress(OSError):
+        while sock.recv(1 << 20):
+            pass
+
+
 def slow(params: Params) -> None:
-    """Subscribe over TCP, read the acks, then never read again (module docstring).
+    """Subscribe over TCP, read the acks, then never read again (``stall`` false: read all).
 
     The consumer subscribes to ``params["topics"]`` (the clients' topics) and to a bulk topic
     that a second session of this process feeds with ``bulk_rate`` values/s in batches, so
@@ -228,7 +235,11 @@ def slow(params: Params) -> None:
     control = Control()
     subs = [TopicConnect(ch, "subscribe", name, F64, transport="tcp")
             for ch, name in enumerate([BULK_TOPIC, *params["topics"]], start=1)]
-    stalled = _tcp_session(params, "slow-consumer", subs, rcvbuf=4096)
+    stall = bool(params.get("stall", True))
+    stalled = _tcp_session(params, "slow-consumer" if stall else "reading-consumer", subs,
+                           rcvbuf=4096 if stall else None)
+    if not stall:  # the control: the same subscriptions, read as fast as they come
+        threading.Thread(target=_discard, args=(stalled,), daemon=True).start()
     feeder = _tcp_session(params, "bulk-feeder",
                           [TopicConnect(1, "publish", BULK_TOPIC, F64, transport="tcp")])
     emit("ready", channels=len(subs))
