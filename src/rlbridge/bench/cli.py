@@ -153,11 +153,18 @@ Client = Annotated[str, typer.Option(help="raw: protocol-level UDP sessions, one
                                      "process; sdk: a Bridge per session.")]
 
 
+def _check_client(client: str, transport: str) -> None:
+    if client not in ("raw", "sdk"):
+        raise typer.BadParameter(f"--client must be 'raw' or 'sdk', not '{client}'")
+    if transport not in ("udp", "tcp"):
+        raise typer.BadParameter(f"--transport must be 'udp' or 'tcp', not '{transport}'")
+
+
 @bench_app.command("load")
 def load(
     ctx: typer.Context, clients: Clients = 100, channels: Channels = 10, rate: RateHz = 100.0,
     processes: Procs = 4, transport: Via = "udp", client: Client = "raw",
-    phase_s: Annotated[float, typer.Option(help="Seconds per phase (base, slow, after).")]
+    phase_s: Annotated[float, typer.Option(help="Seconds per phase (base, reader, slow, after).")]
     = 20.0,
     slow_topics: Annotated[int, typer.Option(help="Topics the slow consumer subscribes.")]
     = 100,
@@ -167,6 +174,7 @@ def load(
     from rlbridge.bench import load as ld
     from rlbridge.bench.common import progress
 
+    _check_client(client, transport)
     s = ld.Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                     transport=transport, client=client, phase_s=phase_s, slow_topics=slow_topics,
                     warmup_s=min(10.0, phase_s))
@@ -185,6 +193,7 @@ def soak(
     from rlbridge.bench.common import progress
     from rlbridge.bench.load import Settings
 
+    _check_client(client, transport)
     s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                  transport=transport, client=client, warmup_s=min(10.0, interval_s))
     _run("soak", lambda: sk.report(sk.measure(s, minutes, interval_s, progress),
