@@ -120,6 +120,8 @@ def serve(
     max_sessions: Annotated[int, typer.Option(help="Concurrent sessions.")] = 256,
     max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
+    metrics_port: Annotated[int | None, typer.Option(
+        help="Serve Prometheus metrics at http://HOST:PORT/metrics (default: off).")] = None,
 ) -> None:
     """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md)."""
     from pydantic import ValidationError
@@ -132,7 +134,8 @@ def serve(
                               timeout_ms=timeout_ms, node_name=node_name, namespace=namespace,
                               psk_file=psk_file, allow=tuple(allow or ()), max_rate=max_rate,
                               max_sessions=max_sessions, max_channels=max_channels,
-                              max_packet=max_packet)
+                              max_packet=max_packet,
+                              metrics_port=metrics_port)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "config"
@@ -301,12 +304,19 @@ def topic_list(
 
 @app.command()
 @one_line_errors
-def stats(host: Host = "127.0.0.1", port: Port = 7411) -> None:
-    """Print the server's counters (JSON)."""
+def stats(
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
+    = False,
+) -> None:
+    """Print the server's counters: totals, then per session and per channel."""
     from rlbridge.csp.bridge import Bridge
+    from rlbridge.server.report import format_stats
 
     with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False) as bridge:
-        typer.echo(json.dumps(bridge.server_stats(), indent=2, sort_keys=True))
+        body = bridge.server_stats()
+    typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 
 
 def main() -> None:

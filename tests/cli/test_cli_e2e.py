@@ -134,10 +134,10 @@ def test_stats_prints_json(cli: Any, shared_cli_server: int,
         for _ in range(3):
             sock.sendto(codec.encode_datagram(Stats(), secrets.randbits(63) + 1),
                         ("127.0.0.1", port))
-    result = cli.run("stats", "--port", str(port))
+    result = cli.run("stats", "--json", "--port", str(port))
     assert result.returncode == 0, result.stderr
     body = json.loads(result.stdout)
-    assert set(body) == {"session", "server", "topics"}
+    assert set(body) == {"session", "server", "sessions", "topics"}
     assert body["session"]["name"] == "rlbridge-stats"
     assert body["server"]["udp_bad_token"] == before + 3
     assert body["server"]["sessions_opened"] >= 2

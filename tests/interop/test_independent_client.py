@@ -102,7 +102,7 @@ def test_scenario_values_arrive_intact_and_in_order(server: ServerThread) -> Non
 
     channels = r.stats["session"]["channels"]
     assert channels["1"].items() >= {"direction": "publish", "values_in": 8, "bad_values": 0,
-                                     "lost": 0, "duplicates": 0}.items()
+                                     "lost": 0, "duplicates": 0}.items()  # keys may grow
     assert channels["4"]["values_in"] == 5
     assert channels["2"]["values_out"] == channels["3"]["values_out"] == 13
     assert r.stats["session"]["rtt_us"] is not None, "our heartbeat echoes gave an RTT"

@@ -162,3 +162,60 @@ def latency(
                             rates=tuple(float(r) for r in _keys(rates)), only=_keys(only))
     _run("latency", lambda: lat.report(lat.run(LoopbackLink(), settings, progress), settings,
                                        _command(ctx)), out)
+
+
+# -- load and soak (rlbridge.bench.load, .soak) ------------------------------------------------
+Clients = Annotated[int, typer.Option(help="Concurrent client sessions.")]
+Channels = Annotated[int, typer.Option(help="Channels per session (published and subscribed).")]
+RateHz = Annotated[float, typer.Option("--rate", help="Values/s per channel.")]
+Procs = Annotated[int, typer.Option(help="OS processes the client sessions are spread over.")]
+Via = Annotated[str, typer.Option(help="Transport of SDK client channels: udp or tcp.")]
+Client = Annotated[str, typer.Option(help="raw: protocol-level UDP sessions, one thread per "
+                                     "process; sdk: a Bridge per session.")]
+
+
+def _check_client(client: str, transport: str) -> None:
+    if client not in ("raw", "sdk"):
+        raise typer.BadParameter(f"--client must be 'raw' or 'sdk', not '{client}'")
+    if transport not in ("udp", "tcp"):
+        raise typer.BadParameter(f"--transport must be 'udp' or 'tcp', not '{transport}'")
+
+
+@bench_app.command("load")
+def load(
+    ctx: typer.Context, clients: Clients = 100, channels: Channels = 10, rate: RateHz = 100.0,
+    processes: Procs = 4, transport: Via = "udp", client: Client = "raw",
+    phase_s: Annotated[float, typer.Option(help="Seconds per phase (base, reader, slow, after).")]
+    = 20.0,
+    slow_topics: Annotated[int, typer.Option(help="Topics the slow consumer subscribes.")]
+    = 100,
+    out: Out = Path("docs/load.md"),
+) -> None:
+    """100 clients x 10 channels x 100 Hz on one server, and a consumer that stops reading."""
+    from rlbridge.bench import load as ld
+    from rlbridge.bench.common import progress
+
+    _check_client(client, transport)
+    s = ld.Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
+                    transport=transport, client=client, phase_s=phase_s, slow_topics=slow_topics,
+                    warmup_s=min(10.0, phase_s))
+    _run("load", lambda: ld.report(ld.run(s, ld.load_plan(s), progress), _command(ctx)), out)
+
+
+@bench_app.command("soak")
+def soak(
+    ctx: typer.Context, minutes: Annotated[float, typer.Option(help="Length of the soak.")] = 5,
+    interval_s: Annotated[float, typer.Option(help="Seconds per report row.")] = 30.0,
+    clients: Clients = 50, channels: Channels = 10, rate: RateHz = 100.0, processes: Procs = 2,
+    transport: Via = "udp", client: Client = "raw", out: Out = Path("docs/load.md"),
+) -> None:
+    """Load held for MINUTES: server RSS and latency per interval (a leak shows as a trend)."""
+    from rlbridge.bench import soak as sk
+    from rlbridge.bench.common import progress
+    from rlbridge.bench.load import Settings
+
+    _check_client(client, transport)
+    s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
+                 transport=transport, client=client, warmup_s=min(10.0, interval_s))
+    _run("soak", lambda: sk.report(sk.measure(s, minutes, interval_s, progress),
+                                   _command(ctx)), out)

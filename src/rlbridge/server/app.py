@@ -21,6 +21,7 @@ from rlbridge.adapters import MiddlewareAdapter, load_adapter
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.metrics import MetricsEndpoint
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import ServerContext
 from rlbridge.server.tcp import TcpConnection
@@ -41,6 +42,7 @@ class BoundAddress:
     port: int
     tcp: bool
     udp: bool
+    metrics_port: int | None = None
 
 
 def new_event_loop(use_uvloop: bool = True) -> asyncio.AbstractEventLoop:
@@ -103,10 +105,19 @@ class Server:
         self.registry = registry = SessionRegistry(ctx)
         tcp_server: asyncio.Server | None = None
         udp_transport: asyncio.DatagramTransport | None = None
+        metrics: MetricsEndpoint | None = None
         try:
             tcp_server, udp_transport, port = await self._bind(loop, registry)
+            if cfg.metrics_port is not None:
+                try:
+                    metrics = await MetricsEndpoint(registry.stats).start(cfg.host,
+                                                                          cfg.metrics_port)
+                except OSError as exc:
+                    raise ServerError(f"cannot serve metrics on {cfg.host}:{cfg.metrics_port}: "
+                                      f"{exc}") from None
             self.address = BoundAddress(cfg.host, port, tcp_server is not None,
-                                        udp_transport is not None)
+                                        udp_transport is not None,
+                                        metrics.port if metrics is not None else None)
             log.info("rlbridge serving on %s:%d (tcp=%s udp=%s nodelay=%s adapter=%s psk=%s)",
                      cfg.host, port, cfg.tcp, cfg.udp, cfg.nodelay, adapter.name,
                      keys is not None)
@@ -117,6 +128,8 @@ class Server:
                 started(self.address)
             await self._stop.wait()
         finally:
+            if metrics is not None:
+                await metrics.close()
             await self._shutdown(registry, tcp_server, udp_transport)
             if self._adapter is None:
                 adapter.close()

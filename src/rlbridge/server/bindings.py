@@ -112,6 +112,8 @@ class Inbound:
         self.bad_values = 0
         self.expired = 0
         self.overtaken = 0
+        #: Packets for this channel that did not decode (counted by the session).
+        self.malformed = 0
 
     def on_value(self, packet: Value) -> None:
         if self.tracker.accept(packet.seq):
@@ -163,6 +165,14 @@ class Inbound:
                 "duplicates": t.duplicates, "overwritten": 0,
                 "overtaken": self.overtaken + t.stale, "expired": self.expired,
                 "values": self.values_in}
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for ``rlbridge stats``; ``late`` = duplicates and overtaken values."""
+        t = self.tracker
+        return {"direction": "publish", "topic": self.request.topic,
+                "transport": self.request.transport, "values_in": self.values_in,
+                "bad_values": self.bad_values, "malformed": self.malformed,
+                "late": t.duplicates + t.stale, "lost": t.lost, "duplicates": t.duplicates}
 
     def close(self) -> None:
         self._publisher.close()
@@ -269,6 +279,12 @@ class Outbound:
         return {"rtt_ns": rtt_ns, "one_way_ns": -1, "jitter_ns": -1, "lost": -1,
                 "duplicates": 0, "overwritten": self.dropped, "overtaken": self.overtaken,
                 "expired": 0, "values": self.values_out}
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for ``rlbridge stats``: values offered to the client, and dropped of those."""
+        return {"direction": "subscribe", "topic": self.request.topic,
+                "transport": self.request.transport, "values_out": self.values_out,
+                "dropped": self.dropped}
 
     def close(self) -> None:
         if self._timer is not None:

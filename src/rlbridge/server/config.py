@@ -56,6 +56,9 @@ class ServerConfig(BaseModel):
                 raise ValueError(f"{net!r} is not a network (e.g. 192.168.1.0/24, 127.0.0.1)"
                                  ) from None
         return value
+    metrics_port: int | None = Field(
+        None, ge=0, le=65535, description="Serve Prometheus /metrics on this port of host."
+    )
 
     @model_validator(mode="after")
     def _check(self) -> ServerConfig:

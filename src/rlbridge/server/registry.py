@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import secrets
 from collections.abc import Callable, Iterator
+from typing import Any
 
-from rlbridge.server.session import ServerContext, Session
+from rlbridge.server.session import CHANNEL_TOTALS, ServerContext, Session
 from rlbridge.wire import PROTOCOL_VERSION, ConnectAck, ConnectError, ErrorCode, Hello, Limits
+
+#: Per-session counters the server also reports summed over all sessions, closed ones too.
+SESSION_TOTALS = ("packets_in", "bytes_in", "bytes_out",
+                  *CHANNEL_TOTALS)
 
 
 class SessionRegistry:
@@ -20,6 +25,9 @@ class SessionRegistry:
         self.accepting = True
         #: Called with each session as it closes (e.g. the UDP endpoint drops its hello cache).
         self.on_forget: list[Callable[[Session], None]] = []
+        #: Counters of sessions that have closed, so the server's totals never go back.
+        self._retired: dict[str, int] = dict.fromkeys(SESSION_TOTALS, 0)
+        ctx.report = self.stats
 
     def __len__(self) -> int:
         return len(self._by_id)
@@ -63,7 +71,21 @@ class SessionRegistry:
             limits=Limits(cfg.max_packet, cfg.max_channels, cfg.max_batch),
         )
 
+    def stats(self) -> dict[str, Any]:
+        """``server``: event counters and value totals over every session ever; ``sessions``."""
+        sessions = [s.stats() for s in self]
+        totals = dict(self._retired)
+        for s in sessions:
+            for key in SESSION_TOTALS:
+                totals[key] += s[key]
+        server = {**self.ctx.counters, **totals, "sessions": len(sessions),
+                  "handoff_dropped_batches": self.ctx.handoff.dropped_batches}
+        return {"server": server, "sessions": sessions}
+
     def _forget(self, session: Session) -> None:
+        final = session.stats()
+        for key in SESSION_TOTALS:
+            self._retired[key] += final[key]
         self._by_id.pop(session.id, None)
         self._by_token.pop(session.token, None)
         for listener in self.on_forget:

@@ -45,6 +45,9 @@ from rlbridge.wire.link import LinkMonitor, LinkState
 
 log = logging.getLogger("rlbridge.server")
 
+#: Per-channel counters a session (and the server) also reports as totals.
+CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values")
+
 TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
 
 
@@ -63,6 +66,8 @@ class ServerContext:
     #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
     handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
     allow: AllowList = field(default_factory=lambda: AllowList(()))
+    #: Server totals and every session's counters (set by the registry; see ``Stats``).
+    report: Callable[[], dict[str, Any]] | None = None
 
     def count(self, name: str, n: int = 1) -> None:
         self.counters[name] = self.counters.get(name, 0) + n
@@ -94,8 +99,11 @@ class Session:
         self.inbound: dict[int, Inbound] = {}
         self.outbound: dict[int, Outbound] = {}
         self.packets_in = 0
+        self.bytes_in = 0  # added by the transports: whole frames and datagrams
         self.malformed = 0
         self.errors_sent = 0
+        #: Totals of channels closed before now, so a session's counters never go back.
+        self._retired: dict[str, int] = dict.fromkeys(CHANNEL_TOTALS, 0)
         self.closed = False
         #: Seals and opens this session's datagrams (the gate swaps in a SealedCodec).
         self.codec: PacketCodec = ctx.codec
@@ -158,9 +166,7 @@ class Session:
             case TopicClose(channel=ch):
                 self._close_channel(ch)
             case Stats():
-                body = {"session": self.stats(), "server": dict(self.ctx.counters),
-                        "topics": [list(t) for t in self.ctx.adapter.topics()]}
-                self.send_control(Stats(body), sink)
+                self._send_stats(sink)
             case Disconnect():
                 self.close("client said goodbye", notify=False)
             case _:
@@ -171,6 +177,9 @@ class Session:
         """Answer a packet that did not decode; a broken topic-connect gets its TopicError."""
         self.malformed += 1
         self.ctx.count("malformed")
+        binding = self.inbound.get(error.channel) if error.channel is not None else None
+        if binding is not None:
+            binding.malformed += 1
         if error.tag == TOPIC_CONNECT_TAG and error.channel is not None:
             self.send_control(TopicError(error.channel, int(ErrorCode.MALFORMED), error.reason),
                               via)
@@ -180,6 +189,9 @@ class Session:
     def _data(self, channel: int, packet: Value | Batch, via: PacketSink | None) -> None:
         binding = self.inbound.get(channel)
         if binding is None:
+            n = 1 if isinstance(packet, Value) else len(packet.values)
+            self._retired["dropped"] += n
+            self.ctx.count("dropped_unknown_channel", n)
             code = ErrorCode.UNKNOWN_CHANNEL
             what = "is bound for subscribing" if channel in self.outbound else "is not connected"
             self.error(code, f"channel {channel} {what}; cannot publish on it", channel, via)
@@ -271,6 +283,7 @@ class Session:
         if binding is None:
             self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
+        self._retire(binding.stats())
         binding.close()
 
     # -- watchdog --------------------------------------------------------------------------
@@ -307,6 +320,7 @@ class Session:
             self.send_control(Disconnect(code, reason))
         bindings: list[Inbound | Outbound] = [*self.inbound.values(), *self.outbound.values()]
         for binding in bindings:
+            self._retire(binding.stats())
             try:
                 binding.close()
             except Exception:  # a middleware failing to release must not stop the others
@@ -318,25 +332,54 @@ class Session:
         log.info("session %d (%s) closed: %s", self.id, self.name, reason)
         self._on_closed(self)
 
+    # -- counters --------------------------------------------------------------------------
+    def _send_stats(self, sink: PacketSink | None) -> None:
+        """Answer ``Stats``: this session, and over TCP every session and the server totals.
+
+        A datagram cannot hold a thousand channels' counters, so a UDP control path gets this
+        session's counters and the server's counters only.
+        """
+        body: dict[str, Any] = {"session": self.stats(), "server": dict(self.ctx.counters),
+                                "topics": [list(t) for t in self.ctx.adapter.topics()]}
+        if self.ctx.report is not None:
+            report = self.ctx.report()
+            body["server"] = report["server"]
+            if sink is not None and sink is self.tcp:
+                body["sessions"] = report["sessions"]
+        self.send_control(Stats(body), sink)
+
+    def _retire(self, channel: dict[str, Any]) -> None:
+        for key in CHANNEL_TOTALS:
+            self._retired[key] += channel.get(key, 0)
+
+    def channel_stats(self) -> dict[str, dict[str, Any]]:
+        """One dict per channel id (as a string: JSON keys); other counters go into these."""
+        rtt = self.link.rtt_ns
+        return {**{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.inbound.items()},
+                **{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.outbound.items()}}
+
     def stats(self) -> dict[str, Any]:
+        """This session's counters; value totals include channels already closed."""
         now = time.monotonic_ns()
         link = self.link.stats(now)
+        channels = self.channel_stats()
+        totals = dict(self._retired)
+        for channel in channels.values():
+            for key in CHANNEL_TOTALS:
+                totals[key] += channel.get(key, 0)
         return {
             "session": self.id,
             "name": self.name,
             "state": link.state.value,
             "rtt_us": link.rtt_ns / 1000 if link.rtt_ns >= 0 else None,
             "packets_in": self.packets_in,
+            "bytes_in": self.bytes_in,
+            "bytes_out": sum(getattr(s, "bytes_out", 0) for s in {self.tcp, self.udp} if s),
+            "tcp_queued_bytes": getattr(self.tcp, "queued", 0),
             "malformed": self.malformed,
             "errors_sent": self.errors_sent,
-            "channels": {
-                **{str(c): {"direction": "publish", "values_in": b.values_in,
-                            "bad_values": b.bad_values, **b.health(link.rtt_ns)}
-                   for c, b in self.inbound.items()},
-                **{str(c): {"direction": "subscribe", "values_out": b.values_out,
-                            "dropped": b.dropped, **b.health(link.rtt_ns)}
-                   for c, b in self.outbound.items()},
-            },
+            **totals,
+            "channels": channels,
         }
 
 

@@ -50,6 +50,7 @@ class TcpSink:
         self._corked_frames = 0
         self._dropped = 0
         self._sock = transport.get_extra_info("socket")
+        self.bytes_out = 0
 
     @property
     def dropped(self) -> int:
@@ -73,13 +74,20 @@ class TcpSink:
             return False
         if not data or self._loop is None:
             self.flush()
-            transport.write(self._codec.encode_frame(packet))
+            frame = self._codec.encode_frame(packet)
+            self.bytes_out += len(frame)
+            transport.write(frame)
             return True
         if not corked:
             self._loop.call_soon(self.flush)
         self._codec.encode_frame_into(packet, corked)
         self._corked_frames += 1
         return True
+
+    @property
+    def queued(self) -> int:
+        """Bytes waiting for this client: the transport's buffer and the corked frames."""
+        return self._transport.get_write_buffer_size() + len(self._corked)
 
     def flush(self) -> None:
         """Hand the corked frames to the transport (which owns the buffer from then on)."""
@@ -90,6 +98,7 @@ class TcpSink:
             if self._transport.is_closing():
                 self._dropped += frames
             else:
+                self.bytes_out += len(corked)
                 self._transport.write(corked)
 
 
@@ -110,6 +119,7 @@ class UdpSink:
         self.addr = addr
         self._max_payload = max_payload
         self._dropped = 0
+        self.bytes_out = 0
 
     @property
     def dropped(self) -> int:
@@ -128,6 +138,7 @@ class UdpSink:
         if len(datagram) > self._max_payload and data:
             self._dropped += 1  # a single value larger than a datagram: refuse, counted
             return False
+        self.bytes_out += len(datagram)
         self._transport.sendto(datagram, self.addr)
         return True
 

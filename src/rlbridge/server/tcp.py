@@ -87,6 +87,8 @@ class TcpConnection(asyncio.Protocol):
             self._registry.ctx.count("malformed")
             self._fatal(exc.code, exc.reason)
             return
+        if self._session is not None:
+            self._session.bytes_in += len(data)
         for packet in packets:
             session = self._session
             if isinstance(packet, Malformed):

@@ -114,6 +114,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             else:
                 ctx.count("udp_no_token")
             return
+        session.bytes_in += len(data)
         session.attach_udp(addr)
         session.handle(packet, "udp")
 

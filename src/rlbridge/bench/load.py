@@ -1,0 +1,320 @@
+"""``rlbridge bench load``: many concurrent clients on one server, and a consumer that stalls.
+
+``clients`` sessions with ``channels`` channels each publish at ``rate_hz`` and subscribe to what
+they publish, spread over ``processes`` OS processes (``load_roles``: SDK sessions; ``load_raw``:
+protocol-level sessions), all on one server process on loopback. The run is cut into phases of
+equal length, measured one after the other in the same run:
+
+* ``base``: the clients alone;
+* ``reader``: plus a consumer of the same topics as the slow one below, fed the same way,
+  that reads everything: the control for ``slow`` (the same server work, minus the stall);
+* ``slow``: instead, a consumer that subscribes over TCP to ``slow_topics`` of the clients' topics
+  and to a bulk topic, and never reads: the server's queue to it must stay bounded
+  (``max_write_buffer``), the excess be dropped and counted, the server's memory stay flat, and
+  the other sessions' latency stay;
+* ``after``: the slow consumer has gone again (a second baseline, for the noise).
+
+Per phase: offered and delivered values/s, latency p50/p99 per session, server CPU (and the
+time it waited for one: this machine is shared) and RSS sampled every second, and the server's
+own counters (``Stats``). The parent only coordinates: it sleeps between samples.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from rlbridge.bench.common import (
+    BenchError,
+    Link,
+    LoopbackLink,
+    Params,
+    ProcessGroup,
+    Side,
+    Worker,
+    cpu_seconds,
+    fmt,
+    markdown_table,
+    median,
+    report_header,
+    start_server,
+)
+
+MODULE = "rlbridge.bench.load_roles"
+MiB = 1 << 20
+
+
+class LoadGroup(ProcessGroup):
+    """A process group that can also start ``load_roles`` children (their own entry point)."""
+
+    def start(self, name: str, side: Side, module: str, role: str, params: Params) -> Worker:
+        if module != MODULE:
+            return super().start(name, side, module, role, params)
+        argv = [sys.executable, "-c", f"from {MODULE} import worker_main; worker_main()",
+                role, json.dumps(params), str(self.lifetime_s)]
+        stderr = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Worker.stop
+        proc = self.link.popen(side, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                               stderr=stderr)
+        worker = Worker(name, proc, stderr)
+        self._workers.append(worker)
+        return worker
+
+
+def run_delay_s(pid: int) -> float:
+    """Seconds the process's main thread was runnable but waiting for a CPU (schedstat)."""
+    with open(f"/proc/{pid}/schedstat") as f:
+        return int(f.read().split()[1]) / 1e9
+
+
+def rss_bytes(pid: int) -> int:
+    """Resident set size of a live process (``VmRSS`` in ``/proc/<pid>/status``)."""
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+@dataclass(frozen=True)
+class Settings:
+    clients: int = 100
+    channels: int = 10
+    rate_hz: float = 100.0
+    processes: int = 4
+    transport: str = "udp"
+    #: ``raw``: protocol-level sessions, one thread per process (``load_raw``); ``sdk``: Bridge.
+    client: str = "raw"
+    phase_s: float = 20.0
+    warmup_s: float = 5.0
+    slow_topics: int = 100
+    #: Values/s fed (in batches) to a bulk topic only the slow consumer subscribes to.
+    bulk_rate: float = 40_000.0
+    max_write_buffer: int = 256 << 10
+    drain_s: float = 2.0
+
+    @property
+    def offered(self) -> float:
+        return self.clients * self.channels * self.rate_hz
+
+
+@dataclass
+class Phase:
+    """What the parent saw over one phase (the clients' view is added from their results)."""
+
+    name: str
+    seconds: float
+    cpu_s: float
+    clients_cpu_s: float
+    wait_s: float
+    rss: list[int]
+    stats0: Params
+    stats1: Params
+    sessions: list[Params] = field(default_factory=list)
+
+    def server_delta(self, key: str) -> int:
+        return int(self.stats1["server"].get(key, 0) - self.stats0["server"].get(key, 0))
+
+    def named(self, name: str) -> Params | None:
+        return next((s for s in self.stats1.get("sessions", []) if s["name"] == name), None)
+
+
+@dataclass
+class Run:
+    settings: Settings
+    phases: list[Phase]
+    results: list[Params]
+    skipped_ticks: int
+    load_before: tuple[float, float, float]
+    load_after: tuple[float, float, float]
+
+
+#: A phase plan: (name, seconds, what to do with the slow consumer first: start/stop/None).
+Plan = Sequence[tuple[str, float, str | None]]
+
+
+def load_plan(s: Settings) -> Plan:
+    return [("base", s.phase_s, None), ("reader", s.phase_s, "reader"),
+            ("slow", s.phase_s, "stalled"), ("after", s.phase_s, None)]
+
+
+def run(settings: Settings, plan: Plan, progress: Callable[[str], None],
+        link: Link | None = None) -> Run:
+    """Start everything, measure ``plan`` phase by phase, stop everything (also on errors)."""
+    s = settings
+    total_s = s.warmup_s + sum(p[1] for p in plan)
+    load_before = os.getloadavg()
+    group = LoadGroup(link or LoopbackLink(), lifetime_s=total_s + 600)
+    with group:
+        try:
+            return _run(group, s, plan, progress, total_s, load_before)
+        except BenchError as exc:
+            raise BenchError(f"{exc}{group.diagnostics()}") from None
+
+
+def _run(group: LoadGroup, s: Settings, plan: Plan, progress: Callable[[str], None],
+         total_s: float, load_before: tuple[float, float, float]) -> Run:
+    from rlbridge.csp.bridge import Bridge
+
+    server, host, port = start_server(group, max_write_buffer=s.max_write_buffer,
+                                      heartbeat_ms=500, timeout_ms=5000)
+    ids = list(range(s.clients))
+    per = [ids[i :: s.processes] for i in range(s.processes)]
+    common = {"host": host, "port": port, "channels": s.channels, "rate_hz": s.rate_hz,
+              "transport": s.transport, "max_s": total_s + 60, "drain_s": s.drain_s}
+    role = "raw" if s.client == "raw" else "clients"
+    workers = [group.start(f"clients-{i}", "b", MODULE, role, {**common, "ids": chunk})
+               for i, chunk in enumerate(per) if chunk]
+    for w in workers:
+        w.expect("ready", 300)
+    progress(f"{s.clients} sessions x {s.channels} channels connected; warming up")
+    with Bridge.connect(host, port, name="load-stats", timeout=30.0) as probe:
+        for w in workers:
+            w.send("go")
+        time.sleep(s.warmup_s)
+        phases: list[Phase] = []
+        slow: Worker | None = None
+        for name, seconds, action in plan:
+            if slow is not None:
+                slow.stop()
+                slow = None
+            if action is not None:
+                topics = [f"/load/s{i % s.clients}/c{1 + (i // s.clients) % max(1, s.channels - 1)}"
+                          for i in range(s.slow_topics)]
+                slow, _ = group.spawn("slow", "b", MODULE, "slow",
+                                      {"host": host, "port": port, "topics": topics,
+                                       "bulk_rate": s.bulk_rate, "max_s": total_s + 60,
+                                       "stall": action == "stalled"}, timeout=60)
+            phases.append(_phase(name, seconds, workers, server, probe))
+            progress(f"phase {name}: done")
+        for w in workers:
+            w.send("stop")
+        results = [w.expect("result", 120 + s.drain_s) for w in workers]
+    for phase in phases:
+        phase.sessions = [r for res in results for r in res["sessions"]]
+    return Run(s, phases, [r for res in results for r in res["sessions"]],
+               sum(int(r["skipped"]) for r in results), load_before, os.getloadavg())
+
+
+def _phase(name: str, seconds: float, workers: list[Worker], server: Worker,
+           probe: Any) -> Phase:
+    for w in workers:
+        w.send("phase", name=name)
+    stats0 = probe.server_stats()
+    for w in workers:
+        w.mark_cpu()
+    cpu0 = cpu_seconds(server.pid)
+    wait0 = run_delay_s(server.pid)
+    t0 = time.monotonic()
+    rss = [rss_bytes(server.pid)]
+    while (left := t0 + seconds - time.monotonic()) > 0:
+        time.sleep(min(1.0, left))
+        rss.append(rss_bytes(server.pid))
+    cpu = cpu_seconds(server.pid) - cpu0
+    clients_cpu = sum(w.cpu_since_mark() for w in workers)
+    elapsed = time.monotonic() - t0
+    wait = run_delay_s(server.pid) - wait0
+    return Phase(name, elapsed, cpu, clients_cpu, wait, rss, stats0, probe.server_stats())
+
+
+# -- report --------------------------------------------------------------------------------
+def phase_row(phase: Phase) -> dict[str, float]:
+    """The figures of one phase: rates, latency over sessions, server CPU and memory."""
+    per = [s["phases"].get(phase.name) for s in phase.sessions]
+    per_ok = [p for p in per if p]
+    p50s = [p["p50"] for p in per_ok]
+    p99s = [p["p99"] for p in per_ok]
+    return {
+        "offered": sum(p["sent"] / p["seconds"] for p in per_ok if p["seconds"] > 0),
+        "delivered": sum(p["received"] / p["seconds"] for p in per_ok if p["seconds"] > 0),
+        "p50": median(p50s),
+        "p99": median(p99s),
+        "p99_worst": max((v for v in p99s if not math.isnan(v)), default=math.nan),
+        "cpu_pct": 100 * phase.cpu_s / phase.seconds,
+        "clients_cpu_pct": 100 * phase.clients_cpu_s / phase.seconds,
+        "wait_pct": 100 * phase.wait_s / phase.seconds,
+        "rss0": phase.rss[0] / MiB,
+        "rss1": phase.rss[-1] / MiB,
+        "rss_max": max(phase.rss) / MiB,
+        "server_in": phase.server_delta("values_in") / phase.seconds,
+        "dropped": phase.server_delta("dropped"),
+        # CPU the server spends per value it takes in and hands back out: the figure that
+        # says what one core can carry, whatever share of it this machine gave the server.
+        "cpu_us_per_value": phase.cpu_s * 1e6 / max(1, phase.server_delta("values_in")),
+    }
+
+
+def phase_table(r: Run) -> str:
+    headers = ["phase", "s", "offered values/s", "delivered values/s", "server in values/s",
+               "latency p50 µs (median session)", "p99 µs (median session)",
+               "p99 µs (worst session)", "server dropped", "server CPU %",
+               "server CPU µs per value (in + out)", "server waited for a CPU %",
+               "clients CPU % (all processes)", "server RSS MiB start / max / end"]
+    rows = []
+    for ph in r.phases:
+        x = phase_row(ph)
+        rows.append([ph.name, fmt(ph.seconds, 1), fmt(x["offered"]), fmt(x["delivered"]),
+                     fmt(x["server_in"]), fmt(x["p50"]), fmt(x["p99"]), fmt(x["p99_worst"]),
+                     fmt(x["dropped"]), fmt(x["cpu_pct"]), fmt(x["cpu_us_per_value"], 1),
+                     fmt(x["wait_pct"]),
+                     fmt(x["clients_cpu_pct"]),
+                     f"{x['rss0']:.1f} / {x['rss_max']:.1f} / {x['rss1']:.1f}"])
+    return markdown_table(headers, rows)
+
+
+def first_hop_lost(r: Run) -> int:
+    """Values that never reached the server (sequence gaps its publish channels counted)."""
+    if not r.phases:
+        return 0
+    return sum(int(c.get("lost", 0)) for s in r.phases[-1].stats1.get("sessions", [])
+               for c in s["channels"].values())
+
+
+def totals_line(r: Run) -> str:
+    sent = sum(int(x["sent"]) for x in r.results)
+    received = sum(int(x["received"]) for x in r.results)
+    lost = sent - received
+    pct = 100 * lost / sent if sent else 0.0
+    return (f"Whole run: {sent:,} values written, {received:,} delivered to the subscribing "
+            f"channels, {lost:,} not delivered ({pct:.2f} %), of which {first_hop_lost(r):,} never "
+            f"reached the server (its sequence gaps, by the end of the last phase); gaps seen "
+            f"by the clients "
+            f"{sum(int(x['lost_seq']) for x in r.results):,}; session writes the clients "
+            f"skipped (behind schedule) {r.skipped_ticks:,}.")
+
+
+def describe(s: Settings) -> str:
+    """How the clients were run, for the report."""
+    who = ("protocol-level UDP sessions (`--client raw`, one thread per process)"
+           if s.client == "raw" else f"SDK sessions (`--client sdk`, Bridge over {s.transport})")
+    return (f"as {who} in {s.processes} client processes, one server process, loopback; "
+            "each value goes client -> server -> client (the clients subscribe to their own "
+            "topics)")
+
+
+def report(r: Run, command: Sequence[str]) -> str:
+    s = r.settings
+    slow = next((p for p in r.phases if p.name == "slow"), None)
+    lines = [report_header("Load: many clients on one server", command), "",
+             f"{s.clients} sessions x {s.channels} channels at {s.rate_hz:g} Hz "
+             f"(offered {s.offered:,.0f} values/s) {describe(s)}. Server `max_write_buffer` "
+             f"{s.max_write_buffer >> 10} KiB; watchdog 500/5000 ms.", "",
+             phase_table(r), "", totals_line(r),
+             f"Load average before: {', '.join(f'{x:.2f}' for x in r.load_before)}; after: "
+             f"{', '.join(f'{x:.2f}' for x in r.load_after)}."]
+    if slow is not None:
+        st = slow.named("slow-consumer")
+        if st is not None:
+            lines += ["", f"Slow consumer (subscribed over TCP to {s.slow_topics} of the "
+                      f"clients' topics and to a bulk topic fed at {s.bulk_rate:,.0f} values/s "
+                      f"in batches; never reads): {st['values_out']:,} values offered to it, "
+                      f"{st['dropped']:,} dropped and counted, {st['tcp_queued_bytes']:,} bytes "
+                      f"queued at the end of the phase (bound {s.max_write_buffer:,})."]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,76 @@
+"""Smoke test of ``rlbridge bench load`` and ``soak``: tiny runs, report shape only.
+
+Nothing is timed or compared (the figures of a shared CI machine mean nothing). Checked: both
+kinds of client (protocol-level and SDK) run end to end in real processes against a real server
+process, every phase has its row, the slow consumer's counters are reported, the soak has one
+row per interval, ``--out`` gets the section, and no process is left behind.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from rlbridge.bench.cli import bench_app
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _children() -> set[int]:
+    found = set()
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if int(fields[1]) == os.getpid() and fields[0] != "Z":
+            found.add(int(entry.name))
+    return found
+
+
+def _table(text: str) -> dict[str, list[str]]:
+    rows = {}
+    for line in text.splitlines():
+        if line.startswith("| ") and not line.startswith("| phase") and "---" not in line:
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            rows[cells[0]] = cells
+    return rows
+
+
+@pytest.mark.parametrize("client", ["raw", "sdk"])
+def test_load_runs_every_phase(tmp_path: Path, client: str) -> None:
+    out = tmp_path / "load.md"
+    before = _children()
+    result = CliRunner().invoke(bench_app, [
+        "load", "--clients", "3", "--channels", "2", "--rate", "20", "--processes", "2",
+        "--phase-s", "1", "--slow-topics", "3", "--client", client, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = _table(result.output)
+    assert set(rows) == {"base", "reader", "slow", "after"}
+    for row in rows.values():
+        assert float(row[3].replace(",", "")) > 0, row  # values delivered
+    assert "Slow consumer (subscribed over TCP to 3 of the clients' topics" in result.output
+    assert "Whole run: " in result.output
+    assert "<!-- bench:load begin -->" in out.read_text()
+    assert _children() <= before
+
+
+def test_soak_has_a_row_per_interval(tmp_path: Path) -> None:
+    out = tmp_path / "load.md"
+    before = _children()
+    result = CliRunner().invoke(bench_app, [
+        "soak", "--minutes", "0.05", "--interval-s", "1", "--clients", "2", "--channels", "2",
+        "--rate", "20", "--processes", "1", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = [line for line in result.output.splitlines()
+            if line.startswith("| ") and "t (min)" not in line and "---" not in line]
+    assert len(rows) == 3, result.output
+    assert "Server RSS from the end of the first interval" in result.output
+    assert "<!-- bench:soak begin -->" in out.read_text()
+    assert _children() <= before
