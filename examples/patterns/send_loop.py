@@ -6,9 +6,8 @@
 
 from __future__ import annotations
 
-from _common import F64, OUTPUT, parser, report, sine_source
+from _common import F64, OUTPUT, parser, run, sine_source
 
-from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.patterns import send_loop
 
 
@@ -17,13 +16,8 @@ def main() -> None:
     p.add_argument("--send-rate", type=float, default=100.0, help="SDK send loop rate (Hz)")
     args = p.parse_args()
     control = sine_source(args.period_us)
-
-    with Bridge.connect(args.host, args.port, nodelay=True,
-                        send_rate_hz=args.send_rate) as bridge:
-        coupling = send_loop(bridge, OUTPUT, F64, control, period=args.period_us / 1e6,
-                             cycles=args.cycles)
-        coupling.run()
-        report(coupling)
+    run(args, lambda bridge, loop: send_loop(bridge, OUTPUT, F64, control, **loop),
+        send_rate_hz=args.send_rate)
 
 
 if __name__ == "__main__":

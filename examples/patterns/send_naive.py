@@ -6,21 +6,15 @@
 
 from __future__ import annotations
 
-from _common import F64, OUTPUT, parser, report, sine_source
+from _common import F64, OUTPUT, parser, run, sine_source
 
-from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.patterns import send_naive
 
 
 def main() -> None:
     args = parser(__doc__ or "").parse_args()
     control = sine_source(args.period_us)
-
-    with Bridge.connect(args.host, args.port, nodelay=True) as bridge:
-        coupling = send_naive(bridge, OUTPUT, F64, control, period=args.period_us / 1e6,
-                              cycles=args.cycles)
-        coupling.run()
-        report(coupling)
+    run(args, lambda bridge, loop: send_naive(bridge, OUTPUT, F64, control, **loop))
 
 
 if __name__ == "__main__":
