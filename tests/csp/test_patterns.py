@@ -13,12 +13,10 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
-from rlbridge.bench import jitter
 from rlbridge.csp import patterns
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
@@ -322,41 +320,3 @@ def test_send_loop_sends_every_value_at_the_sdk_rate(port: int, peer: Bridge, to
 def test_send_loop_needs_the_sdk_send_loop(ctl: Bridge, topic: str) -> None:
     with pytest.raises(ValueError, match="send_rate_hz"):
         patterns.send_loop(ctl, topic, F64, counter())
-
-
-# -- the benchmark that measures them (rlbridge bench jitter) -------------------------------
-
-
-def test_jitter_benchmark_runs_end_to_end(tmp_path: Path) -> None:
-    """Server, publisher and workers in their own processes; all gone afterwards."""
-    config = jitter.JitterConfig(cycles=100, repeats=1, only=("receive-nonblocking",
-                                                              "send-loop-100"),
-                                 out=tmp_path / "jitter.md", plot=None, command="test")
-    lines: list[str] = []
-    results = jitter.run(config, lines.append)
-    assert [r.scenario.name for r in results] == [
-        "reference", "receive-nonblocking", "send-loop-100"]
-    for res in results:
-        assert len(res.runs) == 1, lines
-        assert res.runs[0].samples >= 1
-        assert res.info[0]["policy"]  # recorded from inside the HRT thread
-    text = (tmp_path / "jitter.md").read_text()
-    assert "| receive | Receive non-blocking (5.3) |" in text
-    assert (tmp_path / "jitter.patterns-only.json").exists()
-
-
-def test_generated_section_is_replaced_and_prose_kept(tmp_path: Path) -> None:
-    doc = tmp_path / "doc.md"
-    markers = ("<!-- b -->", "<!-- e -->")
-    doc.write_text("# Title\n\nprose before\n\n<!-- b -->\nold\n<!-- e -->\n\nprose after\n")
-    jitter.write_section(doc, "<!-- b -->\nnew\n<!-- e -->\n", "Title", markers)
-    expected = "# Title\n\nprose before\n\n<!-- b -->\nnew\n<!-- e -->\n\nprose after\n"
-    assert doc.read_text() == expected
-
-
-def test_percentile_and_target() -> None:
-    assert jitter.percentile([], 99) == 0
-    assert jitter.percentile(list(range(1, 101)), 99) == 99
-    assert jitter.percentile(list(range(1, 101)), 50) == 50
-    assert jitter.target_ok(100.0, 20.0)  # 20 us beats 10 % of 100 us
-    assert not jitter.target_ok(1000.0, 101.0)
