@@ -22,6 +22,7 @@ from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.errors import RealTimeWarning
+from rlbridge.csp.gil import shorter_switch_interval
 from rlbridge.server import ServerConfig, ServerThread
 
 F64 = "std_msgs/msg/Float64"
@@ -35,7 +36,7 @@ _topics = itertools.count()
 
 @pytest.fixture(autouse=True)
 def _restore_switch_interval() -> Iterator[None]:
-    """Bridge.connect shortens the process-wide GIL switch interval; undo it per test."""
+    """Some tests set the process-wide GIL switch interval; undo it per test."""
     before = sys.getswitchinterval()
     yield
     sys.setswitchinterval(before)
@@ -160,16 +161,43 @@ def test_realtime_switch_interval_sets_and_returns_previous() -> None:
         sys.setswitchinterval(before)
 
 
-def test_bridge_connect_shortens_the_switch_interval_never_lengthens(port: int) -> None:
+def test_bridge_connect_leaves_the_switch_interval_alone_unless_asked(port: int) -> None:
     sys.setswitchinterval(0.005)
     with Bridge.connect("127.0.0.1", port):
-        assert sys.getswitchinterval() == pytest.approx(patterns.DEFAULT_SWITCH_INTERVAL)
-    sys.setswitchinterval(0.0001)
-    with Bridge.connect("127.0.0.1", port):
-        assert sys.getswitchinterval() == pytest.approx(0.0001)
-    sys.setswitchinterval(0.005)
-    with Bridge.connect("127.0.0.1", port, switch_interval=None):
         assert sys.getswitchinterval() == pytest.approx(0.005)
+    with Bridge.connect("127.0.0.1", port, switch_interval=0.0005):  # explicit: shortens
+        assert sys.getswitchinterval() == pytest.approx(0.0005)
+    with Bridge.connect("127.0.0.1", port, switch_interval=0.001):  # never lengthens
+        assert sys.getswitchinterval() == pytest.approx(0.0005)
+
+
+def test_loop_holds_the_hrt_switch_interval_while_it_runs() -> None:
+    sys.setswitchinterval(0.005)
+    seen: list[float] = []
+    patterns.reference(lambda: seen.append(sys.getswitchinterval()), cycles=5).run()
+    assert seen
+    assert seen == [pytest.approx(patterns.HRT_SWITCH_INTERVAL)] * len(seen)
+    assert sys.getswitchinterval() == pytest.approx(0.005)  # given back afterwards
+    seen.clear()
+    patterns.reference(lambda: seen.append(sys.getswitchinterval()), cycles=5,
+                       switch_interval=None).run()
+    assert seen == [pytest.approx(0.005)] * len(seen)
+
+
+def test_switch_interval_holders_overlap_and_respect_other_changes() -> None:
+    sys.setswitchinterval(0.005)
+    with shorter_switch_interval(0.001):
+        with shorter_switch_interval(0.0002):
+            assert sys.getswitchinterval() == pytest.approx(0.0002)
+        with shorter_switch_interval(0.002):  # never lengthens
+            assert sys.getswitchinterval() == pytest.approx(0.0002)
+        assert sys.getswitchinterval() == pytest.approx(0.0002)  # until the last holder ends
+    assert sys.getswitchinterval() == pytest.approx(0.005)
+    with shorter_switch_interval():
+        sys.setswitchinterval(0.003)  # somebody else's choice wins over the restore
+    assert sys.getswitchinterval() == pytest.approx(0.003)
+    with pytest.raises(ValueError, match="positive"), shorter_switch_interval(0.0):
+        pass
 
 
 def test_bridge_io_priority_is_applied_or_reported(port: int) -> None:

@@ -18,6 +18,7 @@ from typing import Any
 
 from rlbridge.bench.jitter_config import F64, TOPIC_IN, TOPIC_IN_FAST, TOPIC_OUT
 from rlbridge.bench.jitter_worker import (
+    loop_options,
     prepare_process,
     probed,
     receive_law,
@@ -57,8 +58,7 @@ def shm_parent(args: argparse.Namespace) -> dict[str, Any]:
     """The SDK process: bridge, pump, and the loop process; returns the loop's result."""
     topic = TOPIC_IN_FAST if args.scenario == "shm-1000" else TOPIC_IN
     child_result = args.result + ".child"
-    options = {"period": args.period, "cycles": args.cycles, "priority": args.priority,
-               "cpu": args.cpu}
+    options = loop_options(args)
     with Bridge.connect("127.0.0.1", args.port, nodelay=True, send_rate_hz=PUMP_HZ,
                         name=f"bench-{args.scenario}", switch_interval=None) as bridge, \
             ShmLink.create(inputs=1, outputs=1) as link:

@@ -23,7 +23,8 @@ from typing import Any
 
 from rlbridge.bench.jitter_config import F64, TOPIC_IN, TOPIC_IN_FAST, TOPIC_OUT
 from rlbridge.csp import patterns
-from rlbridge.csp.bridge import DEFAULT_SWITCH_INTERVAL, Bridge
+from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.gil import HRT_SWITCH_INTERVAL
 
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 _PR_SET_TIMERSLACK = 29
@@ -48,8 +49,10 @@ def prepare_process(mlock: bool) -> dict[str, Any]:
 
 def loop_options(args: argparse.Namespace) -> dict[str, Any]:
     """The coupling's loop options from a worker's command line."""
+    # an explicit --switch-interval (the GIL study's conditions) wins over the loop's own
+    held = None if args.switch_interval is not None else HRT_SWITCH_INTERVAL
     return {"period": args.period, "cycles": args.cycles, "priority": args.priority,
-            "cpu": args.cpu}
+            "cpu": args.cpu, "switch_interval": held}
 
 
 def receive_law() -> Callable[[Any], None]:
@@ -111,6 +114,7 @@ def probed(fn: Callable[..., Any], info: dict[str, Any]) -> Callable[..., Any]:
     def probe(*args: Any) -> Any:
         if "policy" not in info:
             info["policy"] = _policy()
+            info["switch_interval"] = sys.getswitchinterval()  # what the loop runs with
             cpus = sorted(os.sched_getaffinity(0))
             info["cpus"] = "any" if len(cpus) == os.cpu_count() else ",".join(map(str, cpus))
         return fn(*args)
@@ -164,17 +168,14 @@ def worker_main(args: argparse.Namespace) -> None:
         Path(args.result).write_text(json.dumps(shm_parent(args)))
         return
     info = prepare_process(args.mlock)
-    info["switch_interval"] = sys.getswitchinterval()
     stop = threading.Event()
     extra = _extra_threads(name, stop)
     bridge: Bridge | None = None
     try:
         if name not in _NO_BRIDGE:
-            # an explicit --switch-interval wins over Bridge.connect's default
-            keep = None if args.switch_interval is not None else DEFAULT_SWITCH_INTERVAL
             bridge = Bridge.connect("127.0.0.1", args.port, nodelay=True,
                                     send_rate_hz=_RATES.get(name), name=f"bench-{name}",
-                                    switch_interval=keep)
+                                    switch_interval=None)  # the loop holds its own
         if name == "sdk-1000-rtio" and bridge is not None:
             info["io_threads"] = "SCHED_FIFO 40" if bridge.set_io_priority(40) else "refused"
         coupling = _coupling(name, bridge, probed(receive_law(), info),

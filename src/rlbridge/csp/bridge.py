@@ -28,8 +28,9 @@ from rlbridge.wire.link import LinkState
 
 Transport = Literal["tcp", "udp"]
 
-DEFAULT_SWITCH_INTERVAL = 0.0005
-"""GIL switch interval ``Bridge.connect`` installs (never lengthens); see docs/gil.md."""
+DEFAULT_SWITCH_INTERVAL: float | None = None
+"""``Bridge.connect`` leaves the process-wide GIL switch interval alone by default: the HRT loop
+holds a short one while it runs (``rlbridge.csp.gil``); measured in docs/gil.md."""
 
 
 class Bridge:

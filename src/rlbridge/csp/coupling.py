@@ -8,21 +8,20 @@ the channels the pattern created. The recipes of chapter 5 are in :mod:`rlbridge
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Final, TypedDict
 
-from rlbridge.csp.bridge import DEFAULT_SWITCH_INTERVAL
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.connection import ConnectionClosed
 from rlbridge.csp.errors import ChannelClosed
+from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, realtime_switch_interval, shorter_switch_interval
 from rlbridge.csp.process import Code, Parallel, PriParallel, Process, RunScope
 from rlbridge.csp.timer import LatenessStats, PeriodicTimer
 
-__all__ = ["ControlLoop", "Coupling", "LoopOptions", "Pump", "Ticker",
+__all__ = ["HRT_SWITCH_INTERVAL", "ControlLoop", "Coupling", "LoopOptions", "Pump", "Ticker",
            "realtime_switch_interval"]
 
 
@@ -30,31 +29,16 @@ class LoopOptions(TypedDict, total=False):
     """How a pattern's HRT loop runs; every recipe takes these as keyword arguments.
 
     ``period`` (s, default 1 ms), ``cycles`` (deadlines to run; ``None`` until stopped),
-    ``priority`` (``PriParallel``, default; ``False``: plain threads), ``cpu`` (pin the loop).
+    ``priority`` (``PriParallel``, default; ``False``: plain threads), ``cpu`` (pin the loop),
+    ``switch_interval`` (the GIL switch interval held while the loop runs, default
+    :data:`~rlbridge.csp.gil.HRT_SWITCH_INTERVAL`; ``None`` leaves the interpreter's).
     """
 
     period: float
     cycles: int | None
     priority: bool
     cpu: int | None
-
-
-def realtime_switch_interval(seconds: float = DEFAULT_SWITCH_INTERVAL) -> float:
-    """Shorten CPython's GIL switch interval for a process that runs an HRT loop.
-
-    A loop thread that wakes while another thread runs Python code waits for the GIL until
-    that thread reaches a blocking call, or at most one switch interval (5 ms by default)
-    before it forces a hand-over. Shorter means a busy Python thread (a user's SRT process,
-    a helper) can delay the loop by at most ``seconds``; the cost is more GIL hand-overs
-    between CPU-bound threads. It is process-wide: ``Bridge.connect`` applies the default
-    (unless given ``switch_interval=None``); call this in a loop process without a bridge, or
-    to choose another value. Returns the previous value.
-    """
-    if seconds <= 0:
-        raise ValueError(f"switch interval must be positive, got {seconds}")
-    previous = sys.getswitchinterval()
-    sys.setswitchinterval(seconds)
-    return previous
+    switch_interval: float | None
 
 
 _SLEEP_WAIT_MAX_NS: Final = 20_000_000
@@ -80,8 +64,10 @@ class ControlLoop(Process):
         cycles: int | None = None,
         name: str = "hrt-loop",
         on_finish: Callable[[], None] | None = None,
+        switch_interval: float | None = HRT_SWITCH_INTERVAL,
     ) -> None:
         super().__init__(name=name, hrt=True)
+        self.switch_interval = switch_interval
         if cycles is not None and cycles < 1:
             raise ValueError(f"cycles must be >= 1, got {cycles}")
         self.cycles = cycles
@@ -95,11 +81,16 @@ class ControlLoop(Process):
         stop = scope.stop
         timer = self.timer
         body = self._body
-        clock = time.monotonic_ns
         # Short periods wait in a plain sleep (clock_nanosleep) and look at the stop event
         # between releases: Event.wait runs threading.Condition's Python code on every
         # wake-up, about 10 us more at the median on the development VM, all of it with the
         # GIL. Long periods keep the event, so that stop() does not wait a whole period.
+        with shorter_switch_interval(self.switch_interval):
+            self._release(timer, body, inner, stop)
+
+    def _release(self, timer: PeriodicTimer, body: Code, inner: RunScope,
+                 stop: threading.Event) -> None:
+        clock = time.monotonic_ns
         wait_stop = stop if timer.period_ns > _SLEEP_WAIT_MAX_NS else None
         timer.start()
         end = None if self.cycles is None else timer.deadline(self.cycles)
@@ -152,6 +143,7 @@ class Coupling:
         cycles: int | None = None,
         priority: bool = True,
         cpu: int | None = None,
+        switch_interval: float | None = HRT_SWITCH_INTERVAL,
     ) -> None:
         self.name = name
         self.channels: dict[str, Channel[Any] | OutgoingChannel] = dict(channels or {})
@@ -159,7 +151,7 @@ class Coupling:
         self._closed = False
         self._close_lock = threading.Lock()
         self.loop = ControlLoop(body, period=period, cycles=cycles, name=f"{name}:hrt",
-                                on_finish=self.close_channels)
+                                on_finish=self.close_channels, switch_interval=switch_interval)
         self.helpers = tuple(helpers)
         composite = PriParallel if priority else Parallel
         cpus = None if cpu is None else [{cpu}, *([None] * len(self.helpers))]

@@ -33,9 +33,10 @@ Why the proper patterns keep the loop's timing: every operation the loop does is
 buffer operation (no lock, no system call), except ringing a doorbell when a consumer sleeps
 (``send_buffered``, ``send_naive``). Whatever waits (for the network, for a value) waits in a
 lower-priority thread. In CPython the loop still shares the GIL with those threads and with the
-SDK's receive and send threads: see ``docs/gil.md`` for what that costs. ``Bridge.connect``
-shortens the GIL switch interval to :data:`DEFAULT_SWITCH_INTERVAL` (0.5 ms) for that reason;
-:func:`realtime_switch_interval` does the same for a process without a bridge.
+SDK's receive and send threads: see ``docs/gil.md`` for what that costs. While its loop runs, a
+coupling holds the GIL switch interval at :data:`HRT_SWITCH_INTERVAL` (0.5 ms; loop option
+``switch_interval``), so that a computing Python thread delays the loop by at most that much.
+Where even that is too much, run the loop in its own process (:mod:`rlbridge.csp.shm`).
 
 Lifetimes: a coupling owns the channels it created. When the loop has run its ``cycles`` (or
 :meth:`Coupling.stop` is called) the run's stop event is set, its incoming bridge channels are
@@ -50,11 +51,12 @@ import contextlib
 from collections.abc import Callable, Sequence
 from typing import Any, Unpack
 
-from rlbridge.csp.bridge import DEFAULT_SWITCH_INTERVAL, Bridge, Transport
+from rlbridge.csp.bridge import Bridge, Transport
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.connection import ConnectionClosed
 from rlbridge.csp.coupling import (
+    HRT_SWITCH_INTERVAL,
     ControlLoop,
     Coupling,
     LoopOptions,
@@ -66,7 +68,7 @@ from rlbridge.csp.errors import ChannelClosed, NoValueYet
 from rlbridge.csp.process import Process
 
 __all__ = [
-    "DEFAULT_SWITCH_INTERVAL",
+    "HRT_SWITCH_INTERVAL",
     "ControlLoop",
     "Coupling",
     "LoopOptions",
