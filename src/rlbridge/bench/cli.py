@@ -31,6 +31,8 @@ def jitter(
     cpu: Annotated[int | None, typer.Option(
         help="Pin every loop (the reference's too) to this CPU; default the last, -1 none.")]
     = None,
+    isolate: Annotated[bool, typer.Option(
+        help="Keep server, publishers and SDK threads off the loops' CPU.")] = True,
     mlock: Annotated[bool, typer.Option(help="mlockall in every loop process.")] = True,
     out: Out = Path("docs/jitter.md"),
     plot: Annotated[Path, typer.Option(help="PNG of the jitter per cycle.")]
@@ -49,7 +51,7 @@ def jitter(
     run(JitterConfig(suite=suite, cycles=cycles, period=period_us / 1e6,  # type: ignore[arg-type]
                      repeats=repeats, stress=stress, publish_hz=publish_hz,
                      only=tuple(s for s in only.split(",") if s), priority=priority,
-                     cpu=None if cpu < 0 else cpu, mlock=mlock, out=out,
+                     cpu=None if cpu < 0 else cpu, isolate=isolate, mlock=mlock, out=out,
                      plot=plot, command=command_line(sys.argv[1:])), typer.echo)
 
 

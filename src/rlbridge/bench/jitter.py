@@ -98,6 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     pub.add_argument("--topic", default=TOPIC_IN)
     pub.add_argument("--rate", type=float, default=100.0)
     pub.add_argument("--seconds", type=float, default=60.0)
+    sub.add_parser("switch-cost", help="what a short GIL switch interval costs CPU-bound threads")
     pool = sub.add_parser("pool", help="pool same-round differences over several runs' JSON")
     pool.add_argument("json", nargs="+", type=Path)
     return parser
@@ -114,6 +115,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         from rlbridge.bench.jitter_worker import publisher_main
 
         publisher_main(args)
+    elif args.role == "switch-cost":
+        from rlbridge.bench.jitter_worker import switch_cost
+
+        print(switch_cost())
     else:
         print(pooled_deltas(args.json))
 

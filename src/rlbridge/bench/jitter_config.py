@@ -90,6 +90,7 @@ class JitterConfig:
     only: tuple[str, ...] = ()
     priority: bool = True
     cpu: int | None = None
+    isolate: bool = True
     mlock: bool = True
     out: Path | None = None
     plot: Path | None = None

@@ -57,7 +57,8 @@ def render_markdown(config: JitterConfig, results: list[ScenarioResult],
         f"{machine.get('load_after', 'unknown')}. {config.cycles} deadlines of a "
         f"{config.period * 1e6:g} us loop per run, {config.repeats} rounds, stress "
         f"{'on' if config.stress else 'off'}. Every loop (the reference's too): "
-        f"{_treatment(results)}.",
+        f"{_treatment(results)}; server, publishers and the workers' other threads "
+        f"{'kept off the loop CPU' if config.isolate and config.cpu is not None else 'anywhere'}.",
         "",
         "Figures are medians over the rounds of each run's p50 / p99 / max of the absolute "
         "jitter |release - deadline| in microseconds. Paired with the reference measured in "

@@ -113,21 +113,16 @@ def _wait_for_server(port: int, timeout: float = 15.0) -> None:
 
 @contextlib.contextmanager
 def environment(config: JitterConfig, workdir: Path, seconds: float) -> Iterator[int]:
-    """Server, publishers and (optionally) stress for ``seconds``; yields the server port."""
+    """Server, publishers and (optionally) stress for ``seconds``; yields the server port.
+
+    Stress loads every CPU; then, with ``isolate``, this process and all it starts from here on
+    (server, publishers, workers and their threads) keep off the loops' CPU, and only each
+    worker's loop thread is pinned onto it. On a kernel without full preemption (this VM:
+    ``PREEMPT_NONE``) a thread inside a system call cannot be preempted, so the I/O of the
+    bridge on the loop's CPU would delay the loop whatever its priority.
+    """
     children = Children()
     try:
-        port = _free_port()
-        children.spawn([sys.executable, "-c", "from rlbridge.cli import main; main()",
-                        "serve", "--port", str(port), "--nodelay", "--timeout-ms", "5000"],
-                       log=workdir / "server.log")
-        _wait_for_server(port)
-        rates = [(TOPIC_IN, config.publish_hz)]
-        if config.suite == "gil":
-            rates.append((TOPIC_IN_FAST, 1000.0))
-        for topic, rate in rates:
-            children.spawn(python_module("publisher", "--port", str(port), "--topic", topic,
-                                   "--rate", str(rate), "--seconds", str(seconds)),
-                           log=workdir / f"publisher{topic.replace('/', '_')}.log")
         if config.stress:
             stress = shutil.which("stress")
             if stress is None:
@@ -135,10 +130,42 @@ def environment(config: JitterConfig, workdir: Path, seconds: float) -> Iterator
             children.spawn([stress, "--cpu", "2", "--io", "2", "--hdd", "1", "--hdd-bytes",
                             "64M", "--timeout", f"{math.ceil(seconds)}s"],
                            cwd=str(workdir), log=workdir / "stress.log")
-        time.sleep(0.5)  # publishers connected and flowing
-        yield port
+        with kept_off(config.cpu if config.isolate else None):
+            port = _free_port()
+            children.spawn([sys.executable, "-c", "from rlbridge.cli import main; main()",
+                            "serve", "--port", str(port), "--nodelay", "--timeout-ms", "5000"],
+                           log=workdir / "server.log")
+            _wait_for_server(port)
+            rates = [(TOPIC_IN, config.publish_hz)]
+            if config.suite == "gil":
+                rates.append((TOPIC_IN_FAST, 1000.0))
+            for topic, rate in rates:
+                children.spawn(python_module("publisher", "--port", str(port), "--topic",
+                                             topic, "--rate", str(rate), "--seconds",
+                                             str(seconds)),
+                               log=workdir / f"publisher{topic.replace('/', '_')}.log")
+            time.sleep(0.5)  # publishers connected and flowing
+            yield port
     finally:
         children.close()
+
+
+@contextlib.contextmanager
+def kept_off(cpu: int | None) -> Iterator[None]:
+    """This process (and what it starts meanwhile) runs on every CPU but ``cpu``."""
+    if cpu is None or not hasattr(os, "sched_setaffinity"):
+        yield
+        return
+    before = os.sched_getaffinity(0)
+    others = before - {cpu}
+    if not others:
+        yield  # a single CPU: nothing to keep off
+        return
+    os.sched_setaffinity(0, others)
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
 
 
 def run_worker(scenario: Scenario, config: JitterConfig, port: int,

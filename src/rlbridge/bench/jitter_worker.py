@@ -14,6 +14,7 @@ import json
 import math
 import os
 import socket
+import statistics
 import sys
 import threading
 import time
@@ -294,3 +295,41 @@ def publisher_main(args: argparse.Namespace) -> None:
         print(f"publisher: session lost after {k} values; reconnecting", flush=True)
 
 
+
+
+def switch_cost(intervals: tuple[float, ...] = (0.005, 0.0005, 0.0001), work: int = 2_000_000,
+                repeats: int = 5) -> str:
+    """The other side of a short switch interval: two computing threads, forced hand-overs.
+
+    Wall time for two threads that each run ``work`` iterations of pure Python, per switch
+    interval, interleaved over ``repeats`` rounds; markdown with the median and the ratio to
+    the first interval. This is what an application's CPU-bound threads pay while an HRT loop
+    holds a shorter interval.
+    """
+    def burn() -> None:
+        total = 0
+        for i in range(work):
+            total += i * i
+
+    before = sys.getswitchinterval()
+    times: dict[float, list[float]] = {s: [] for s in intervals}
+    try:
+        for _ in range(repeats):
+            for seconds in intervals:
+                sys.setswitchinterval(seconds)
+                threads = [threading.Thread(target=burn) for _ in range(2)]
+                t0 = time.perf_counter()
+                for thread in threads:
+                    thread.start()
+                for thread in threads:
+                    thread.join()
+                times[seconds].append(time.perf_counter() - t0)
+    finally:
+        sys.setswitchinterval(before)
+    base = statistics.median(times[intervals[0]])
+    rows = ["| switch interval | wall time, 2 threads x "
+            f"{work:,} iterations (median of {repeats}) | ratio |", "|---|---:|---:|"]
+    for seconds, values in times.items():
+        median = statistics.median(values)
+        rows.append(f"| {seconds * 1e6:g} us | {median * 1e3:.0f} ms | {median / base:.3f} |")
+    return "\n".join(rows)
