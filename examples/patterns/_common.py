@@ -28,7 +28,8 @@ OUTPUT = "/example/output"
 
 def parser(description: str) -> argparse.ArgumentParser:
     """The arguments every example takes."""
-    p = argparse.ArgumentParser(description=description)
+    p = argparse.ArgumentParser(description=description,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--host", default="127.0.0.1", help="bridge server address")
     p.add_argument("--port", type=int, default=7411, help="bridge server port")
     p.add_argument("--cycles", type=int, default=2000, help="loop deadlines to run (bounded)")

@@ -41,9 +41,9 @@ def _written(out: str, role: str) -> int:
     return int(match.group(1))
 
 
-@pytest.mark.parametrize("name", ["send_naive", "send_buffered", "send_sampled", "send_loop"])
-def test_send_example_sends_through_the_bridge(name: str, port: int) -> None:
-    out = _run(name, port)
+@pytest.mark.parametrize("pattern", ["buffered", "sampled", "loop", "naive"])
+def test_send_example_sends_through_the_bridge(pattern: str, port: int) -> None:
+    out = _run("send", port, pattern)
     assert re.search(r"releases, \d+ missed; lateness p50", out), out
     assert _written(out, "out") > 0
 
