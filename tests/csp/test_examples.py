@@ -52,3 +52,11 @@ def test_send_example_sends_through_the_bridge(pattern: str, port: int) -> None:
 def test_receive_example_reads_what_its_publisher_sends(name: str, port: int) -> None:
     out = _run(name, port)
     assert _written(out, "in") > 0, out
+
+
+def test_separate_process_example_crosses_shared_memory_both_ways(port: int) -> None:
+    out = _run("separate_process", port)
+    assert re.search(r"loop process: \d+ releases", out), out
+    assert "ring dropped 0, loop exit code 0" in out, out
+    assert _written(out, "in") > 0
+    assert _written(out, "out") > 0  # the loop's values left through this process's bridge
