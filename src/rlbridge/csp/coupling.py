@@ -77,20 +77,17 @@ class ControlLoop(Process):
         self.released = 0
 
     def execute(self, scope: RunScope) -> None:
-        inner = scope.marked(True)
-        stop = scope.stop
+        # The GIL switch interval is process-wide; the loop holds a short one while it runs.
+        with shorter_switch_interval(self.switch_interval):
+            self._release(self._body, scope.marked(True), scope.stop)
+
+    def _release(self, body: Code, inner: RunScope, stop: threading.Event) -> None:
         timer = self.timer
-        body = self._body
+        clock = time.monotonic_ns
         # Short periods wait in a plain sleep (clock_nanosleep) and look at the stop event
         # between releases: Event.wait runs threading.Condition's Python code on every
         # wake-up, about 10 us more at the median on the development VM, all of it with the
         # GIL. Long periods keep the event, so that stop() does not wait a whole period.
-        with shorter_switch_interval(self.switch_interval):
-            self._release(timer, body, inner, stop)
-
-    def _release(self, timer: PeriodicTimer, body: Code, inner: RunScope,
-                 stop: threading.Event) -> None:
-        clock = time.monotonic_ns
         wait_stop = stop if timer.period_ns > _SLEEP_WAIT_MAX_NS else None
         timer.start()
         end = None if self.cycles is None else timer.deadline(self.cycles)

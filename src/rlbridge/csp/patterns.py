@@ -34,7 +34,7 @@ buffer operation (no lock, no system call), except ringing a doorbell when a con
 (``send_buffered``, ``send_naive``). Whatever waits (for the network, for a value) waits in a
 lower-priority thread. In CPython the loop still shares the GIL with those threads and with the
 SDK's receive and send threads: see ``docs/gil.md`` for what that costs. While its loop runs, a
-coupling holds the GIL switch interval at :data:`HRT_SWITCH_INTERVAL` (0.5 ms; loop option
+coupling holds the GIL switch interval at :data:`HRT_SWITCH_INTERVAL` (0.1 ms; loop option
 ``switch_interval``), so that a computing Python thread delays the loop by at most that much.
 Where even that is too much, run the loop in its own process (:mod:`rlbridge.csp.shm`).
 
