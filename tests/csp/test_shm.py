@@ -198,3 +198,10 @@ def test_loop_process_through_a_live_server() -> None:
                 pumps.join(WAIT)
         assert value == 5.0
         assert link.dropped(0) == 0
+
+
+def test_stopping_a_loop_process_that_never_started_is_harmless() -> None:
+    with ShmLink.create() as link:
+        proc = HrtProcess(link, _echo_until_stopped)
+        assert proc.stop() is None
+        assert not link.stop_requested

@@ -272,7 +272,12 @@ class HrtProcess:
         return self._proc.exitcode
 
     def stop(self, timeout: float = 5.0) -> int | None:
-        """Ask it to stop, wait ``timeout``, then terminate (and kill); return the exit code."""
+        """Ask it to stop, wait ``timeout``, then terminate (and kill); return the exit code.
+
+        Idempotent, and a no-op for a process that was never started.
+        """
+        if self._proc.pid is None:
+            return None
         self.link.request_stop()
         if not self.join(timeout):
             self._proc.terminate()
