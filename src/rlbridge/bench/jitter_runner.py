@@ -177,7 +177,7 @@ def run_worker(scenario: Scenario, config: JitterConfig, port: int,
                    "--result", str(result))
     interval = scenario.switch_interval
     if interval is None and config.suite == "gil":
-        interval = 0.005  # CPython's default, kept even though Bridge.connect shortens it
+        interval = 0.005  # CPython's default, explicit: the loop would hold a shorter one
     if interval is not None:
         argv += ["--switch-interval", repr(interval)]
     argv += treatment_args(config.priority, config.cpu, config.mlock)
