@@ -16,8 +16,10 @@ import signal
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
+from typing import Any
 
-from rlbridge.csp.patterns import Coupling
+from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.patterns import Coupling, LoopOptions
 
 F64 = "std_msgs/msg/Float64"
 SETPOINT = "/example/setpoint"
@@ -26,7 +28,8 @@ OUTPUT = "/example/output"
 
 def parser(description: str) -> argparse.ArgumentParser:
     """The arguments every example takes."""
-    p = argparse.ArgumentParser(description=description)
+    p = argparse.ArgumentParser(description=description,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--host", default="127.0.0.1", help="bridge server address")
     p.add_argument("--port", type=int, default=7411, help="bridge server port")
     p.add_argument("--cycles", type=int, default=2000, help="loop deadlines to run (bounded)")
@@ -73,3 +76,38 @@ def report(coupling: Coupling) -> None:
           f"max {stats.max_ns / 1e3:.0f} us")
     for role, channel in coupling.channels.items():
         print(f"  {role}: {channel.statistics()}")
+
+
+def run(args: argparse.Namespace, make: Callable[[Bridge, LoopOptions], Coupling], *,
+        publish: bool = False, send_rate_hz: float | None = None) -> None:
+    """Connect, build the example's coupling with ``make(bridge, loop_options)``, run, report.
+
+    ``publish`` starts the SETPOINT publisher process first (the receive examples).
+    """
+    loop: LoopOptions = {"period": args.period_us / 1e6, "cycles": args.cycles}
+    seconds = args.cycles * args.period_us / 1e6 + 5
+    with publisher(args.host, args.port, seconds, publish), \
+            Bridge.connect(args.host, args.port, nodelay=True,
+                           send_rate_hz=send_rate_hz) as bridge:
+        if publish:
+            wait_for_publisher(bridge)
+        coupling = make(bridge, loop)
+        coupling.run()
+        report(coupling)
+
+
+def wait_for_publisher(bridge: Bridge, timeout: float = 30.0) -> None:
+    """Block (here, before any HRT loop runs) until SETPOINT carries a value.
+
+    The publisher is a fresh process; without this a short run could end before it speaks.
+    """
+    probe = bridge.subscribe(SETPOINT, F64, blocking=True, buffer_size=1)
+    try:
+        probe.read(timeout=timeout)
+    finally:
+        bridge.unsubscribe(probe)
+
+
+def ignore(value: Any) -> None:
+    """A control law that uses nothing (the naive receive example only shows the timing)."""
+    del value

@@ -10,9 +10,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from _common import F64, SETPOINT, parser, publisher, report
+from _common import F64, SETPOINT, parser, run
 
-from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.patterns import receive_blocking
 
 
@@ -28,14 +27,10 @@ def main() -> None:
     def control(setpoint: Any) -> None:
         seen.append(float(setpoint))
 
-    seconds = args.cycles * args.period_us / 1e6 + 5
-    with publisher(args.host, args.port, seconds, args.publish), \
-            Bridge.connect(args.host, args.port, nodelay=True) as bridge:
-        coupling = receive_blocking(bridge, SETPOINT, F64, control, process=check,
-                                    period=args.period_us / 1e6, cycles=args.cycles)
-        coupling.run()
-        report(coupling)
-        print(f"  loop saw values in [{min(seen):+.2f}, {max(seen):+.2f}]")
+    run(args, lambda bridge, loop: receive_blocking(bridge, SETPOINT, F64, control,
+                                                    process=check, **loop),
+        publish=args.publish)
+    print(f"  loop saw values in [{min(seen):+.2f}, {max(seen):+.2f}]")
 
 
 if __name__ == "__main__":

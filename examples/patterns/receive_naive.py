@@ -9,11 +9,8 @@ channel's ``hrt_blocking_reads`` counter.
 
 from __future__ import annotations
 
-from typing import Any
+from _common import F64, SETPOINT, ignore, parser, run
 
-from _common import F64, SETPOINT, parser, publisher, report
-
-from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.patterns import receive_naive
 
 
@@ -22,17 +19,8 @@ def main() -> None:
     p.add_argument("--no-publish", dest="publish", action="store_false",
                    help="without a publisher the loop blocks in its first read until Ctrl-C")
     args = p.parse_args()
-
-    def control(setpoint: Any) -> None:
-        del setpoint
-
-    seconds = args.cycles * args.period_us / 1e6 + 5
-    with publisher(args.host, args.port, seconds, args.publish), \
-            Bridge.connect(args.host, args.port, nodelay=True) as bridge:
-        coupling = receive_naive(bridge, SETPOINT, F64, control,
-                                 period=args.period_us / 1e6, cycles=args.cycles)
-        coupling.run()
-        report(coupling)
+    run(args, lambda bridge, loop: receive_naive(bridge, SETPOINT, F64, ignore, **loop),
+        publish=args.publish)
 
 
 if __name__ == "__main__":

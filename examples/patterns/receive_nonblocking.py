@@ -7,9 +7,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from _common import F64, SETPOINT, parser, publisher, report
+from _common import F64, SETPOINT, parser, run
 
-from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.patterns import receive_nonblocking
 
 
@@ -22,14 +21,10 @@ def main() -> None:
     def control(setpoint: Any) -> None:  # a first-order filter stands in for a controller
         state["y"] += 0.05 * (float(setpoint) - state["y"])
 
-    seconds = args.cycles * args.period_us / 1e6 + 5
-    with publisher(args.host, args.port, seconds, args.publish), \
-            Bridge.connect(args.host, args.port, nodelay=True) as bridge:
-        coupling = receive_nonblocking(bridge, SETPOINT, F64, control, initial=0.0,
-                                       period=args.period_us / 1e6, cycles=args.cycles)
-        coupling.run()
-        report(coupling)
-        print(f"  output after the run: {state['y']:+.3f}")
+    run(args, lambda bridge, loop: receive_nonblocking(bridge, SETPOINT, F64, control,
+                                                       initial=0.0, **loop),
+        publish=args.publish)
+    print(f"  output after the run: {state['y']:+.3f}")
 
 
 if __name__ == "__main__":

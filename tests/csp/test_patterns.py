@@ -13,17 +13,16 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
-from rlbridge.bench import jitter
 from rlbridge.csp import patterns
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.errors import RealTimeWarning
+from rlbridge.csp.gil import shorter_switch_interval
 from rlbridge.server import ServerConfig, ServerThread
 
 F64 = "std_msgs/msg/Float64"
@@ -37,7 +36,7 @@ _topics = itertools.count()
 
 @pytest.fixture(autouse=True)
 def _restore_switch_interval() -> Iterator[None]:
-    """Bridge.connect shortens the process-wide GIL switch interval; undo it per test."""
+    """Some tests set the process-wide GIL switch interval; undo it per test."""
     before = sys.getswitchinterval()
     yield
     sys.setswitchinterval(before)
@@ -162,16 +161,43 @@ def test_realtime_switch_interval_sets_and_returns_previous() -> None:
         sys.setswitchinterval(before)
 
 
-def test_bridge_connect_shortens_the_switch_interval_never_lengthens(port: int) -> None:
+def test_bridge_connect_leaves_the_switch_interval_alone_unless_asked(port: int) -> None:
     sys.setswitchinterval(0.005)
     with Bridge.connect("127.0.0.1", port):
-        assert sys.getswitchinterval() == pytest.approx(patterns.DEFAULT_SWITCH_INTERVAL)
-    sys.setswitchinterval(0.0001)
-    with Bridge.connect("127.0.0.1", port):
-        assert sys.getswitchinterval() == pytest.approx(0.0001)
-    sys.setswitchinterval(0.005)
-    with Bridge.connect("127.0.0.1", port, switch_interval=None):
         assert sys.getswitchinterval() == pytest.approx(0.005)
+    with Bridge.connect("127.0.0.1", port, switch_interval=0.0005):  # explicit: shortens
+        assert sys.getswitchinterval() == pytest.approx(0.0005)
+    with Bridge.connect("127.0.0.1", port, switch_interval=0.001):  # never lengthens
+        assert sys.getswitchinterval() == pytest.approx(0.0005)
+
+
+def test_loop_holds_the_hrt_switch_interval_while_it_runs() -> None:
+    sys.setswitchinterval(0.005)
+    seen: list[float] = []
+    patterns.reference(lambda: seen.append(sys.getswitchinterval()), cycles=5).run()
+    assert seen
+    assert seen == [pytest.approx(patterns.HRT_SWITCH_INTERVAL)] * len(seen)
+    assert sys.getswitchinterval() == pytest.approx(0.005)  # given back afterwards
+    seen.clear()
+    patterns.reference(lambda: seen.append(sys.getswitchinterval()), cycles=5,
+                       switch_interval=None).run()
+    assert seen == [pytest.approx(0.005)] * len(seen)
+
+
+def test_switch_interval_holders_overlap_and_respect_other_changes() -> None:
+    sys.setswitchinterval(0.005)
+    with shorter_switch_interval(0.001):
+        with shorter_switch_interval(0.0002):
+            assert sys.getswitchinterval() == pytest.approx(0.0002)
+        with shorter_switch_interval(0.002):  # never lengthens
+            assert sys.getswitchinterval() == pytest.approx(0.0002)
+        assert sys.getswitchinterval() == pytest.approx(0.0002)  # until the last holder ends
+    assert sys.getswitchinterval() == pytest.approx(0.005)
+    with shorter_switch_interval():
+        sys.setswitchinterval(0.003)  # somebody else's choice wins over the restore
+    assert sys.getswitchinterval() == pytest.approx(0.003)
+    with pytest.raises(ValueError, match="positive"), shorter_switch_interval(0.0):
+        pass
 
 
 def test_bridge_io_priority_is_applied_or_reported(port: int) -> None:
@@ -322,41 +348,3 @@ def test_send_loop_sends_every_value_at_the_sdk_rate(port: int, peer: Bridge, to
 def test_send_loop_needs_the_sdk_send_loop(ctl: Bridge, topic: str) -> None:
     with pytest.raises(ValueError, match="send_rate_hz"):
         patterns.send_loop(ctl, topic, F64, counter())
-
-
-# -- the benchmark that measures them (rlbridge bench jitter) -------------------------------
-
-
-def test_jitter_benchmark_runs_end_to_end(tmp_path: Path) -> None:
-    """Server, publisher and workers in their own processes; all gone afterwards."""
-    config = jitter.JitterConfig(cycles=100, repeats=1, only=("receive-nonblocking",
-                                                              "send-loop-100"),
-                                 out=tmp_path / "jitter.md", plot=None, command="test")
-    lines: list[str] = []
-    results = jitter.run(config, lines.append)
-    assert [r.scenario.name for r in results] == [
-        "reference", "receive-nonblocking", "send-loop-100"]
-    for res in results:
-        assert len(res.runs) == 1, lines
-        assert res.runs[0].samples >= 1
-        assert res.info[0]["policy"]  # recorded from inside the HRT thread
-    text = (tmp_path / "jitter.md").read_text()
-    assert "| receive | Receive non-blocking (5.3) |" in text
-    assert (tmp_path / "jitter.patterns-only.json").exists()
-
-
-def test_generated_section_is_replaced_and_prose_kept(tmp_path: Path) -> None:
-    doc = tmp_path / "doc.md"
-    markers = ("<!-- b -->", "<!-- e -->")
-    doc.write_text("# Title\n\nprose before\n\n<!-- b -->\nold\n<!-- e -->\n\nprose after\n")
-    jitter.write_section(doc, "<!-- b -->\nnew\n<!-- e -->\n", "Title", markers)
-    expected = "# Title\n\nprose before\n\n<!-- b -->\nnew\n<!-- e -->\n\nprose after\n"
-    assert doc.read_text() == expected
-
-
-def test_percentile_and_target() -> None:
-    assert jitter.percentile([], 99) == 0
-    assert jitter.percentile(list(range(1, 101)), 99) == 99
-    assert jitter.percentile(list(range(1, 101)), 50) == 50
-    assert jitter.target_ok(100.0, 20.0)  # 20 us beats 10 % of 100 us
-    assert not jitter.target_ok(1000.0, 101.0)

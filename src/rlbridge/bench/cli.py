@@ -20,7 +20,7 @@ def jitter(
     = "patterns",
     cycles: Annotated[int, typer.Option(help="Deadlines per run.")] = 5000,
     period_us: Annotated[int, typer.Option("--period-us", help="Loop period.")] = 1000,
-    repeats: Annotated[int, typer.Option(help="Rounds; figures are medians over them.")] = 3,
+    repeats: Annotated[int, typer.Option(help="Rounds; figures are medians over them.")] = 5,
     stress: Annotated[bool, typer.Option(help="Run `stress --cpu 2 --io 2 --hdd 1` meanwhile.")]
     = False,
     publish_hz: Annotated[float, typer.Option(help="Rate of the set-point publisher.")] = 100.0,
@@ -28,20 +28,30 @@ def jitter(
     = "",
     priority: Annotated[bool, typer.Option("--rt/--no-rt",
                                            help="PriParallel priorities for the loop.")] = True,
+    cpu: Annotated[int | None, typer.Option(
+        help="Pin every loop (the reference's too) to this CPU; default the last, -1 none.")]
+    = None,
+    isolate: Annotated[bool, typer.Option(
+        help="Keep server, publishers and SDK threads off the loops' CPU.")] = True,
+    mlock: Annotated[bool, typer.Option(help="mlockall in every loop process.")] = True,
     out: Out = Path("docs/jitter.md"),
     plot: Annotated[Path, typer.Option(help="PNG of the jitter per cycle.")]
     = Path("docs/jitter.png"),
 ) -> None:
     """HRT loop jitter per coupling pattern, next to a reference loop from the same run."""
+    import os
     import sys
 
     from rlbridge.bench.jitter import JitterConfig, command_line, run
 
     if suite not in ("patterns", "gil"):
         raise typer.BadParameter("--suite must be 'patterns' or 'gil'")
+    if cpu is None:
+        cpu = (os.cpu_count() or 1) - 1
     run(JitterConfig(suite=suite, cycles=cycles, period=period_us / 1e6,  # type: ignore[arg-type]
                      repeats=repeats, stress=stress, publish_hz=publish_hz,
-                     only=tuple(s for s in only.split(",") if s), priority=priority, out=out,
+                     only=tuple(s for s in only.split(",") if s), priority=priority,
+                     cpu=None if cpu < 0 else cpu, isolate=isolate, mlock=mlock, out=out,
                      plot=plot, command=command_line(sys.argv[1:])), typer.echo)
 
 

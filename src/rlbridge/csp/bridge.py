@@ -45,8 +45,9 @@ log = logging.getLogger("rlbridge.client")
 Transport = Literal["tcp", "udp"]
 """Per channel: ``udp`` when the newest value matters most, ``tcp`` when every value must arrive."""
 
-DEFAULT_SWITCH_INTERVAL = 0.0005
-"""GIL switch interval ``Bridge.connect`` installs (never lengthens); see docs/gil.md."""
+DEFAULT_SWITCH_INTERVAL: float | None = None
+"""``Bridge.connect`` leaves the process-wide GIL switch interval alone by default: the HRT loop
+holds a short one while it runs (``rlbridge.csp.gil``); measured in docs/gil.md."""
 
 
 class Bridge:

@@ -36,7 +36,6 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Final, Generic, TypeVar
 
 from rlbridge.csp.errors import (
@@ -47,7 +46,11 @@ from rlbridge.csp.errors import (
     WouldBlock,
 )
 from rlbridge.csp.process import current_process
+from rlbridge.csp.rendezvous import Rendezvous
 from rlbridge.csp.ring import EMPTY, SpscRing
+from rlbridge.csp.statistics import ChannelStatistics
+
+__all__ = ["Channel", "ChannelStatistics", "Doorbell"]  # ChannelStatistics: re-exported
 
 T = TypeVar("T")
 
@@ -57,27 +60,6 @@ class _Missing(enum.Enum):
 
 
 _MISSING: Final = _Missing.MISSING
-
-
-@dataclass(frozen=True, slots=True)
-class ChannelStatistics:
-    """A snapshot of a channel's counters; exact when the channel is quiet.
-
-    ``written == read + overwritten + dropped + buffered`` once no call is in progress.
-    ``stale_reads`` counts non-blocking reads that repeated the latest value;
-    ``hrt_blocking_reads`` counts reads by a hard-real-time process that had to wait.
-    """
-
-    buffered: int
-    overwritten: int
-    dropped: int
-    written: int
-    read: int
-    waiting_readers: int
-    waiting_writers: int
-    closed: bool
-    stale_reads: int = 0
-    hrt_blocking_reads: int = 0
 
 
 class Doorbell:
@@ -136,7 +118,7 @@ class Channel(Generic[T]):
         self._initial: Final = initial
         self._bell: Final = doorbell if doorbell is not None else Doorbell()
         self._ring: Final[SpscRing[T]] = SpscRing(max(buffer_size, 1))
-        self._rv: Final = _Rendezvous[T](self._name) if buffer_size == 0 else None
+        self._rv: Final = Rendezvous[T](self._name) if buffer_size == 0 else None
         self._closed = False
         self._write_token: Final[list[None]] = [None]
         self._read_token: Final[list[None]] = [None]
@@ -370,122 +352,5 @@ class Channel(Generic[T]):
                     f"{self._name!r}; read HRT inputs from a non-blocking channel, or move "
                     "the blocking read to a lower-priority process (thesis 5.2.1)"
                 ),
-                stacklevel=4,  # _note <- _wait_and_pop or _Rendezvous.read <- read <- caller
+                stacklevel=4,  # _note <- _wait_and_pop or Rendezvous.read <- read <- caller
             )
-
-
-class _Rendezvous(Generic[T]):
-    """The unbuffered channel: at most one pending offer, handed over under one lock.
-
-    Every state change notifies all waiters, who re-check their own condition: simple to
-    reason about, and a spurious wake-up is cheap next to the wait it interrupts.
-    """
-
-    __slots__ = ("_closed", "_cond", "_name", "_offer", "_owned", "_seq", "_taken",
-                 "dropped", "has_offer", "read_count", "waiting_readers", "waiting_writers",
-                 "written")  # fmt: skip
-
-    def __init__(self, name: str) -> None:
-        self._name = name
-        self._cond = threading.Condition(threading.Lock())
-        self._closed = False  # set under the lock: closing and withdrawing are one step
-        self._offer: T | None = None
-        self.has_offer = False
-        self._owned = False  # a blocked writer owns the offer (False: made by try_write)
-        self._seq = self._taken = 0  # offers made; sequence number of the last one taken
-        self.waiting_readers = self.waiting_writers = 0
-        self.written = self.read_count = self.dropped = 0
-
-    def write(self, value: T, timeout: float | None) -> None:
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._cond:
-            if self._closed:
-                raise ChannelClosed(self._name)
-            self.waiting_writers += 1
-            try:
-                self._wait_while(lambda: self.has_offer, deadline)  # another writer's turn
-                self._seq += 1
-                seq = self._seq
-                self._offer, self.has_offer, self._owned = value, True, True
-                self._cond.notify_all()
-                try:
-                    self._wait_while(lambda: self._taken < seq, deadline)
-                except TimeoutError:  # not taken: withdraw (close withdraws by itself)
-                    self._offer, self.has_offer = None, False
-                    self._cond.notify_all()
-                    raise
-                self.written += 1
-            finally:
-                self.waiting_writers -= 1
-
-    def try_write(self, value: T) -> None:
-        with self._cond:
-            if self._closed:
-                raise ChannelClosed(self._name)
-            if self.has_offer or self.waiting_readers == 0:
-                raise WouldBlock(self._name, "try_write")
-            # A blocked reader re-checks for an offer before it gives up: it takes this.
-            self._seq += 1
-            self._offer, self.has_offer, self._owned = value, True, False
-            self.written += 1
-            self._cond.notify_all()
-
-    def read(self, timeout: float | None, on_block: Callable[[], None]) -> T:
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._cond:
-            self.waiting_readers += 1
-            try:
-                if not self.has_offer and not self._closed:
-                    on_block()
-                self._wait_while(lambda: not self.has_offer, deadline)
-                return self._take()
-            finally:
-                self.waiting_readers -= 1
-
-    def try_read(self) -> T:
-        with self._cond:
-            if self.has_offer:
-                return self._take()
-            if self._closed:
-                raise ChannelClosed(self._name)
-            raise WouldBlock(self._name, "try_read")
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            if self.has_offer and not self._owned:
-                self.dropped += 1  # try_write's value: its writer has already returned
-            self._offer, self.has_offer = None, False
-            self._cond.notify_all()
-
-    def statistics(self, closed: bool, hrt_blocking_reads: int) -> ChannelStatistics:
-        with self._cond:
-            return ChannelStatistics(
-                buffered=int(self.has_offer and not self._owned),
-                overwritten=0,
-                dropped=self.dropped,
-                written=self.written,
-                read=self.read_count,
-                waiting_readers=self.waiting_readers,
-                waiting_writers=self.waiting_writers,
-                closed=closed,
-                hrt_blocking_reads=hrt_blocking_reads,
-            )
-
-    def _take(self) -> T:
-        value: T = self._offer  # type: ignore[assignment]  # has_offer: it is a T
-        self._offer, self.has_offer = None, False
-        self._taken = self._seq
-        self.read_count += 1
-        self._cond.notify_all()
-        return value
-
-    def _wait_while(self, busy: Callable[[], bool], deadline: float | None) -> None:
-        """Wait (lock held) while ``busy()``; raise on close or once the deadline passed."""
-        while busy():
-            if self._closed:
-                raise ChannelClosed(self._name)
-            remaining = None if deadline is None else deadline - time.monotonic()
-            if remaining is not None and remaining <= 0:
-                raise TimeoutError(f"rendezvous on channel {self._name!r} timed out")
-            self._cond.wait(remaining)

@@ -1,0 +1,189 @@
+"""What a ``rlbridge bench jitter`` run measures and how a run's figures are reduced.
+
+Scenarios (the rows), the run's configuration (built by the CLI), and the statistics: per run
+p50 / p99 / max of the absolute jitter; per scenario the median over the rounds, and the
+comparison with the reference *measured in the same round* (difference, ratio, and in how
+many rounds the target held), which is what survives a shared, noisy machine.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+F64 = "std_msgs/msg/Float64"
+TOPIC_IN = "/bench/setpoint"
+TOPIC_IN_FAST = "/bench/setpoint_fast"
+TOPIC_OUT = "/bench/output"
+
+Suite = Literal["patterns", "gil"]
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One measured configuration: a pattern or a GIL-study condition."""
+
+    name: str
+    group: str
+    label: str
+    switch_interval: float | None = None  # None: CPython's default (5 ms)
+
+
+PATTERN_SCENARIOS: tuple[Scenario, ...] = (
+    Scenario("reference", "all", "Reference"),
+    Scenario("receive-nonblocking", "receive", "Receive non-blocking (5.3)"),
+    Scenario("receive-blocking", "receive", "Receive blocking (5.4)"),
+    Scenario("receive-naive", "receive", "Receive naive"),
+    Scenario("send-naive", "send", "Send naive"),
+    Scenario("send-buffered", "send", "Send buffered (5.5)"),
+    Scenario("send-sampled", "send", "Send sampled (5.6)"),
+    Scenario("send-loop-100", "send loop", "Send loop 100 Hz (5.10)"),
+    Scenario("send-loop-1000", "send loop", "Send loop 1000 Hz (5.10)"),
+    Scenario("shm-process", "separate process",
+             "HRT process + shared memory (receive + send 1 kHz)"),
+)
+
+GIL_BASE: tuple[tuple[str, str], ...] = (
+    ("reference", "loop alone"),
+    ("sdk-100", "SDK threads, 100 Hz in + out"),
+    ("sdk-1000", "SDK threads, 1 kHz in + out"),
+    ("sendto-1000", "thread calling sendto at 1 kHz"),
+    ("pyburn", "thread running pure Python"),
+)
+GIL_INTERVALS: tuple[float | None, ...] = (None, 0.0005, 0.0001)
+
+
+def gil_scenarios() -> tuple[Scenario, ...]:
+    """Every GIL-study condition at every switch interval, plus the separate-process loop."""
+    out = [
+        Scenario(name, interval_label(interval), label, interval)
+        for interval in GIL_INTERVALS
+        for name, label in GIL_BASE
+    ]
+    out.append(Scenario("sdk-1000-rtio", "SDK threads real-time",
+                        "SDK threads at SCHED_FIFO below the loop, 1 kHz in + out"))
+    out.append(Scenario("shm-1000", "separate process",
+                        "loop in its own process, shared memory, 1 kHz in + out"))
+    return tuple(out)
+
+
+def interval_label(interval: float | None) -> str:
+    if interval is None:
+        return "switch 5 ms (default)"
+    return f"switch {interval * 1e6:g} us"
+
+
+@dataclass(frozen=True)
+class JitterConfig:
+    """Everything a run needs; built by the CLI."""
+
+    suite: Suite = "patterns"
+    cycles: int = 5000
+    period: float = 0.001
+    repeats: int = 3
+    stress: bool = False
+    publish_hz: float = 100.0
+    only: tuple[str, ...] = ()
+    priority: bool = True
+    cpu: int | None = None
+    isolate: bool = True
+    mlock: bool = True
+    out: Path | None = None
+    plot: Path | None = None
+    command: str = ""
+
+    @property
+    def key(self) -> str:
+        """Names this run's generated section, so that variants can share one document."""
+        return (f"{self.suite}{'-stress' if self.stress else ''}"
+                f"{'' if self.priority else '-nort'}{'-only' if self.only else ''}")
+
+    def markers(self) -> tuple[str, str]:
+        """The comments that delimit this run's generated section of the markdown file."""
+        return (f"<!-- bench:jitter:{self.key}:begin -->",
+                f"<!-- bench:jitter:{self.key}:end -->")
+
+    def scenarios(self) -> tuple[Scenario, ...]:
+        chosen = PATTERN_SCENARIOS if self.suite == "patterns" else gil_scenarios()
+        if self.only:
+            keep = set(self.only)
+            chosen = tuple(s for s in chosen if s.name in keep or s.name == "reference")
+        return chosen
+
+
+# -- statistics ---------------------------------------------------------------------------------
+
+
+def percentile(sorted_values: Sequence[int], percent: float) -> int:
+    """Nearest-rank percentile of an already sorted sequence (0 when empty)."""
+    if not sorted_values:
+        return 0
+    rank = max(0, math.ceil(percent / 100 * len(sorted_values)) - 1)
+    return int(sorted_values[rank])
+
+
+@dataclass(frozen=True)
+class RunStats:
+    """One worker run, reduced."""
+
+    p50_us: float
+    p99_us: float
+    max_us: float
+    samples: int
+    missed: int
+    round: int = 0
+
+    @classmethod
+    def of(cls, lateness_ns: Sequence[int], missed: int, rnd: int = 0) -> RunStats:
+        ordered = sorted(lateness_ns)
+        return cls(percentile(ordered, 50) / 1e3, percentile(ordered, 99) / 1e3,
+                   (ordered[-1] if ordered else 0) / 1e3, len(ordered), missed, rnd)
+
+
+@dataclass
+class ScenarioResult:
+    """All repeats of one scenario."""
+
+    scenario: Scenario
+    runs: list[RunStats] = field(default_factory=list)
+    lateness: list[list[int]] = field(default_factory=list)
+    info: list[dict[str, Any]] = field(default_factory=list)
+
+    def median(self, attr: str) -> float:
+        values = [float(getattr(r, attr)) for r in self.runs]
+        return statistics.median(values) if values else math.nan
+
+    def paired(self, ref: ScenarioResult, combine: Callable[[float, float], float],
+               attr: str = "p99_us") -> list[float]:
+        """``combine(this, reference)`` per round, for the rounds both were measured in.
+
+        Pairing cancels the load that drifts from round to round on a shared machine.
+        """
+        theirs = {r.round: float(getattr(r, attr)) for r in ref.runs}
+        return [combine(float(getattr(r, attr)), theirs[r.round]) for r in self.runs
+                if r.round in theirs]
+
+    def paired_delta(self, ref: ScenarioResult, attr: str = "p99_us") -> float:
+        """Median over rounds of (this - the reference measured in the same round)."""
+        deltas = self.paired(ref, lambda mine, theirs: mine - theirs, attr)
+        return statistics.median(deltas) if deltas else math.nan
+
+    def paired_ratio(self, ref: ScenarioResult) -> float:
+        """Median over rounds of (this p99 / the same round's reference p99)."""
+        ratios = self.paired(ref, lambda mine, theirs: mine / theirs if theirs else math.inf)
+        return statistics.median(ratios) if ratios else math.nan
+
+    def rounds_met(self, ref: ScenarioResult) -> tuple[int, int]:
+        """(rounds in which the target held against that round's reference, rounds paired)."""
+        held = self.paired(ref, lambda mine, theirs: float(target_ok(theirs, mine - theirs)))
+        return int(sum(held)), len(held)
+
+
+def target_ok(ref_p99: float, delta_p99: float) -> bool:
+    """The target: p99 within 10 % or 20 us (whichever is larger) of the reference's."""
+    return delta_p99 <= max(0.1 * ref_p99, 20.0)
+

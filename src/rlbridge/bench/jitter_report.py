@@ -1,0 +1,253 @@
+"""The report of a ``rlbridge bench jitter`` run: markdown section, plot, pooled rounds."""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import json
+import math
+import os
+import platform
+import statistics
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from rlbridge.bench.jitter_config import (
+    GIL_BASE,
+    GIL_INTERVALS,
+    JitterConfig,
+    ScenarioResult,
+    interval_label,
+    target_ok,
+)
+
+
+def machine_info() -> dict[str, str]:
+    """What the figures were measured on."""
+    cpu = "unknown"
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    load = "unknown"
+    with contextlib.suppress(OSError):
+        load = " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    return {
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "host": f"{platform.system()} {platform.release()} {platform.machine()}",
+        "cpu": f"{cpu}, {os.cpu_count()} CPUs",
+        "python": f"{platform.python_implementation()} {platform.python_version()}",
+        "load": load,
+    }
+
+
+
+def render_markdown(config: JitterConfig, results: list[ScenarioResult],
+                    machine: dict[str, str], plot: Path | None) -> str:
+    """The generated section of docs/jitter.md or docs/gil.md."""
+    begin, end = config.markers()
+    lines = [
+        begin,
+        f"Command: `{config.command or 'rlbridge bench jitter'}`",
+        "",
+        f"Measured {machine['date']} on {machine['host']}, {machine['cpu']}, "
+        f"{machine['python']}; load average before the run {machine['load']}, after "
+        f"{machine.get('load_after', 'unknown')}. {config.cycles} deadlines of a "
+        f"{config.period * 1e6:g} us loop per run, {config.repeats} rounds, stress "
+        f"{'on' if config.stress else 'off'}. Every loop (the reference's too): "
+        f"{_treatment(results)}; server, publishers and the workers' other threads "
+        f"{'kept off the loop CPU' if config.isolate and config.cpu is not None else 'anywhere'}.",
+        "",
+        "Figures are medians over the rounds of each run's p50 / p99 / max of the absolute "
+        "jitter |release - deadline| in microseconds. Paired with the reference measured in "
+        "the same round (which cancels the load that drifts between rounds): *d p99* is the "
+        "median over the rounds of (p99 - reference p99), *p99/ref* the median of their "
+        "ratio, *rounds met* in how many rounds p99 <= max(1.1 x, +20 us) of that round's "
+        "reference. *target*: d p99 <= max(10 % of the reference's median p99, 20 us). "
+        "*missed*: releases skipped because the loop was still busy (median per run).",
+        "",
+        "| group | scenario | p50 us | p99 us | max us | missed | d p99 us | p99/ref "
+        "| rounds met | target |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    refs = {r.scenario.group: r for r in results if r.scenario.name == "reference"}
+    default_ref = next((r for r in results if r.scenario.name == "reference"), None)
+    for res in results:
+        ref = refs.get(res.scenario.group, default_ref)
+        paired = ["", "", "", ""]
+        if ref is not None and res is not ref:
+            delta = res.paired_delta(ref)
+            met, rounds = res.rounds_met(ref)
+            verdict = "met" if target_ok(ref.median("p99_us"), delta) else "missed"
+            if "naive" in res.scenario.name:
+                # p99 of a naive receive is capped at one period (late releases are
+                # skipped, see "missed"): the target is for the proper patterns only
+                verdict = "n/a (naive)"
+            paired = [f"{delta:+.0f}", f"{res.paired_ratio(ref):.2f}", f"{met}/{rounds}",
+                      verdict]
+        lines.append(
+            f"| {res.scenario.group} | {res.scenario.label} | {res.median('p50_us'):.0f} | "
+            f"{res.median('p99_us'):.0f} | {res.median('max_us'):.0f} | "
+            f"{res.median('missed'):.0f} | " + " | ".join(paired) + " |")
+    lines += ["", "Per round (p99 us):", "",
+              "| scenario | " + " | ".join(f"round {i + 1}" for i in range(config.repeats))
+              + " |", "|---|" + "---:|" * config.repeats]
+    for res in results:
+        by_round = {r.round: f"{r.p99_us:.0f}" for r in res.runs}
+        cells = " | ".join(by_round.get(i, "failed") for i in range(config.repeats))
+        lines.append(f"| {res.scenario.group}: {res.scenario.name} | {cells} |")
+    if plot is not None:
+        lines += ["", f"![absolute jitter per cycle]({plot.name})"]
+    lines.append(end)
+    return "\n".join(lines) + "\n"
+
+
+def _treatment(results: list[ScenarioResult]) -> str:
+    """What every loop process got, as recorded from inside the loops."""
+    def seen(key: str) -> str:
+        values = sorted({str(i.get(key, "unknown")) for r in results for i in r.info})
+        return " / ".join(values) if values else "unknown"
+
+    return (f"HRT thread {seen('policy')}, on CPU {seen('cpus')}, mlockall {seen('mlockall')}, "
+            f"timer slack {seen('timer_slack')}")
+
+
+def write_section(path: Path, section: str, title: str, markers: tuple[str, str]) -> None:
+    """Replace the generated section of ``path``, keeping the prose around it."""
+    begin, end = markers
+    if path.exists():
+        text = path.read_text()
+        if begin in text and end in text:
+            head, rest = text.split(begin, 1)
+            tail = rest.split(end, 1)[1]
+            path.write_text(head + section.rstrip("\n") + tail)
+            return
+        path.write_text(text.rstrip("\n") + "\n\n" + section)
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"# {title}\n\n{section}")
+
+
+def _median_round(res: ScenarioResult) -> int:
+    order = sorted(range(len(res.runs)), key=lambda i: res.runs[i].p99_us)
+    return order[len(order) // 2] if order else 0
+
+
+def plot_results(config: JitterConfig, results: list[ScenarioResult], path: Path) -> None:
+    """Absolute jitter per cycle, one panel per group (thesis figures 5.8-5.10 style)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ref = next((r for r in results if r.scenario.name == "reference"), None)
+    groups: list[str] = []
+    for res in results:
+        if res.scenario.name != "reference" and res.scenario.group not in groups:
+            groups.append(res.scenario.group)
+    if config.suite == "gil":
+        _plot_gil(plt, results, path)
+        return
+    fig, axes = plt.subplots(len(groups), 1, figsize=(10, 3.2 * len(groups)), squeeze=False)
+    rnd = _median_round(ref) if ref is not None else 0
+    for ax, group in zip(axes[:, 0], groups, strict=True):
+        members = ([ref] if ref is not None else []) + [
+            r for r in results if r.scenario.group == group and r.scenario.name != "reference"]
+        for res in members:
+            samples = res.lateness[min(rnd, len(res.lateness) - 1)]
+            stats = res.runs[min(rnd, len(res.runs) - 1)]
+            ax.plot(range(len(samples)), [max(s / 1e3, 0.1) for s in samples],
+                    ".", markersize=1.5,
+                    label=f"{res.scenario.label} (p99 {stats.p99_us:.0f} us, "
+                          f"max {stats.max_us:.0f} us)")
+        ax.set_yscale("log")
+        ax.set_ylabel("absolute jitter [us]")
+        ax.set_title(f"{group}: {config.period * 1e6:g} us loop"
+                     f"{', stressed' if config.stress else ''} (round {rnd + 1})")
+        ax.legend(loc="upper right", fontsize=7, markerscale=6)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[-1, 0].set_xlabel("release number (a naive receive releases once per message)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_gil(plt: Any, results: list[ScenarioResult], path: Path) -> None:
+    present = {r.scenario.name for r in results}
+    names = [name for name, _ in GIL_BASE if name in present]
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    width = 0.8 / (len(GIL_INTERVALS) + 1)
+    for k, interval in enumerate(GIL_INTERVALS):
+        label = interval_label(interval)
+        p99 = []
+        p50 = []
+        for name in names:
+            res = next((r for r in results if r.scenario.name == name
+                        and r.scenario.switch_interval == interval), None)
+            p99.append(res.median("p99_us") if res else math.nan)
+            p50.append(res.median("p50_us") if res else math.nan)
+        xs = [i + k * width for i in range(len(names))]
+        ax.bar(xs, p99, width, label=f"p99, {label}", alpha=0.85)
+        ax.scatter(xs, p50, marker="_", color="black", s=80, zorder=3)
+    extras = [r for r in results if r.scenario.name in ("sdk-1000-rtio", "shm-1000")]
+    ticks = [i + width for i in range(len(names))]
+    for j, res in enumerate(extras):
+        x = len(names) + j
+        ax.bar([x], [res.median("p99_us")], width * 2, color=("tab:purple", "tab:red")[j % 2],
+               label=f"p99, {res.scenario.label} (switch 5 ms)")
+        ax.scatter([x], [res.median("p50_us")], marker="_", color="black", s=80, zorder=3)
+        ticks.append(x)
+    ax.set_xticks(ticks, names + [r.scenario.name for r in extras], fontsize=8)
+    ax.set_yscale("log")
+    ax.set_ylabel("absolute jitter [us] (bar p99, tick p50)")
+    ax.set_title("1 kHz loop next to other threads in one interpreter")
+    ax.legend(fontsize=7)
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+
+
+def pooled_deltas(paths: Sequence[Path]) -> str:
+    """Pool the per-round differences to the same-round reference over several runs' JSON.
+
+    One run's five rounds cannot separate a 200 us effect from a machine whose reference p99
+    swings by milliseconds between rounds; the same condition measured in several runs can.
+    Returns a markdown table: median difference of p50 and p99, and in how many rounds the
+    p99 was worse than the reference's.
+    """
+    pool: dict[tuple[str, str], tuple[list[float], list[float]]] = {}
+    for path in paths:
+        data = json.loads(path.read_text())
+        results = data["results"]
+        refs = {r["scenario"]["switch_interval"]: r for r in results
+                if r["scenario"]["name"] == "reference"}
+        for res in results:
+            sc = res["scenario"]
+            if sc["name"] == "reference":
+                continue
+            ref = refs.get(sc["switch_interval"], refs.get(None))
+            if ref is None:
+                continue
+            by_round = {run["round"]: run for run in ref["runs"]}
+            d50, d99 = pool.setdefault((sc["name"], sc["group"]), ([], []))
+            for run in res["runs"]:
+                other = by_round.get(run["round"])
+                if other is not None:
+                    d50.append(run["p50_us"] - other["p50_us"])
+                    d99.append(run["p99_us"] - other["p99_us"])
+    lines = ["| scenario | group | rounds | d p50 us | d p99 us | p99 worse than ref |",
+             "|---|---|---:|---:|---:|---:|"]
+    for (name, group), (d50, d99) in pool.items():
+        worse = sum(1 for d in d99 if d > 0)
+        lines.append(f"| {name} | {group} | {len(d99)} | {statistics.median(d50):+.0f} | "
+                     f"{statistics.median(d99):+.0f} | {worse}/{len(d99)} |")
+    return "\n".join(lines)
+
+
