@@ -27,8 +27,27 @@ API: list[tuple[str, str, list[str], str]] = [
     ("Bridge: the session with a server", "rlbridge.csp.bridge",
      ["Bridge", "Transport", "DEFAULT_SWITCH_INTERVAL"],
      "Start here: `Bridge.connect` opens a session, `subscribe`/`publish` return channels."),
-    ("Bridge channels", "rlbridge.csp.bridge_channels", ["IncomingChannel", "OutgoingChannel"],
+    ("Bridge channels", "rlbridge.csp.bridge_channels",
+     ["IncomingChannel", "OutgoingChannel", "AgedValue", "SecondWriterError"],
      "What `Bridge.subscribe` and `Bridge.publish` return."),
+    ("Channel health", "rlbridge.csp.health", ["ChannelHealth"],
+     "`channel.health()`: link health per channel, readable from control code "
+     "([policies.md](policies.md))."),
+    ("Reconnect", "rlbridge.csp.reconnect", ["Backoff", "ClientState"],
+     "`Bridge.connect(reconnect=...)`: how the SDK rides out a server restart or an outage "
+     "([reliability.md](reliability.md))."),
+    ("Link events and fail-safes", "rlbridge.csp.link_events", ["LinkEvent"],
+     "`Bridge.link_events()` and `Bridge.subscribe(on_lost=...)`."),
+    ("", "rlbridge.csp.failsafe", ["SafeValue", "LinkLost"], ""),
+    ("Authentication", "rlbridge.csp.auth", ["AuthRefused", "resolve_key"],
+     "`Bridge.connect(psk=...)` for a server started with a pre-shared key "
+     "([security.md](security.md))."),
+    ("HRT loop in its own process", "rlbridge.csp.shm", ["ShmLink", "HrtProcess", "forwarder",
+                                                        "ShmLinkError"],
+     "The design that keeps a 1 kHz loop's jitter at the reference loop's "
+     "([gil.md](gil.md), [jitter.md](jitter.md))."),
+    ("GIL switch interval", "rlbridge.csp.gil",
+     ["shorter_switch_interval", "realtime_switch_interval", "HRT_SWITCH_INTERVAL"], ""),
     ("Link state and connection errors", "rlbridge.wire.link", ["LinkState"],
      "What control code branches on when the network misbehaves."),
     ("", "rlbridge.csp.connection", ["ConnectionFailed", "ConnectionClosed"], ""),

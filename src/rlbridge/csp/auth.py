@@ -52,8 +52,11 @@ class AuthRefused(ConnectionFailed, AuthenticationFailed):
 
 
 def resolve_key(psk: bytes | None = None, psk_file: str | Path | None = None,
-                environ: Mapping[str, str] = os.environ) -> bytes | None:
-    """The key to authenticate with, from the first source that has one (module docstring)."""
+                environ: Mapping[str, str] | None = None) -> bytes | None:
+    """The key to authenticate with, from the first source that has one (module docstring).
+
+    ``environ`` defaults to ``os.environ`` (tests pass their own mapping).
+    """
     if psk is not None:
         if len(psk) < MIN_KEY_SIZE:
             raise ValueError(f"psk of {len(psk)} bytes is too short; use at least "
@@ -65,7 +68,7 @@ def resolve_key(psk: bytes | None = None, psk_file: str | Path | None = None,
         except OSError as exc:
             raise ValueError(f"cannot read the key file {psk_file}: {exc.strerror}") from None
         return parse_key(text.split("#", 1)[0], str(psk_file))
-    env = environ.get(PSK_ENV)
+    env = (os.environ if environ is None else environ).get(PSK_ENV)
     return parse_key(env, f"${PSK_ENV}") if env else None
 
 

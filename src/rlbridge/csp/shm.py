@@ -260,6 +260,7 @@ class HrtProcess:
                                      name=name, daemon=True)
 
     def start(self) -> None:
+        """Start the loop's process (its own interpreter: no GIL shared with the SDK)."""
         self._proc.start()
 
     def join(self, timeout: float | None = None) -> bool:
@@ -269,6 +270,7 @@ class HrtProcess:
 
     @property
     def exitcode(self) -> int | None:
+        """The loop process's exit status, ``None`` while it runs: a crashed loop shows here."""
         return self._proc.exitcode
 
     def stop(self, timeout: float = 5.0) -> int | None:
