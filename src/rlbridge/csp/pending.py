@@ -1,0 +1,134 @@
+"""Control requests of a connection waiting for their answers: topic-connects and stats.
+
+The asking thread (a channel being bound, ``rlbridge stats``) sends the request and waits on an
+event; the receive thread (:mod:`rlbridge.csp.receiver`) hands the answer over with
+:meth:`Requests.answer` and sets it. The acknowledged bindings are kept here too: they are what
+a new session binds again after a reconnect.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import msgspec
+
+from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
+from rlbridge.wire import (
+    LocalProtocolError,
+    Packet,
+    Stats,
+    TopicAck,
+    TopicConnect,
+    TopicError,
+    error_from_code,
+)
+
+if TYPE_CHECKING:
+    from rlbridge.csp.connection import Connection
+
+
+@dataclass
+class _Pending:
+    """A control request waiting for its answer from the receive thread."""
+
+    done: threading.Event
+    answer: Packet | None = None
+
+
+class Requests:
+    """The requests of one connection that wait for answers, across its sessions."""
+
+    def __init__(self, conn: Connection) -> None:
+        self._conn = conn
+        self._pending: dict[int, _Pending] = {}
+        #: Every binding the server acknowledged, by channel: what a new session binds again.
+        self._bindings: dict[int, TopicConnect] = {}
+        self._stats_waiters: list[_Pending] = []
+        self._lock = threading.Lock()
+
+    def topic(self, req: TopicConnect) -> TopicAck:
+        """See :meth:`rlbridge.csp.connection.Connection.request_topic`."""
+        conn = self._conn
+        try:  # Structs are not validated when built: check locally, before the network
+            msgspec.convert(msgspec.to_builtins(req), TopicConnect)
+        except msgspec.ValidationError as exc:
+            raise LocalProtocolError(f"invalid topic-connect for {req.topic!r}: {exc}") from None
+        pending = _Pending(threading.Event())
+        with self._lock:
+            self._pending[req.channel] = pending
+        try:
+            deadline = time.monotonic() + conn.timeout
+            while pending.answer is None:
+                if conn.closed.is_set():
+                    raise ConnectionClosed(f"connection closed: {conn.close_reason}")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise ConnectionFailed(
+                        f"no answer to the topic-connect for {req.topic} within {conn.timeout} s")
+                if not conn.wait_up(left):
+                    continue
+                pending.done.clear()
+                with contextlib.suppress(OSError, ConnectionClosed):  # session ended: retry
+                    conn.send_control(req)
+                pending.done.wait(min(left, 0.25 if conn.control == "udp" else left))
+        finally:
+            with self._lock:
+                self._pending.pop(req.channel, None)
+        answer = pending.answer
+        if isinstance(answer, TopicAck):
+            with self._lock:
+                self._bindings[req.channel] = req
+            return answer
+        if isinstance(answer, TopicError):
+            raise error_from_code(answer.code, answer.reason, channel=answer.channel)
+        raise ConnectionClosed(f"connection closed: {conn.close_reason}")
+
+    def stats(self) -> dict[str, object]:
+        """See :meth:`rlbridge.csp.connection.Connection.request_stats`."""
+        conn = self._conn
+        if not conn.wait_up(conn.timeout):
+            raise ConnectionFailed(f"no session with the server within {conn.timeout} s: "
+                                   f"{conn.close_reason}")
+        pending = _Pending(threading.Event())
+        with self._lock:
+            self._stats_waiters.append(pending)
+        conn.send_control(Stats())
+        if not pending.done.wait(conn.timeout) or not isinstance(pending.answer, Stats):
+            raise ConnectionFailed(f"no statistics from the server within {conn.timeout} s")
+        return pending.answer.body
+
+    def answer(self, packet: TopicAck | TopicError) -> None:
+        """The receive thread got the answer to a topic-connect: wake its asker."""
+        with self._lock:
+            pending = self._pending.get(packet.channel)
+        if pending is not None:
+            pending.answer = packet
+            pending.done.set()
+
+    def answer_stats(self, packet: Stats) -> None:
+        """The receive thread got statistics: every waiting asker gets them."""
+        with self._lock:
+            waiters, self._stats_waiters = self._stats_waiters, []
+        for pending in waiters:
+            pending.answer = packet
+            pending.done.set()
+
+    def session_ended(self) -> None:
+        """Wake every topic-connect waiting, to ask again in the next session or give up."""
+        with self._lock:
+            for pending in self._pending.values():
+                pending.done.set()
+
+    def bindings(self) -> list[TopicConnect]:
+        """See :meth:`rlbridge.csp.connection.Connection.bindings`."""
+        with self._lock:
+            return list(self._bindings.values())
+
+    def forget(self, channel: int) -> None:
+        """See :meth:`rlbridge.csp.connection.Connection.forget_topic`."""
+        with self._lock:
+            self._bindings.pop(channel, None)

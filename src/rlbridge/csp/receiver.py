@@ -1,0 +1,220 @@
+"""The receive thread of one client session: select loop, datagrams, dispatch, heartbeats.
+
+One :class:`Receiver` per session (generation) of a
+:class:`~rlbridge.csp.connection.Connection`; its :meth:`Receiver.run` is the body of the
+``rlbridge-recv`` thread. It waits in ``select`` on the TCP and UDP sockets and the
+connection's wake-up socket (blocked in C, holding no GIL), decodes whole packets with the
+sans-IO codec, and gathers consecutive values of a channel into runs handed to the channels
+once per read burst. Between reads it sends heartbeats and runs the watchdog, with timeouts
+taken from the session's :class:`~rlbridge.wire.link.LinkMonitor`. It ends when the session
+does: the connection's generation moves on, the session is no longer up, or the wake-up
+socket is readable (``close``).
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import time
+from typing import TYPE_CHECKING
+
+from rlbridge.wire import (
+    Batch,
+    ConnectError,
+    Disconnect,
+    Error,
+    FrameDecoder,
+    Heartbeat,
+    Malformed,
+    Packet,
+    RemoteProtocolError,
+    Stats,
+    TopicAck,
+    TopicError,
+    Value,
+)
+from rlbridge.wire.link import LinkMonitor, LinkState
+
+if TYPE_CHECKING:
+    from rlbridge.csp.connection import Connection
+
+log = logging.getLogger("rlbridge.client")
+
+#: Datagrams read before the values gathered so far are handed to the channels.
+RUN_DATAGRAMS = 32
+#: Datagrams read in one go before the receive thread serves its other duties.
+MAX_DRAIN = 256
+
+
+class Receiver:
+    """Reading for session ``generation`` of ``conn``; see the module docstring."""
+
+    def __init__(self, conn: Connection, generation: int,
+                 leftover: list[Packet | Malformed], wake: socket.socket) -> None:
+        self._conn = conn
+        self._generation = generation
+        self._leftover = leftover
+        self._wake = wake
+        #: Values of the read burst in progress, per channel: ``(first_seq, stamps, values)``.
+        self._runs: dict[int, tuple[int, list[int], list[object]]] = {}
+
+    def run(self) -> None:
+        """The thread's body: packets that came with the ack first, then the loop."""
+        conn, generation = self._conn, self._generation
+        decoder = FrameDecoder(conn.codec)
+        link = conn.link
+        assert link is not None
+        assert conn.ack is not None
+        token = conn.ack.token
+        for packet in self._leftover:
+            if not isinstance(packet, Malformed):
+                self._dispatch(packet)
+        self._leftover = []
+        self._flush_values()
+        sockets = [s for s in (conn.tcp, conn.udp, self._wake) if s is not None]
+        try:
+            if conn.udp is not None and conn.control == "tcp":
+                conn.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
+            while generation == conn.generation and conn.up:
+                now = time.monotonic_ns()
+                timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
+                readable, _, _ = select.select(sockets, [], [], timeout)
+                for sock in readable:
+                    if sock is conn.tcp:
+                        data = sock.recv(1 << 18)
+                        if not data:
+                            conn.end_session("server closed the TCP connection", generation)
+                            return
+                        for packet in decoder.feed(data):
+                            if isinstance(packet, Malformed):
+                                log.warning("malformed packet from server: %s",
+                                            packet.error.reason)
+                            else:
+                                self._dispatch(packet)
+                    elif sock is conn.udp:
+                        self._receive_datagrams(sock, token)
+                    else:
+                        return
+                # Last before blocking again: a woken reader then finds the GIL free soon.
+                self._flush_values()
+                self._tick(link, generation)
+        except RemoteProtocolError as exc:
+            conn.end_session(f"server sent an invalid stream: {exc.reason}", generation)
+        except OSError as exc:
+            conn.end_session(f"connection failed: {exc}", generation)
+
+    def _receive_datagrams(self, sock: socket.socket, token: int) -> None:
+        """Read the datagrams already queued (at most ``MAX_DRAIN``), without blocking.
+
+        Values are handed on every ``RUN_DATAGRAMS`` datagrams (and when the queue is empty),
+        so a long burst neither waits for its end nor costs a channel wake-up per datagram.
+        After ``MAX_DRAIN`` datagrams the loop goes back to ``select``: under a flood the queue
+        never empties, and heartbeats (the server's watchdog) and TCP must still be served.
+        """
+        conn = self._conn
+        for count in range(1, MAX_DRAIN + 1):
+            if count % RUN_DATAGRAMS == 0:
+                self._flush_values()
+            try:
+                data = sock.recv(65536, socket.MSG_DONTWAIT)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionRefusedError:
+                return
+            try:
+                _flags, got, packet = conn.codec.decode_datagram(data)
+            except RemoteProtocolError as exc:
+                log.debug("dropped datagram: %s", exc.reason)
+                conn.datagrams_dropped[getattr(exc, "kind", "malformed")] += 1
+                continue
+            if got == token:
+                self._dispatch(packet)
+            else:
+                conn.datagrams_dropped["bad_token"] += 1
+
+    def _tick(self, link: LinkMonitor, generation: int) -> None:
+        """Watchdog and heartbeats, after every wake-up of the loop."""
+        conn = self._conn
+        now = time.monotonic_ns()
+        state = link.state(now)
+        if state is LinkState.LOST and conn.keep_alive:
+            # The server's watchdog has the same timeout: it has dropped this session too.
+            conn.end_session(f"watchdog: nothing from the server within "
+                             f"{link.timeout_ns // 1_000_000} ms", generation)
+            return
+        if state is not conn.reported_link:
+            silent_ms = link.stats(now).silence_ns // 1_000_000
+            conn.set_link(state, "heard from the server" if state is LinkState.CONNECTED
+                          else f"nothing from the server for {silent_ms} ms")
+        if link.heartbeat_due(now):
+            hb = link.make_heartbeat(now, time.time_ns())
+            if conn.tcp is not None:
+                conn.send_tcp(conn.codec.encode_frame(hb))
+            if conn.udp is not None:
+                conn.send_udp_packet(hb)
+
+    def _dispatch(self, packet: Packet) -> None:
+        conn = self._conn
+        link = conn.link
+        assert link is not None
+        now = time.monotonic_ns()
+        match packet:
+            case Value():
+                link.on_receive(now)
+                self._gather(packet.channel, packet.seq, [packet.stamp_ns], [packet.value])
+            case Batch():
+                link.on_receive(now)
+                self._gather(packet.channel, packet.first_seq, list(packet.stamps),
+                             list(packet.values))
+            case Heartbeat():
+                link.on_heartbeat(packet, now, time.time_ns())
+            case TopicAck() | TopicError():
+                link.on_receive(now)
+                conn.requests.answer(packet)
+            case Error():
+                link.on_receive(now)
+                log.warning("server reported: %s (code %d, channel %s)", packet.reason,
+                            packet.code, packet.channel)
+                if conn.on_error is not None:
+                    conn.on_error(packet)
+            case Stats():
+                conn.requests.answer_stats(packet)
+            case ConnectError():
+                conn.end_session(f"server ended the session: {packet.reason}", conn.generation)
+            case Disconnect():
+                conn.end_session(f"server closed the session: {packet.reason or 'no reason'}",
+                                 conn.generation)
+            case _:
+                link.on_receive(now)
+
+    def _gather(self, channel: int, first_seq: int, stamps: list[int],
+                values: list[object]) -> None:
+        """Add one packet's values (lists the caller gives away) to its channel's run.
+
+        Consecutive packets of a channel become one run, handed to ``on_values`` once per read
+        burst: one ring operation and at most one reader wake-up for many small packets. A
+        packet that does not continue the run (a gap, a duplicate) starts a new one, so the
+        channel's sequence tracker still sees every gap.
+        """
+        run = self._runs.get(channel)
+        if run is not None:
+            if first_seq == run[0] + len(run[2]):
+                run[1].extend(stamps)
+                run[2].extend(values)
+                return
+            self._deliver(channel, run)
+        self._runs[channel] = (first_seq, stamps, values)
+
+    def _flush_values(self) -> None:
+        """Hand every gathered run to the channels (end of a read burst)."""
+        runs = self._runs
+        if runs:
+            self._runs = {}
+            for channel, run in runs.items():
+                self._deliver(channel, run)
+
+    def _deliver(self, channel: int, run: tuple[int, list[int], list[object]]) -> None:
+        on_values = self._conn.on_values
+        if on_values is not None:
+            on_values(channel, run[0], run[1], run[2])
