@@ -319,8 +319,15 @@ def stats(
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 
 
-def main() -> None:
-    """Console-script entry point."""
+@functools.cache
+def build_app() -> typer.Typer:
+    """The complete ``rlbridge`` app: :data:`app` with the ``bench``, ``demo`` and ``netem``
+    groups added (once; later calls return the same app).
+
+    Those groups are added here rather than at import so ``import rlbridge.cli`` stays light
+    (their modules pull in the benchmark, demo and emulator code); the console script and
+    ``scripts/gen_docs.py`` both build the app through this function.
+    """
     from rlbridge.bench.cli import bench_app
     from rlbridge.demo.cli import register_demo
 
@@ -332,8 +339,12 @@ def main() -> None:
         pass
     else:
         app.add_typer(netem_app, name="netem")
-    app()
+    return app
 
+
+def main() -> None:
+    """Console-script entry point."""
+    build_app()()
 
 if __name__ == "__main__":
     main()
