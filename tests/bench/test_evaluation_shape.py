@@ -9,23 +9,23 @@ timings of this machine.
 
 from __future__ import annotations
 
-import pytest
+from pathlib import Path
 
+import pytest
+from typer.testing import CliRunner
+
+from rlbridge.bench.cli import bench_app
 from rlbridge.bench.netpath import PriorityLink, StreamSpec, measure_stream
 from rlbridge.bench.scenarios import summarise
 from rlbridge.netem import EmulatedLink, emulator_unavailable_reason
 
-pytestmark = [pytest.mark.netem, pytest.mark.timeout(120)]
+UNAVAILABLE = emulator_unavailable_reason()
+pytestmark = [pytest.mark.netem, pytest.mark.timeout(120),
+              pytest.mark.skipif(UNAVAILABLE is not None,
+                                 reason=f"network emulator unavailable: {UNAVAILABLE}")]
 
 COUNT = 200
 PERIOD_MS = 10.0
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _require_emulator() -> None:
-    reason = emulator_unavailable_reason()
-    if reason is not None:
-        pytest.skip(f"network emulator unavailable: {reason}")
 
 
 def _stream(delay_ms: float, loss_pct: float, transport: str, nodelay: bool) -> list[float | None]:
@@ -60,3 +60,17 @@ def test_tcp_nagle_is_above_the_link_delay_at_7_5_ms() -> None:
     got = [x for x in lat if x is not None]
     assert min(got) >= 7.5, "a sample beat the emulated delay"
     assert s.p99 > 7.5 + 1.0, "TCP+Nagle stayed in the delay + 1 ms band: no Nagle stall seen"
+
+
+def test_latency_cli_writes_one_csv_row_per_sample(tmp_path: Path) -> None:
+    csv = tmp_path / "lat.csv"
+    result = CliRunner().invoke(bench_app, ["latency", "--transport", "udp", "--delay", "3",
+                                            "--count", "50", "--csv", str(csv)])
+    assert result.exit_code == 0, result.output
+    assert "| UDP |" in result.output
+    lines = csv.read_text().splitlines()
+    assert lines[0] == "seq,sent_ns,recv_ns,latency_ms"
+    assert [int(line.split(",")[0]) for line in lines[1:]] == list(range(50))
+    got = [float(line.split(",")[3]) for line in lines[1:] if line.split(",")[3]]
+    assert got
+    assert min(got) >= 3.0
