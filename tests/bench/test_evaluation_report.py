@@ -121,6 +121,8 @@ def test_saturation_rule_and_csv_names() -> None:
     assert not saturated(ThroughputPoint("up", "udp", 1000, 1000.0, 995.0, 0, 1000))
     assert saturated(ThroughputPoint("up", "udp", 1000, 1000.0, 800.0, 0, 1000))
     assert saturated(ThroughputPoint("up", "udp", 1000, 1000.0, 990.0, 20, 1000))
+    assert not saturated(ThroughputPoint("up", "udp", 5000, 4533.0, 4496.0, 0, 5000))
+    assert saturated(ThroughputPoint("up", "udp", 5000, 2400.0, 2400.0, 0, 5000))
     assert csv_path(Path("x/l.csv"), "udp", True) == Path("x/l-udp.csv")
     assert csv_path(Path("x/l.csv"), "udp", False) == Path("x/l.csv")
 

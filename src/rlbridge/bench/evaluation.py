@@ -194,8 +194,14 @@ def _throughput_point(link: Link, direction: str, transport: str, rate: int,
 
 
 def saturated(p: ThroughputPoint) -> bool:
-    """The bridge no longer keeps up: under 90 % of the offered rate arrives, or > 1 % lost."""
-    return p.received_per_s < 0.9 * p.offered_hz or p.lost > 0.01 * p.sent
+    """Stop the series: under 90 % of what was sent arrives per second, > 1 % is lost, or the
+    sender itself reaches under half the offered rate.
+
+    Judged against the achieved send rate, not the offered one, so that a sender slowed a
+    little by other jobs on the machine does not end the series early.
+    """
+    return (p.received_per_s < 0.9 * p.sent_per_s or p.lost > 0.01 * p.sent
+            or p.sent_per_s < 0.5 * p.offered_hz)
 
 
 def run_throughput(settings: EvalSettings, ev: Evaluation, progress: Progress) -> None:
