@@ -38,7 +38,7 @@ PERIOD_MS = 1000.0 / RATE_HZ
 BASELINE_SCENARIOS = ("reference", "delay7.5", "delay15", "loss1")
 POLICY_SCENARIOS = ("delay7.5", "loss1")
 THROUGHPUT_RATES = (100, 250, 500, 1000, 2000, 5000, 10_000, 20_000, 50_000, 100_000,
-                    200_000)
+                    200_000, 500_000, 1_000_000)
 Progress = Callable[[str], None]
 
 
