@@ -24,6 +24,7 @@ from rlbridge.bench.common import (
     Params,
     ProcessGroup,
     Role,
+    Side,
     Skipped,
     Tally,
     Worker,
@@ -217,29 +218,39 @@ _ROLE_NAMES = {"udp": ("udp_recv", "udp_send"), "zmq": ("zmq_sub", "zmq_pub"),
                "zenoh": ("zenoh_sub", "zenoh_pub")}
 
 
+#: Zenoh's listen port where ``host`` is not an address of this namespace (an emulated
+#: link's fresh namespace, where every port is free).
+ZENOH_NAMESPACE_PORT = 17447
+
+
 def free_port(host: str) -> int:
     """A TCP port that was free a moment ago (Zenoh wants its listen port up front)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
+        try:
+            s.bind((host, 0))
+        except OSError:  # EADDRNOTAVAIL: host lives in another (fresh) namespace
+            return ZENOH_NAMESPACE_PORT
         port: int = s.getsockname()[1]
         return port
 
 
-def spawn_pair(group: ProcessGroup, kind: str, mode: Params) -> tuple[Worker, Worker]:
-    """Receiver on side a, sender on side b, for baseline ``kind``; raise Skipped if missing.
+def spawn_pair(group: ProcessGroup, kind: str, mode: Params,
+               rx_side: Side = "a") -> tuple[Worker, Worker]:
+    """Receiver on ``rx_side`` (default a), sender on the other side, for baseline ``kind``.
 
-    ``mode`` holds ``mode`` (``flood`` or ``paced``) and its knobs (``count``, ``seconds``,
-    ``rate_hz``, ``idle_s``).
+    Raises Skipped if the package is missing. ``mode`` holds ``mode`` (``flood`` or
+    ``paced``) and its knobs (``count``, ``seconds``, ``rate_hz``, ``idle_s``).
     """
     reason = unavailable(kind)
     if reason is not None:
         raise Skipped(reason)
     rx_role, tx_role = _ROLE_NAMES[kind]
-    host = group.link.address("a")
+    tx_side: Side = "b" if rx_side == "a" else "a"
+    host = group.link.address(rx_side)
     rx_params: Params = {"host": host, **mode}
     if kind == "zenoh":
         rx_params["port"] = free_port(host)
-    rx, ready = group.spawn("receiver", "a", MODULE, rx_role, rx_params)
-    tx, _ = group.spawn("sender", "b", MODULE, tx_role,
+    rx, ready = group.spawn("receiver", rx_side, MODULE, rx_role, rx_params)
+    tx, _ = group.spawn("sender", tx_side, MODULE, tx_role,
                         {"host": host, "port": ready["port"], **mode})
     return tx, rx

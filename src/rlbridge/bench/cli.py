@@ -163,11 +163,32 @@ def latency(
     only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, rlb-udp, rlb-tcp-nodelay, "
                                       "rlb-tcp-nagle.")] = "",
     out: Out = Path("docs/benchmarks.md"),
+    transport: Annotated[str | None, typer.Option(
+        help="tcp (Nagle), tcpn (nodelay both ends), udp or all: measure across the emulated "
+             "link (root) instead of loopback.")] = None,
+    delay: Annotated[float, typer.Option(help="Emulated one-way delay, ms (data direction).")]
+    = 0.0,
+    loss: Annotated[float, typer.Option(help="Emulated loss, percent (data direction).")] = 0.0,
+    rate: Annotated[float, typer.Option(help="Stream rate on the emulated link, Hz.")] = 100.0,
+    direction: Annotated[str, typer.Option(
+        help="down: middleware -> client (thesis A to D); up: client -> middleware.")]
+    = "down",
+    csv: Annotated[Path | None, typer.Option(
+        "--csv", help="Per-sample CSV: seq,sent_ns,recv_ns,latency_ms (empty when lost).")]
+    = None,
 ) -> None:
-    """One-way latency p50/p99/max of 1 kHz and 100 Hz streams, next to raw UDP and ZeroMQ."""
+    """One-way latency p50/p99/max of 1 kHz and 100 Hz streams, next to raw UDP and ZeroMQ.
+
+    With --transport, --delay, --loss or --csv: the thesis's set-up instead, bridge server and
+    middleware publisher in one network namespace, the SDK client in another, the emulated
+    link (docs/netem.md) between them; a table on stdout, per-sample rows to --csv.
+    """
     from rlbridge.bench import latency as lat
     from rlbridge.bench.common import LoopbackLink, progress
 
+    if transport is not None or delay or loss or csv is not None:
+        _latency_link(transport or "all", delay, loss, rate, count or 1000, direction, csv)
+        return
     settings = lat.Settings(seconds=seconds, count=count, repeats=repeats,
                             rates=tuple(float(r) for r in _keys(rates)), only=_keys(only))
     _run("latency", lambda: lat.report(lat.run(LoopbackLink(), settings, progress), settings,
@@ -229,3 +250,52 @@ def soak(
                  transport=transport, client=client, warmup_s=min(10.0, interval_s))
     _run("soak", lambda: sk.report(sk.measure(s, minutes, interval_s, progress),
                                    _command(ctx)), out)
+
+
+def _latency_link(transport: str, delay: float, loss: float, rate: float, count: int,
+                  direction: str, csv: Path | None) -> None:
+    from rlbridge.bench import latency_link
+    from rlbridge.bench.common import BenchError
+
+    keys = latency_link.TRANSPORT_KEYS if transport == "all" else (transport,)
+    try:
+        typer.echo(latency_link.run(transports=keys, delay_ms=delay, loss_pct=loss,
+                                    rate_hz=rate, count=count, direction=direction, csv=csv,
+                                    echo=lambda m: typer.echo(m, err=True)))
+    except (BenchError, ValueError) as exc:
+        typer.echo(f"rlbridge bench latency: error: {exc}", err=True)
+        raise typer.Exit(1) from None
+
+
+@bench_app.command("evaluation")
+def evaluation(
+    out: Out = Path("docs/evaluation.md"),
+    quick: Annotated[bool, typer.Option(
+        help="Fewer scenarios and samples (about 3 minutes instead of ~12).")] = False,
+    count: Annotated[int | None, typer.Option(
+        help="Samples per latency row (default 1000, --quick 200).")] = None,
+    rt_priority: Annotated[int, typer.Option(
+        help="SCHED_FIFO priority of the measured processes in latency rows (0: off).")] = 5,
+) -> None:
+    """Every network scenario of the thesis (appendix A, fig. 4.2-4.4, tables 3.1/3.2).
+
+    Needs root (the network emulator). Writes --out, its PNGs and raw summaries under
+    <out dir>/evaluation/.
+    """
+    from rlbridge.bench import evaluation as ev_mod
+    from rlbridge.bench import evaluation_report
+    from rlbridge.bench.common import BenchError, progress
+
+    settings = ev_mod.EvalSettings(count=count or (200 if quick else 1000), quick=quick,
+                                   rt_priority=rt_priority)
+    try:
+        result = ev_mod.run(settings, progress)
+    except BenchError as exc:
+        typer.echo(f"rlbridge bench evaluation: error: {exc}", err=True)
+        raise typer.Exit(1) from None
+    command = ["rlbridge", "bench", "evaluation", "--out", str(out)]
+    command += ["--quick"] if quick else []
+    command += ["--count", str(count)] if count else []
+    command += ["--rt-priority", str(rt_priority)] if rt_priority != 5 else []
+    evaluation_report.write(result, settings, command, out)
+    typer.echo(f"wrote {out} and {out.parent / 'evaluation'}/")

@@ -45,7 +45,8 @@ Role = Callable[[Params], None]
 
 #: Modules whose ``ROLES`` a child may run (the child's entry point refuses anything else).
 WORKER_MODULES = ("rlbridge.bench.common", "rlbridge.bench.throughput",
-                  "rlbridge.bench.latency", "rlbridge.bench.baselines", "rlbridge.bench.ros2_roles")
+                  "rlbridge.bench.latency", "rlbridge.bench.baselines",
+                  "rlbridge.bench.ros2_roles", "rlbridge.bench.netpath")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 #: Seconds a worker may take to start and report ``ready`` (imports on a loaded machine).
 STARTUP_S = 30.0
