@@ -244,9 +244,15 @@ def render(ev: Evaluation, settings: EvalSettings, command: Sequence[str],
                 _compare(ev, scs, keys), ""]
         if name in figures:
             out += [f"![{title}]({figures[name]})", ""]
-    out += ["Policy rows whose keyword arguments `Bridge.subscribe` lacks are listed as "
-            "'not available in this build' (detected with `inspect.signature`); regenerate "
-            "after the policies land to fill them. ZeroMQ and Zenoh set TCP_NODELAY "
+    out += ["How to read the policy rows (docs/policies.md): *latest* discards a value "
+            "that a newer one overtook while the connection was backed up, so its 'lost' "
+            "column counts values deliberately replaced by a newer one, not values the "
+            "network lost; *max_age_ms* drops values older than the limit on arrival (they "
+            "show as 'lost'); the *flagged* rows keep every value and count in 'flagged old' "
+            "those whose `read_with_age()` age exceeded the limit; *redundancy k* repeats the "
+            "previous k values in every datagram (IP bytes/value shows the cost). Policy rows "
+            "whose keyword arguments `Bridge.subscribe` lacks are listed as 'not available in "
+            "this build' (detected with `inspect.signature`). ZeroMQ and Zenoh set TCP_NODELAY "
             "themselves; Zenoh runs in peer mode with multicast scouting off and explicit "
             "endpoints.", "", "## Throughput (tables 3.1/3.2, continued upward)", "",
             "Loopback (the emulator's Python relay forwards ~20 000 packets/s, less than the "
