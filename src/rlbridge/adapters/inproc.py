@@ -22,10 +22,15 @@ from rlbridge.adapters.msgtypes import TypeRegistry, get_path, split_path, with_
 _Convert = Callable[[Sequence[Any]], Sequence[Any]]
 
 
+def _same(values: Sequence[Any]) -> Sequence[Any]:
+    """The converter between equal fields; ``deliver`` recognises it and skips the call."""
+    return values
+
+
 def _converter(spec_from: ValueSpec, spec_to: ValueSpec, template: dict[str, Any]) -> _Convert:
     """How a batch bound to one field reaches a subscriber bound to another field."""
     if spec_from.field == spec_to.field:
-        return lambda values: values
+        return _same
     src = split_path(spec_from.field) if spec_from.field is not None else None
     dst = split_path(spec_to.field) if spec_to.field is not None else None
 
@@ -85,7 +90,7 @@ class _Topic:
             convert = self.converters.get(key)
             if convert is None:
                 convert = self.converters[key] = _converter(spec, sub.spec, self.template)
-            sub.callback(convert(values))
+            sub.callback(values if convert is _same else convert(values))
 
     def remove_subscriber(self, sub: _Subscriber) -> None:
         with self.bus.lock:

@@ -103,6 +103,9 @@ class Inbound:
         self.spec = spec
         self._publisher = publisher
         self._convert = value_converter(spec)
+        #: For one value per packet (the common case): a value accepted unchanged skips
+        #: ``_convert`` and its list checks; anything else still goes through it.
+        self._exact = _exact_check(spec.python_type)
         self._clock = clock
         self._max_age_ns = request.max_age_ms * 1_000_000
         self.tracker = SequenceTracker()
@@ -116,8 +119,24 @@ class Inbound:
         self.malformed = 0
 
     def on_value(self, packet: Value) -> None:
-        if self.tracker.accept(packet.seq):
-            self._admit([packet.stamp_ns], [packet.value])
+        """``_admit`` for one value, inlined: this runs once per datagram on a busy server."""
+        if not self.tracker.accept(packet.seq):
+            return
+        stamp = packet.stamp_ns
+        clock = self._clock
+        now = time.time_ns() + (clock.offset_ns if clock is not None else 0)  # client clock
+        self.jitter.add(stamp, now)
+        self._track_age(now - stamp)
+        if self._max_age_ns and stamp < now - self._max_age_ns:
+            self.expired += 1
+            return
+        value = packet.value
+        exact = self._exact
+        if exact is not None and exact(value):
+            self.values_in += 1
+            self._publisher.publish([value])
+        else:
+            self._publish([value])
 
     def on_batch(self, packet: Batch) -> None:
         start = self.tracker.accept_run(packet.first_seq, len(packet.values))
@@ -133,9 +152,7 @@ class Inbound:
         now = time.time_ns() + (clock.offset_ns if clock is not None else 0)  # client clock
         for stamp in stamps:
             self.jitter.add(stamp, now)
-        age = now - stamps[-1]
-        self.one_way_ns = age if self.one_way_ns < 0 else self.one_way_ns + (
-            age - self.one_way_ns) // 16
+        self._track_age(now - stamps[-1])
         if self._max_age_ns:
             cutoff = now - self._max_age_ns
             fresh = [v for s, v in zip(stamps, values, strict=True) if s >= cutoff]
@@ -147,6 +164,10 @@ class Inbound:
             self.overtaken += len(values) - 1
             values = values[-1:]
         self._publish(values)
+
+    def _track_age(self, age: int) -> None:
+        self.one_way_ns = age if self.one_way_ns < 0 else self.one_way_ns + (
+            age - self.one_way_ns) // 16
 
     def _publish(self, values: list[Any]) -> None:
         try:

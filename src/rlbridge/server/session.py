@@ -154,6 +154,9 @@ class Session:
         self.packets_in += 1
         self.link.on_receive(time.monotonic_ns())
         sink = self.tcp if via == "tcp" else self.udp
+        if type(packet) is Value:  # nearly every packet: skip the match below
+            self._data(packet.channel, packet, sink)
+            return
         match packet:
             case Value(channel=ch):
                 self._data(ch, packet, sink)

@@ -19,6 +19,7 @@ from rlbridge.wire import (
     Disconnect,
     Hello,
     Packet,
+    PacketCodec,
     RemoteProtocolError,
 )
 from rlbridge.wire.auth import SEAL_OVERHEAD, DatagramRejected, ServerHandshake
@@ -72,7 +73,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         ctx = self._registry.ctx
-        if ctx.allow and not ctx.allow.allows(addr[0]):
+        # ``networks``, not ``bool(allow)``: this runs per datagram and a Python-level
+        # ``__bool__`` is a call; same test.
+        if ctx.allow.networks and not ctx.allow.allows(addr[0]):
             ctx.count("udp_not_allowed")
             return
         if len(data) > ctx.config.max_packet + DATAGRAM_HEADER.size + SEAL_OVERHEAD:
@@ -86,13 +89,21 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             ctx.count("udp_bad_token")  # sealed for a session that is gone: nothing to decode
             return
         codec = session.codec if session is not None else ctx.codec
+        # The hot path (a live session, no keys): peek_header has checked the header already,
+        # so decode only the body, what decode_datagram would do next (one call, not three).
+        plain = session is not None and type(codec) is PacketCodec
         try:
-            _flags, token, packet = codec.decode_datagram(data)
+            if plain:
+                packet = codec.decode_body(memoryview(data)[DATAGRAM_HEADER.size :])
+            else:
+                _flags, token, packet = codec.decode_datagram(data)
         except DatagramRejected as exc:
             ctx.count(f"udp_{exc.kind}")  # forged, replayed or unsealed: never answered
             log.debug("dropped datagram from %s: %s", addr, exc.reason)
             return
         except RemoteProtocolError as exc:
+            if plain:
+                exc.token = token  # as decode_datagram sets it
             ctx.count("udp_malformed")
             log.debug("dropped datagram from %s: %s", addr, exc.reason)
             # A live token (verified, if the session has keys) proves the sender is the
@@ -115,7 +126,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
                 ctx.count("udp_no_token")
             return
         session.bytes_in += len(data)
-        session.attach_udp(addr)
+        udp = session.udp
+        if udp is None or udp.addr != addr:  # attach_udp's own test, without the call
+            session.attach_udp(addr)
         session.handle(packet, "udp")
 
     def _hello(self, hello: Hello, addr: tuple[str, int]) -> None:
