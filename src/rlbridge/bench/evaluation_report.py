@@ -137,12 +137,17 @@ def _findings(ev: Evaluation) -> list[str]:
 MECHANISMS = [
     "How to read them (mechanisms, checked separately):",
     "",
-    "- TCP+Nagle's spikes of ~40 ms recur every 20 samples even without added delay: every "
-    "200 ms (`heartbeat_ms`) a heartbeat segment shares the data's TCP connection; with Nagle "
-    "on, the sample after it waits until that segment is acknowledged, and the receiver "
-    "delays its ACK (~40 ms on Linux). With `heartbeat_ms=1000` the spikes recur every 100 "
-    "samples instead (loopback, 300 samples). Once the link's delay exceeds the sample "
-    "period (15 ms), every sample waits for the previous one's ACK: the thesis's 35-65 ms band.",
+    "- Heartbeats and Nagle: a heartbeat segment amid a TCP stream switches the receiving "
+    "kernel into delayed-ACK mode (it expects to piggyback the ACK on the reply), and with "
+    "Nagle on the sender then holds the next sample for that ACK: ~40 ms spikes every "
+    "`heartbeat_ms` (200 ms), even without added delay (measured before the fix, "
+    "`rlbridge bench latency --transport tcp --delay 0 --count 400`, 3 interleaved runs: "
+    "63-112 of 400 samples more than one period late, p99 35-71 ms). Since then a side "
+    "sends its heartbeats over UDP only while the TCP connection carries data either way "
+    "(the data proves liveness; an idle TCP connection still gets its heartbeat): 3-5 of "
+    "400 late, p99 3.6-11 ms, same runs. Once the link's delay approaches the sample "
+    "period, every sample waits for the previous one's ACK: the thesis's 35-65 ms band at "
+    "15 ms.",
     "- At 1 % loss with Nagle on, a lost segment is the only one in flight (Nagle holds the "
     "next samples back until it is acknowledged), so no duplicate ACKs come and only the "
     "retransmission timeout (200 ms minimum on Linux) recovers it: a burst of ~20 late "

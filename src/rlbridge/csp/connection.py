@@ -79,6 +79,9 @@ class Connection:
         self.tcp: socket.socket | None = None
         self.udp: socket.socket | None = None
         self.tcp_lock = threading.Lock()
+        #: Bytes written to the TCP connection (all sessions): the receive thread skips a TCP
+        #: heartbeat after data (see ``Receiver``).
+        self.tcp_bytes_out = 0
         self.ack: ConnectAck | None = None
         self.link: LinkMonitor | None = None
         self.on_values: ValuesHandler | None = None
@@ -226,6 +229,7 @@ class Connection:
             raise ConnectionClosed("this session has no TCP connection")
         with self.tcp_lock:
             tcp.sendall(data)
+            self.tcp_bytes_out += len(data)
 
     def send_udp(self, data: bytes) -> None:
         udp = self.udp

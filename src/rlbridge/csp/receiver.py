@@ -56,6 +56,8 @@ class Receiver:
         self._generation = generation
         self._leftover = leftover
         self._wake = wake
+        self._tcp_bytes_at_heartbeat = (-1, -1)
+        self._tcp_bytes_in = 0
         #: Values of the read burst in progress, per channel: ``(first_seq, stamps, values)``.
         self._runs: dict[int, tuple[int, list[int], list[object]]] = {}
 
@@ -83,6 +85,7 @@ class Receiver:
                 for sock in readable:
                     if sock is conn.tcp:
                         data = sock.recv(1 << 18)
+                        self._tcp_bytes_in += len(data)
                         if not data:
                             conn.end_session("server closed the TCP connection", generation)
                             return
@@ -149,10 +152,15 @@ class Receiver:
                           else f"nothing from the server for {silent_ms} ms")
         if link.heartbeat_due(now):
             hb = link.make_heartbeat(now, time.time_ns())
-            if conn.tcp is not None:
+            # Not on a TCP connection that carried data either way since the last heartbeat
+            # when UDP is there too (the server's Session._heartbeat_sinks says why).
+            traffic = (conn.tcp_bytes_out, self._tcp_bytes_in)
+            if conn.tcp is not None and (conn.udp is None
+                                         or traffic == self._tcp_bytes_at_heartbeat):
                 conn.send_tcp(conn.codec.encode_frame(hb))
             if conn.udp is not None:
                 conn.send_udp_packet(hb)
+            self._tcp_bytes_at_heartbeat = (conn.tcp_bytes_out, self._tcp_bytes_in)
 
     def _dispatch(self, packet: Packet) -> None:
         conn = self._conn

@@ -100,6 +100,7 @@ class Session:
         self.outbound: dict[int, Outbound] = {}
         self.packets_in = 0
         self.bytes_in = 0  # added by the transports: whole frames and datagrams
+        self.tcp_bytes_in = 0  # of those, on TCP (heartbeats skip a busy TCP connection)
         self.malformed = 0
         self.errors_sent = 0
         #: Totals of channels closed before now, so a session's counters never go back.
@@ -110,6 +111,7 @@ class Session:
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
         self._timer: asyncio.TimerHandle | None = None
+        self._tcp_bytes_at_heartbeat = (-1, -1)
         self._arm_timer()
 
     # -- transports ------------------------------------------------------------------------
@@ -307,9 +309,26 @@ class Session:
             return
         if self.link.heartbeat_due(now):
             hb = self.link.make_heartbeat(now, time.time_ns())
-            for sink in {id(s): s for s in (self.tcp, self.udp) if s is not None}.values():
+            for sink in self._heartbeat_sinks():
                 sink.send(hb)
+            self._tcp_bytes_at_heartbeat = self._tcp_traffic()
         self._arm_timer()
+
+    def _tcp_traffic(self) -> tuple[int, int]:
+        return getattr(self.tcp, "bytes_out", -1), self.tcp_bytes_in
+
+    def _heartbeat_sinks(self) -> list[PacketSink]:
+        """Both transports, but not a TCP connection that carried data either way since the
+        last heartbeat while the client also has UDP (where heartbeats keep flowing): a
+        heartbeat segment amid a stream makes the receiver's kernel delay its ACKs (it
+        expects to piggyback them), and with Nagle on the sender then holds the next value
+        for that delayed ACK, ~40 ms every heartbeat period (docs/evaluation.md)."""
+        tcp, udp = self.tcp, self.udp
+        if tcp is None or udp is None:
+            return [s for s in (tcp, udp) if s is not None]
+        if self._tcp_traffic() != self._tcp_bytes_at_heartbeat:
+            return [udp]
+        return [tcp, udp]
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self, reason: str, *, notify: bool = True, code: int = 0) -> None:

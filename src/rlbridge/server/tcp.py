@@ -89,6 +89,7 @@ class TcpConnection(asyncio.Protocol):
             return
         if self._session is not None:
             self._session.bytes_in += len(data)
+            self._session.tcp_bytes_in += len(data)
         for packet in packets:
             session = self._session
             if isinstance(packet, Malformed):
