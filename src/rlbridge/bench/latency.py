@@ -43,6 +43,7 @@ from rlbridge.bench.common import (
     ratio,
     report_header,
     run_flow,
+    select_cases,
     start_server,
     wait_for_go,
 )
@@ -207,11 +208,7 @@ class CaseResult:
 def run(link: Link, settings: Settings,
         progress: Callable[[str], None] | None = None) -> list[CaseResult]:
     """Every (case, rate) ``repeats`` times, interleaved so that noise hits every row."""
-    unknown = set(settings.only) - {c.key for c in CASES}
-    if unknown:
-        raise BenchError(f"unknown row key(s) {', '.join(sorted(unknown))}; the rows are "
-                         f"{', '.join(c.key for c in CASES)}")
-    selected = [c for c in CASES if not settings.only or c.key in settings.only]
+    selected = select_cases(CASES, settings.only)
     results = [CaseResult(c, r) for r in settings.rates for c in selected]
     for rep in range(settings.repeats):
         for res in results:

@@ -25,6 +25,7 @@ import contextlib
 import socket
 import threading
 import time
+from abc import ABC, abstractmethod
 from array import array
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
@@ -40,7 +41,7 @@ def topic(session: int, channel: int) -> str:
     return f"/load/s{session}/c{channel}"
 
 
-class Book:
+class Book(ABC):
     """A session's counters and latency samples, cut into the phases the parent announces."""
 
     def __init__(self, index: int, phase: list[str]) -> None:
@@ -50,8 +51,9 @@ class Book:
         self.marks: list[tuple[str, int, int, float]] = []  # phase, sent, received, time
         self._phase = phase
 
+    @abstractmethod
     def received(self) -> int:
-        raise NotImplementedError
+        """Values this session has received so far (each client kind counts its own way)."""
 
     def extra(self) -> Params:
         return {}

@@ -49,6 +49,7 @@ from rlbridge.bench.common import (
     ratio,
     report_header,
     run_flow,
+    select_cases,
     start_server,
     wait_for_go,
 )
@@ -271,11 +272,7 @@ class CaseResult:
 def run(link: Link, settings: Settings,
         progress: Callable[[str], None] | None = None) -> list[CaseResult]:
     """Every selected case ``repeats`` times, interleaved so a noisy minute hits every row."""
-    unknown = set(settings.only) - {c.key for c in cases(settings.batch)}
-    if unknown:
-        raise BenchError(f"unknown row key(s) {', '.join(sorted(unknown))}; the rows are "
-                         f"{', '.join(c.key for c in cases(settings.batch))}")
-    selected = [c for c in cases(settings.batch) if not settings.only or c.key in settings.only]
+    selected = select_cases(cases(settings.batch), settings.only)
     results = [CaseResult(c) for c in selected]
     for rep in range(settings.repeats):
         for res in results:
