@@ -19,21 +19,24 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.patterns import Coupling, LoopOptions
+from rlbridge.csp.patterns import DEFAULT_LAYOUT, BaseCoupling, IsolatedCoupling, LoopOptions
 
 F64 = "std_msgs/msg/Float64"
 SETPOINT = "/example/setpoint"
 OUTPUT = "/example/output"
 
 
-def parser(description: str) -> argparse.ArgumentParser:
-    """The arguments every example takes."""
+def parser(description: str, *, layouts: bool = True) -> argparse.ArgumentParser:
+    """The arguments every example takes (``--layout`` where the pattern has both)."""
     p = argparse.ArgumentParser(description=description,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--host", default="127.0.0.1", help="bridge server address")
     p.add_argument("--port", type=int, default=7411, help="bridge server port")
     p.add_argument("--cycles", type=int, default=2000, help="loop deadlines to run (bounded)")
     p.add_argument("--period-us", type=int, default=1000, help="loop period")
+    if layouts:
+        p.add_argument("--layout", choices=["process", "thread"], default=DEFAULT_LAYOUT,
+                       help="the loop in its own process (default) or a thread of this one")
     return p
 
 
@@ -56,33 +59,41 @@ def publisher(host: str, port: int, seconds: float, enabled: bool = True,
         proc.wait(10)
 
 
-def sine_source(period_us: int) -> Callable[[], float]:
-    """The value an example's HRT loop computes each cycle: a sine of the loop's own time."""
-    k = 0
+class Sine:
+    """The value an example's HRT loop computes each cycle: a sine of the loop's own time.
 
-    def control() -> float:
-        nonlocal k
-        k += 1
-        return math.sin(k * period_us / 1e6)
+    A module-level class, so that it can cross to a loop in its own process.
+    """
 
-    return control
+    def __init__(self, period_us: int) -> None:
+        self.period_s = period_us / 1e6
+        self.k = 0
+
+    def __call__(self) -> float:
+        self.k += 1
+        return math.sin(self.k * self.period_s)
 
 
-def report(coupling: Coupling) -> None:
-    """One line of what the loop saw, then the channels' counters."""
+def report(coupling: BaseCoupling) -> None:
+    """One line of what the loop saw, where it ran, then the channels' counters."""
     stats = coupling.stats()
-    print(f"{coupling.name}: {coupling.loop.released} releases, {stats.missed} missed; "
+    print(f"{coupling.name}: {coupling.released} releases, {stats.missed} missed; "
           f"lateness p50 {stats.p50_ns / 1e3:.0f} us, p99 {stats.p99_ns / 1e3:.0f} us, "
           f"max {stats.max_ns / 1e3:.0f} us")
+    if isinstance(coupling, IsolatedCoupling):
+        info = coupling.loop_info
+        print(f"  loop process: {info.get('policy')}, mlockall {info.get('mlockall')}, "
+              f"ring dropped {info.get('ring_dropped')}")
     for role, channel in coupling.channels.items():
         print(f"  {role}: {channel.statistics()}")
 
 
-def run(args: argparse.Namespace, make: Callable[[Bridge, LoopOptions], Coupling], *,
-        publish: bool = False, send_rate_hz: float | None = None) -> None:
+def run(args: argparse.Namespace, make: Callable[[Bridge, LoopOptions], BaseCoupling], *,
+        publish: bool = False, send_rate_hz: float | None = None) -> BaseCoupling:
     """Connect, build the example's coupling with ``make(bridge, loop_options)``, run, report.
 
     ``publish`` starts the SETPOINT publisher process first (the receive examples).
+    Returns the finished coupling (``final_control`` is the law as a loop process left it).
     """
     loop: LoopOptions = {"period": args.period_us / 1e6, "cycles": args.cycles}
     seconds = args.cycles * args.period_us / 1e6 + 5
@@ -94,6 +105,7 @@ def run(args: argparse.Namespace, make: Callable[[Bridge, LoopOptions], Coupling
         coupling = make(bridge, loop)
         coupling.run()
         report(coupling)
+    return coupling
 
 
 def wait_for_publisher(bridge: Bridge, timeout: float = 30.0) -> None:
@@ -106,6 +118,11 @@ def wait_for_publisher(bridge: Bridge, timeout: float = 30.0) -> None:
         probe.read(timeout=timeout)
     finally:
         bridge.unsubscribe(probe)
+
+
+def final_law(coupling: BaseCoupling, local: Any) -> Any:
+    """The control law after the run: the loop process's copy, or ``local`` in-process."""
+    return coupling.final_control if isinstance(coupling, IsolatedCoupling) else local
 
 
 def ignore(value: Any) -> None:

@@ -15,7 +15,7 @@ from rlbridge.csp.patterns import receive_naive
 
 
 def main() -> None:
-    p = parser(__doc__ or "")
+    p = parser(__doc__ or "", layouts=False)
     p.add_argument("--no-publish", dest="publish", action="store_false",
                    help="without a publisher the loop blocks in its first read until Ctrl-C")
     args = p.parse_args()

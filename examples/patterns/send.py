@@ -10,11 +10,14 @@ Patterns (the first argument):
     loop       figure 5.10: the SDK's own send loop sends buffered values (--send-rate)
     naive      for comparison: the loop writes an immediate bridge channel
                (through_buffer=False), whose write wakes the SDK's send thread
+
+The loop runs in its own process by default (``--layout thread``: a thread of this one);
+the naive pattern always runs in-process.
 """
 
 from __future__ import annotations
 
-from _common import F64, OUTPUT, parser, run, sine_source
+from _common import F64, OUTPUT, Sine, parser, run
 
 from rlbridge.csp import patterns
 
@@ -25,15 +28,17 @@ def main() -> None:
     p.add_argument("--rate", type=float, default=100.0, help="sampled: the sampler's rate (Hz)")
     p.add_argument("--send-rate", type=float, default=100.0, help="loop: SDK send rate (Hz)")
     args = p.parse_args()
-    control = sine_source(args.period_us)
+    control = Sine(args.period_us)
     if args.pattern == "sampled":
-        run(args, lambda bridge, loop: patterns.send_sampled(bridge, OUTPUT, F64, control,
-                                                             rate_hz=args.rate, **loop))
-        return
-    recipe = {"buffered": patterns.send_buffered, "loop": patterns.send_loop,
-              "naive": patterns.send_naive}[args.pattern]
-    run(args, lambda bridge, loop: recipe(bridge, OUTPUT, F64, control, **loop),
-        send_rate_hz=args.send_rate if args.pattern == "loop" else None)
+        run(args, lambda bridge, loop: patterns.send_sampled(
+            bridge, OUTPUT, F64, control, rate_hz=args.rate, layout=args.layout, **loop))
+    elif args.pattern == "naive":  # in-process only: it exists to be compared
+        run(args, lambda bridge, loop: patterns.send_naive(bridge, OUTPUT, F64, control, **loop))
+    else:
+        recipe = patterns.send_buffered if args.pattern == "buffered" else patterns.send_loop
+        run(args, lambda bridge, loop: recipe(bridge, OUTPUT, F64, control, layout=args.layout,
+                                              **loop),
+            send_rate_hz=args.send_rate if args.pattern == "loop" else None)
 
 
 if __name__ == "__main__":

@@ -28,12 +28,14 @@ def _restore_switch_interval() -> Iterator[None]:
 def test_jitter_benchmark_runs_end_to_end(tmp_path: Path) -> None:
     """Server, publisher and workers in their own processes; all gone afterwards."""
     config = jitter.JitterConfig(cycles=100, repeats=1, cpu=0,
-                                 only=("receive-nonblocking", "send-loop-100", "shm-process"),
+                                 only=("receive-nonblocking", "receive-nonblocking-process",
+                                       "send-loop-100-process"),
                                  out=tmp_path / "jitter.md", plot=None, command="test")
     lines: list[str] = []
     results = jitter.run(config, lines.append)
     assert [r.scenario.name for r in results] == [
-        "reference", "receive-nonblocking", "send-loop-100", "shm-process"]
+        "reference", "receive-nonblocking-process", "receive-nonblocking",
+        "send-loop-100-process"]
     for res in results:
         assert len(res.runs) == 1, lines
         assert res.runs[0].samples >= 1
@@ -41,12 +43,13 @@ def test_jitter_benchmark_runs_end_to_end(tmp_path: Path) -> None:
         assert info["policy"]  # recorded from inside the HRT thread
         assert info["cpus"] == "0"  # every loop pinned alike, the reference's too
         assert "mlockall" in info
-    shm = results[-1].info[0]
-    assert shm["ring_dropped"] == 0
-    assert shm["sdk_values_sent"] >= 1  # the loop's values left through the SDK process
+    own_process = results[-1].info[0]  # the pattern's default layout
+    assert own_process["ring_dropped"] == 0
+    assert own_process["out"]["written"] >= 1  # the loop's values left through the SDK process
+    assert own_process["torn_reads"] == 0
     text = (tmp_path / "jitter.md").read_text()
-    assert "| receive | Receive non-blocking (5.3) |" in text
-    assert "| separate process | HRT process + shared memory" in text
+    assert "| receive | Receive non-blocking (5.3), own process (default) |" in text
+    assert "| receive | Receive non-blocking (5.3), in-process (layout='thread') |" in text
     assert (tmp_path / "jitter.patterns-only.json").exists()
 
 

@@ -41,16 +41,36 @@ def _written(out: str, role: str) -> int:
     return int(match.group(1))
 
 
-@pytest.mark.parametrize("pattern", ["buffered", "sampled", "loop", "naive"])
-def test_send_example_sends_through_the_bridge(pattern: str, port: int) -> None:
-    out = _run("send", port, pattern)
+@pytest.mark.parametrize("layout", ["process", "thread"])
+@pytest.mark.parametrize("pattern", ["buffered", "sampled", "loop"])
+def test_send_example_sends_through_the_bridge(pattern: str, layout: str, port: int) -> None:
+    out = _run("send", port, pattern, "--layout", layout)
     assert re.search(r"releases, \d+ missed; lateness p50", out), out
     assert _written(out, "out") > 0
+    # the default layout says where the loop ran, as recorded inside the loop process
+    assert ("loop process: SCHED" in out) == (layout == "process"), out
 
 
-@pytest.mark.parametrize("name", ["receive_nonblocking", "receive_blocking", "receive_naive"])
-def test_receive_example_reads_what_its_publisher_sends(name: str, port: int) -> None:
-    out = _run(name, port)
+def test_naive_send_example_runs_in_process(port: int) -> None:
+    out = _run("send", port, "naive")
+    assert _written(out, "out") > 0
+    assert "loop process:" not in out
+
+
+@pytest.mark.parametrize("layout", ["process", "thread"])
+@pytest.mark.parametrize("name", ["receive_nonblocking", "receive_blocking"])
+def test_receive_example_reads_what_its_publisher_sends(name: str, layout: str,
+                                                        port: int) -> None:
+    out = _run(name, port, "--layout", layout)
+    assert _written(out, "in") > 0, out
+    if name == "receive_blocking":  # the helper clamped what the loop saw
+        match = re.search(r"loop saw values in \[([-+.\d]+), ([-+.\d]+)\]", out)
+        assert match is not None, out
+        assert -0.5 <= float(match.group(1)) <= float(match.group(2)) <= 0.5
+
+
+def test_receive_naive_example_reads_what_its_publisher_sends(port: int) -> None:
+    out = _run("receive_naive", port)
     assert _written(out, "in") > 0, out
 
 

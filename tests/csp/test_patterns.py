@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from pattern_support import F64, WAIT, collect, drain, publish_until, wait_until
 
 from rlbridge.csp import patterns
 from rlbridge.csp.bridge import Bridge
@@ -23,15 +24,10 @@ from rlbridge.csp.bridge_channels import IncomingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.gil import shorter_switch_interval
-from rlbridge.server import ServerConfig, ServerThread
-
-F64 = "std_msgs/msg/Float64"
-WAIT = 10.0  # generous bound for anything that should take milliseconds
 
 # PriParallel says once per coupling when the OS refuses real-time priorities (no root).
 pytestmark = pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.csp.errors.RealTimeWarning")
 
-_topics = itertools.count()
 
 
 @pytest.fixture(autouse=True)
@@ -40,75 +36,6 @@ def _restore_switch_interval() -> Iterator[None]:
     before = sys.getswitchinterval()
     yield
     sys.setswitchinterval(before)
-
-
-@pytest.fixture(scope="module")
-def port() -> Iterator[int]:
-    with ServerThread(ServerConfig(port=0)) as srv:
-        yield srv.port
-
-
-@pytest.fixture
-def topic() -> str:
-    return f"/test/patterns/t{next(_topics)}"
-
-
-@pytest.fixture
-def ctl(port: int) -> Iterator[Bridge]:
-    """The controller's bridge (the side that runs the HRT loop)."""
-    with Bridge.connect("127.0.0.1", port, nodelay=True, name="test-ctl") as bridge:
-        yield bridge
-
-
-@pytest.fixture
-def peer(port: int) -> Iterator[Bridge]:
-    """The middleware side: publishes set-points, subscribes to outputs."""
-    with Bridge.connect("127.0.0.1", port, nodelay=True, name="test-peer") as bridge:
-        yield bridge
-
-
-def wait_until(predicate: Callable[[], bool], what: str, timeout: float = WAIT) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.005)
-
-
-def publish_until(peer: Bridge, topic: str, value: float, seen: Callable[[], bool]) -> None:
-    """Publish ``value`` every 10 ms until the loop has seen it (UDP may drop one)."""
-    out = peer.publish(topic, F64, transport="udp")
-    deadline = time.monotonic() + WAIT
-    while not seen():
-        if time.monotonic() > deadline:
-            pytest.fail(f"the loop never saw {value} on {topic}")
-        out.write(value)
-        time.sleep(0.01)
-
-
-def collect(channel: IncomingChannel, count: int) -> list[Any]:
-    """Read ``count`` values from a blocking subscription (fails after WAIT seconds)."""
-    got: list[Any] = []
-    deadline = time.monotonic() + WAIT
-    while len(got) < count:
-        left = deadline - time.monotonic()
-        if left <= 0:
-            break
-        try:
-            got.append(channel.read(timeout=left))
-        except TimeoutError:
-            break
-    return got
-
-
-def drain(channel: IncomingChannel, quiet: float = 0.3) -> list[Any]:
-    """Everything that arrives until ``quiet`` seconds pass without a value."""
-    got: list[Any] = []
-    while True:
-        try:
-            got.append(channel.read(timeout=quiet))
-        except TimeoutError:
-            return got
 
 
 class Recorder:
@@ -138,8 +65,8 @@ def counter() -> Callable[[], float]:
 def test_reference_runs_bounded_cycles_and_records_lateness() -> None:
     coupling = patterns.reference(lambda: None, period=0.002, cycles=50)
     stats = coupling.run()
-    assert coupling.loop.released >= 1
-    assert stats.cycles == coupling.loop.released
+    assert coupling.released >= 1
+    assert stats.cycles == coupling.released
     assert stats.cycles + stats.missed >= 49  # bounded by deadlines, not by releases
     assert len(coupling.loop.lateness_ns()) == stats.cycles
     assert all(late >= 0 for late in coupling.loop.lateness_ns())
@@ -228,11 +155,12 @@ def test_bridge_io_priority_refusal_is_a_warning(port: int,
 def test_receive_nonblocking_runs_without_messages_and_sees_new_values(
         ctl: Bridge, peer: Bridge, topic: str) -> None:
     law = Recorder()
-    coupling = patterns.receive_nonblocking(ctl, topic, F64, law, initial=-1.0)
+    coupling = patterns.receive_nonblocking(ctl, topic, F64, law, initial=-1.0,
+                                            layout="thread")
     coupling.start()
     try:
         # nothing is published yet: the loop keeps its timer and reads the initial value
-        wait_until(lambda: coupling.loop.released >= 20, "20 releases without a message")
+        wait_until(lambda: coupling.released >= 20, "20 releases without a message")
         assert set(law.values) == {-1.0}
         publish_until(peer, topic, 42.0, law.saw(42.0))
         publish_until(peer, topic, 43.0, law.saw(43.0))
@@ -250,10 +178,10 @@ def test_receive_nonblocking_runs_without_messages_and_sees_new_values(
 def test_receive_blocking_helper_feeds_the_loop(ctl: Bridge, peer: Bridge, topic: str) -> None:
     law = Recorder()
     coupling = patterns.receive_blocking(ctl, topic, F64, law, process=lambda v: 2 * v,
-                                         initial=0.0)
+                                         initial=0.0, layout="thread")
     coupling.start()
     try:
-        wait_until(lambda: coupling.loop.released >= 20, "20 releases without a message")
+        wait_until(lambda: coupling.released >= 20, "20 releases without a message")
         assert set(law.values) == {0.0}
         publish_until(peer, topic, 21.0, law.saw(42.0))  # processed by the helper
     finally:
@@ -278,7 +206,7 @@ def test_receive_naive_blocks_the_loop_and_is_reported(
         coupling.start()
         try:
             # with no message the loop is stuck in its first release
-            wait_until(lambda: coupling.loop.released >= 1, "the first release")
+            wait_until(lambda: coupling.released >= 1, "the first release")
             time.sleep(0.05)
             assert law.values == []
             publish_until(peer, topic, 7.0, law.saw(7.0))
@@ -295,11 +223,11 @@ def test_receive_naive_blocks_the_loop_and_is_reported(
 # -- send ---------------------------------------------------------------------------------------
 
 
-def run_send(coupling: patterns.Coupling) -> int:
+def run_send(coupling: patterns.BaseCoupling) -> int:
     """Run a send coupling to its end; return how many values the loop wrote."""
     coupling.run()
-    assert coupling.loop.released >= 1
-    return coupling.loop.released
+    assert coupling.released >= 1
+    return coupling.released
 
 
 def test_send_naive_delivers_every_value(ctl: Bridge, peer: Bridge, topic: str) -> None:
@@ -313,7 +241,7 @@ def test_send_buffered_delivers_every_value_in_order(ctl: Bridge, peer: Bridge,
                                                      topic: str) -> None:
     sub = peer.subscribe(topic, F64, transport="tcp", blocking=True, buffer_size=4096)
     coupling = patterns.send_buffered(ctl, topic, F64, counter(), transport="tcp", cycles=200,
-                                      buffer_size=256)
+                                      buffer_size=256, layout="thread")
     written = run_send(coupling)
     ctl.send(wait=True)
     assert collect(sub, written) == [float(i) for i in range(1, written + 1)]
@@ -326,7 +254,7 @@ def test_send_buffered_delivers_every_value_in_order(ctl: Bridge, peer: Bridge,
 def test_send_sampled_sends_a_subsample(ctl: Bridge, peer: Bridge, topic: str) -> None:
     sub = peer.subscribe(topic, F64, transport="tcp", blocking=True, buffer_size=4096)
     written = run_send(patterns.send_sampled(ctl, topic, F64, counter(), rate_hz=50.0,
-                                             transport="tcp", cycles=300))
+                                             transport="tcp", cycles=300, layout="thread"))
     got = drain(sub)
     assert got, "no sample arrived"
     assert all(1.0 <= v <= written for v in got)
@@ -340,11 +268,11 @@ def test_send_loop_sends_every_value_at_the_sdk_rate(port: int, peer: Bridge, to
     sub = peer.subscribe(topic, F64, transport="tcp", blocking=True, buffer_size=4096)
     with Bridge.connect("127.0.0.1", port, nodelay=True, send_rate_hz=rate) as ctl:
         written = run_send(patterns.send_loop(ctl, topic, F64, counter(), transport="tcp",
-                                              cycles=200))
+                                              cycles=200, layout="thread"))
     # bridge.close() flushed the values the last tick had not sent yet
     assert collect(sub, written) == [float(i) for i in range(1, written + 1)]
 
 
 def test_send_loop_needs_the_sdk_send_loop(ctl: Bridge, topic: str) -> None:
     with pytest.raises(ValueError, match="send_rate_hz"):
-        patterns.send_loop(ctl, topic, F64, counter())
+        patterns.send_loop(ctl, topic, F64, counter(), layout="thread")

@@ -33,19 +33,42 @@ class Scenario:
     switch_interval: float | None = None  # None: CPython's default (5 ms)
 
 
-PATTERN_SCENARIOS: tuple[Scenario, ...] = (
-    Scenario("reference", "all", "Reference"),
-    Scenario("receive-nonblocking", "receive", "Receive non-blocking (5.3)"),
-    Scenario("receive-blocking", "receive", "Receive blocking (5.4)"),
-    Scenario("receive-naive", "receive", "Receive naive"),
-    Scenario("send-naive", "send", "Send naive"),
-    Scenario("send-buffered", "send", "Send buffered (5.5)"),
-    Scenario("send-sampled", "send", "Send sampled (5.6)"),
-    Scenario("send-loop-100", "send loop", "Send loop 100 Hz (5.10)"),
-    Scenario("send-loop-1000", "send loop", "Send loop 1000 Hz (5.10)"),
-    Scenario("shm-process", "separate process",
-             "HRT process + shared memory (receive + send 1 kHz)"),
+PROCESS_SUFFIX = "-process"
+"""Scenario names ending in this run the pattern's default layout: the loop in its own process."""
+
+_PROPER: tuple[tuple[str, str, str], ...] = (
+    ("receive-nonblocking", "receive", "Receive non-blocking (5.3)"),
+    ("receive-blocking", "receive", "Receive blocking (5.4)"),
+    ("send-buffered", "send", "Send buffered (5.5)"),
+    ("send-sampled", "send", "Send sampled (5.6)"),
+    ("send-loop-100", "send loop", "Send loop 100 Hz (5.10)"),
+    ("send-loop-1000", "send loop", "Send loop 1000 Hz (5.10)"),
 )
+
+_NAIVE: dict[str, tuple[str, str, str]] = {
+    "receive": ("receive-naive", "receive", "Receive naive, in-process"),
+    "send": ("send-naive", "send", "Send naive, in-process"),
+}
+
+
+def _pattern_scenarios() -> tuple[Scenario, ...]:
+    """Per group: the proper patterns in their own process, then in-process, then naive."""
+    out = [Scenario("reference", "all", "Reference")]
+    for group in ("receive", "send", "send loop"):
+        proper = [p for p in _PROPER if p[1] == group]
+        out += [Scenario(name + PROCESS_SUFFIX, group, f"{label}, own process (default)")
+                for name, group, label in proper]
+        out += [Scenario(name, group, f"{label}, in-process (layout='thread')")
+                for name, group, label in proper]
+        if group in _NAIVE:
+            out.append(Scenario(*_NAIVE[group]))
+    return tuple(out)
+
+
+PATTERN_SCENARIOS: tuple[Scenario, ...] = _pattern_scenarios()
+"""Every proper pattern in both layouts (the in-process ones keep their old names, so runs
+from before the process layout existed still pool with these); naive ones in-process only."""
+
 
 GIL_BASE: tuple[tuple[str, str], ...] = (
     ("reference", "loop alone"),

@@ -8,11 +8,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
-import ctypes.util
 import json
 import math
-import os
 import socket
 import statistics
 import sys
@@ -22,30 +19,23 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from rlbridge.bench.jitter_config import F64, TOPIC_IN, TOPIC_IN_FAST, TOPIC_OUT
+from rlbridge.bench.jitter_config import (
+    F64,
+    PROCESS_SUFFIX,
+    TOPIC_IN,
+    TOPIC_IN_FAST,
+    TOPIC_OUT,
+)
 from rlbridge.csp import patterns
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.gil import HRT_SWITCH_INTERVAL
-
-_MCL_CURRENT, _MCL_FUTURE = 1, 2
-_PR_SET_TIMERSLACK = 29
+from rlbridge.csp.isolated import IsolatedCoupling, Layout
+from rlbridge.csp.rtenv import prepare_hrt_process, thread_scheduling
 
 
 def prepare_process(mlock: bool) -> dict[str, Any]:
-    """Give this loop process the conditions every measured process gets; say what held.
-
-    ``mlockall`` keeps the loop's pages resident (no page fault on a cold page mid-cycle);
-    a timer slack of 1 ns stops the kernel from coalescing the loop's wake-up with others
-    (real-time threads get no slack anyway; this covers a run without ``--rt``).
-    """
-    info: dict[str, Any] = {}
-    libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-    if mlock:
-        ok = libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0
-        info["mlockall"] = "yes" if ok else f"refused ({os.strerror(ctypes.get_errno())})"
-    info["timer_slack"] = "1 ns" if libc.prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0) == 0 else \
-        "default"
-    return info
+    """Give this loop process the conditions every measured process gets; say what held."""
+    return dict(prepare_hrt_process(mlock))
 
 
 def loop_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -56,23 +46,36 @@ def loop_options(args: argparse.Namespace) -> dict[str, Any]:
             "cpu": args.cpu, "switch_interval": held}
 
 
+class FirstOrderFilter:
+    """The receive patterns' control law: a first-order filter, a tiny controller.
+
+    A module-level class, so that it can cross to a loop in its own process (pickled).
+    """
+
+    def __init__(self) -> None:
+        self.state = 0.0
+
+    def __call__(self, value: Any) -> None:
+        self.state += 0.1 * (float(value) - self.state)
+
+
+class Sine:
+    """The send patterns' control law: a sine, one sample per release (picklable)."""
+
+    def __init__(self) -> None:
+        self.k = 0
+
+    def __call__(self) -> float:
+        self.k += 1
+        return math.sin(self.k * 0.001)
+
+
 def receive_law() -> Callable[[Any], None]:
-    state = [0.0]
-
-    def law(value: Any) -> None:
-        state[0] += 0.1 * (float(value) - state[0])  # a first-order filter: a tiny controller
-
-    return law
+    return FirstOrderFilter()
 
 
 def send_law() -> Callable[[], float]:
-    k = [0]
-
-    def law() -> float:
-        k[0] += 1
-        return math.sin(k[0] * 0.001)
-
-    return law
+    return Sine()
 
 
 def wait_first_value(channel: Any, timeout: float = 5.0) -> bool:
@@ -95,29 +98,12 @@ def _watchdog(coupling: Any, done: threading.Event, seconds: float,
         coupling.stop()
 
 
-def _policy() -> str:
-    """Scheduling policy of the calling thread (recorded from inside the HRT loop)."""
-    try:
-        policy = os.sched_getscheduler(0)
-        prio = os.sched_getparam(0).sched_priority
-    except (AttributeError, OSError):
-        return "unknown"
-    names = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_FIFO: "SCHED_FIFO",
-             os.SCHED_RR: "SCHED_RR"}
-    if policy == os.SCHED_OTHER:
-        return f"SCHED_OTHER nice {os.getpriority(os.PRIO_PROCESS, 0)}"
-    return f"{names.get(policy, str(policy))} {prio}"
-
-
 def probed(fn: Callable[..., Any], info: dict[str, Any]) -> Callable[..., Any]:
     """Wrap a control law so that its first call records the HRT thread's scheduling."""
 
     def probe(*args: Any) -> Any:
         if "policy" not in info:
-            info["policy"] = _policy()
-            info["switch_interval"] = sys.getswitchinterval()  # what the loop runs with
-            cpus = sorted(os.sched_getaffinity(0))
-            info["cpus"] = "any" if len(cpus) == os.cpu_count() else ",".join(map(str, cpus))
+            info.update(thread_scheduling())  # what the loop runs with, from inside it
         return fn(*args)
 
     return probe
@@ -128,24 +114,36 @@ _RATES = {"send-loop-100": 100.0, "send-loop-1000": 1000.0, "sdk-100": 100.0,
 _NO_BRIDGE = ("reference", "pyburn", "sendto-1000")
 
 
-def _coupling(name: str, bridge: Bridge | None, recv: Callable[[Any], None],
-              send: Callable[[], float], loop: dict[str, Any]) -> patterns.Coupling:
-    """The scenario's coupling: a pattern of :mod:`rlbridge.csp.patterns` or a GIL condition."""
+def _coupling(name: str, bridge: Bridge | None, info: dict[str, Any],
+              loop: dict[str, Any]) -> patterns.BaseCoupling:
+    """The scenario's coupling: a pattern of :mod:`rlbridge.csp.patterns` or a GIL condition.
+
+    A ``-process`` scenario is the pattern's default layout (the loop in its own process,
+    which records its own scheduling); the others run in-process with probed laws.
+    """
+    base, process = name.removesuffix(PROCESS_SUFFIX), name.endswith(PROCESS_SUFFIX)
+    layout: Layout = "process" if process else "thread"
+    recv: Callable[[Any], None] = receive_law() if process else probed(receive_law(), info)
+    send: Callable[[], float] = send_law() if process else probed(send_law(), info)
     if bridge is None:
         return patterns.reference(lambda: recv(send()), **loop)
-    receive = {"receive-nonblocking": patterns.receive_nonblocking,
-               "receive-blocking": patterns.receive_blocking,
-               "receive-naive": patterns.receive_naive}.get(name)
-    if receive is not None:
-        return receive(bridge, TOPIC_IN, F64, recv, **loop)
-    send_pattern = {"send-naive": patterns.send_naive, "send-buffered": patterns.send_buffered,
-                    "send-sampled": patterns.send_sampled, "send-loop-100": patterns.send_loop,
-                    "send-loop-1000": patterns.send_loop}.get(name)
-    if send_pattern is not None:
-        return send_pattern(bridge, TOPIC_OUT, F64, send, **loop)
-    if name.startswith("sdk-"):
+    if base.startswith("sdk-"):
         return _sdk_coupling(bridge, TOPIC_IN if name == "sdk-100" else TOPIC_IN_FAST,
                              recv, send, loop)
+    if base in ("receive-nonblocking", "receive-blocking"):
+        receive = (patterns.receive_nonblocking if base == "receive-nonblocking"
+                   else patterns.receive_blocking)
+        return receive(bridge, TOPIC_IN, F64, recv, layout=layout, **loop)
+    if base == "receive-naive":
+        return patterns.receive_naive(bridge, TOPIC_IN, F64, recv, **loop)
+    if base == "send-naive":
+        return patterns.send_naive(bridge, TOPIC_OUT, F64, send, **loop)
+    if base == "send-buffered":
+        return patterns.send_buffered(bridge, TOPIC_OUT, F64, send, layout=layout, **loop)
+    if base == "send-sampled":
+        return patterns.send_sampled(bridge, TOPIC_OUT, F64, send, layout=layout, **loop)
+    if base in ("send-loop-100", "send-loop-1000"):
+        return patterns.send_loop(bridge, TOPIC_OUT, F64, send, layout=layout, **loop)
     raise SystemExit(f"unknown scenario {name!r}")
 
 
@@ -175,12 +173,12 @@ def worker_main(args: argparse.Namespace) -> None:
     try:
         if name not in _NO_BRIDGE:
             bridge = Bridge.connect("127.0.0.1", args.port, nodelay=True,
-                                    send_rate_hz=_RATES.get(name), name=f"bench-{name}",
+                                    send_rate_hz=_RATES.get(name.removesuffix(PROCESS_SUFFIX)),
+                                    name=f"bench-{name}",
                                     switch_interval=None)  # the loop holds its own
         if name == "sdk-1000-rtio" and bridge is not None:
             info["io_threads"] = "SCHED_FIFO 40" if bridge.set_io_priority(40) else "refused"
-        coupling = _coupling(name, bridge, probed(receive_law(), info),
-                             probed(send_law(), info), loop_options(args))
+        coupling = _coupling(name, bridge, info, loop_options(args))
         incoming = coupling.channels.get("in")
         if incoming is not None and not wait_first_value(incoming):
             raise SystemExit(f"no value arrived on {TOPIC_IN} within 5 s: is the publisher up?")
@@ -195,7 +193,7 @@ def worker_main(args: argparse.Namespace) -> None:
     Path(args.result).write_text(json.dumps(result))
 
 
-def run_measured(coupling: patterns.Coupling, name: str, info: dict[str, Any],
+def run_measured(coupling: patterns.BaseCoupling, name: str, info: dict[str, Any],
                  stop: threading.Event, extra: list[threading.Thread],
                  limit: float) -> dict[str, Any]:
     """Run the coupling next to ``extra`` threads and a watchdog; the worker's JSON result."""
@@ -211,9 +209,10 @@ def run_measured(coupling: patterns.Coupling, name: str, info: dict[str, Any],
         thread: round(100 * (time.clock_gettime(clock) - t0) / wall, 2)
         for thread, (clock, t0) in clocks.items()}
     info.update(_channel_info(coupling))
-    loop = coupling.loop
-    return {"scenario": name, "lateness_ns": loop.lateness_ns(),
-            "missed": loop.stats().missed, "released": loop.released, "info": info}
+    if isinstance(coupling, IsolatedCoupling):
+        info.update(coupling.loop_info)  # recorded inside the loop's own process
+    return {"scenario": name, "lateness_ns": coupling.lateness_ns(),
+            "missed": coupling.stats().missed, "released": coupling.released, "info": info}
 
 
 def _thread_clocks() -> dict[str, tuple[int, float]]:

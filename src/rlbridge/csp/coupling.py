@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from typing import Any, Final, TypedDict
 
@@ -21,8 +22,8 @@ from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, realtime_switch_interval, shor
 from rlbridge.csp.process import Code, Parallel, PriParallel, Process, RunScope
 from rlbridge.csp.timer import LatenessStats, PeriodicTimer
 
-__all__ = ["HRT_SWITCH_INTERVAL", "ControlLoop", "Coupling", "LoopOptions", "Pump", "Ticker",
-           "realtime_switch_interval"]
+__all__ = ["HRT_SWITCH_INTERVAL", "BaseCoupling", "ControlLoop", "Coupling", "LoopOptions",
+           "Pump", "Ticker", "realtime_switch_interval"]
 
 
 class LoopOptions(TypedDict, total=False):
@@ -116,43 +117,26 @@ class ControlLoop(Process):
         return self.timer.lateness()
 
 
-class Coupling:
-    """An HRT loop, its helper processes and the channels they own; run it once.
+class BaseCoupling(ABC):
+    """What every coupling offers, whichever process its HRT loop runs in.
 
     ``run()`` executes in the calling thread; ``start()``/``stop()``/``join()`` run it in
-    the background. ``priority`` composes loop and helpers in a :class:`PriParallel` (the
-    loop highest), otherwise a :class:`Parallel`; ``cpu`` pins the loop's thread to that
-    CPU (helpers stay free), so that a comparison with a reference loop pinned the same way
-    measures the pattern, not where the scheduler happened to put the thread.
-    ``channels`` maps a role (``"in"``, ``"out"``, ``"handoff"``) to the channel,
-    so that tests and monitors can read its statistics.
+    the background (an owner thread started by :attr:`process`). ``channels`` maps a role
+    (``"in"``, ``"out"``, ``"handoff"``) to a channel the coupling created, so that tests
+    and monitors can read its statistics; the coupling closes what ``closers`` close when
+    the run ends, which wakes any helper blocked on them.
     """
 
-    def __init__(
-        self,
-        name: str,
-        body: Callable[[], object],
-        *,
-        helpers: Sequence[Process] = (),
-        channels: dict[str, Channel[Any] | OutgoingChannel] | None = None,
-        closers: Sequence[Callable[[], None]] = (),
-        period: float = 0.001,
-        cycles: int | None = None,
-        priority: bool = True,
-        cpu: int | None = None,
-        switch_interval: float | None = HRT_SWITCH_INTERVAL,
-    ) -> None:
+    process: Process
+
+    def __init__(self, name: str, *,
+                 channels: dict[str, Channel[Any] | OutgoingChannel] | None = None,
+                 closers: Sequence[Callable[[], None]] = ()) -> None:
         self.name = name
         self.channels: dict[str, Channel[Any] | OutgoingChannel] = dict(channels or {})
         self._closers = tuple(closers)
         self._closed = False
         self._close_lock = threading.Lock()
-        self.loop = ControlLoop(body, period=period, cycles=cycles, name=f"{name}:hrt",
-                                on_finish=self.close_channels, switch_interval=switch_interval)
-        self.helpers = tuple(helpers)
-        composite = PriParallel if priority else Parallel
-        cpus = None if cpu is None else [{cpu}, *([None] * len(self.helpers))]
-        self.process: Process = composite(self.loop, *self.helpers, name=name, cpus=cpus)
 
     def run(self) -> LatenessStats:
         """Run to the end in the calling thread; return the loop's lateness statistics."""
@@ -160,7 +144,7 @@ class Coupling:
             self.process.run()
         finally:
             self.close_channels()
-        return self.loop.stats()
+        return self.stats()
 
     def start(self) -> None:
         """Run in a background owner thread (pair with :meth:`stop` and :meth:`join`)."""
@@ -187,9 +171,67 @@ class Coupling:
         for close in self._closers:
             close()
 
+    @property
+    @abstractmethod
+    def released(self) -> int:
+        """Releases of the HRT loop so far (it counts while it runs)."""
+
+    @abstractmethod
+    def stats(self) -> LatenessStats:
+        """The loop's lateness statistics (so far, or of the finished run)."""
+
+    @abstractmethod
+    def lateness_ns(self) -> list[int]:
+        """Per-release lateness in nanoseconds, oldest first (the absolute jitter)."""
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name!r}>"
+
+
+class Coupling(BaseCoupling):
+    """An HRT loop thread, its helper threads and the channels they own; run it once.
+
+    The in-process layout (``layout="thread"`` of the recipes): loop and helpers are threads
+    of this interpreter. ``priority`` composes them in a :class:`PriParallel` (the loop
+    highest), otherwise a :class:`Parallel`; ``cpu`` pins the loop's thread to that CPU
+    (helpers stay free), so that a comparison with a reference loop pinned the same way
+    measures the pattern, not where the scheduler happened to put the thread.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        body: Callable[[], object],
+        *,
+        helpers: Sequence[Process] = (),
+        channels: dict[str, Channel[Any] | OutgoingChannel] | None = None,
+        closers: Sequence[Callable[[], None]] = (),
+        period: float = 0.001,
+        cycles: int | None = None,
+        priority: bool = True,
+        cpu: int | None = None,
+        switch_interval: float | None = HRT_SWITCH_INTERVAL,
+    ) -> None:
+        super().__init__(name, channels=channels, closers=closers)
+        self.loop = ControlLoop(body, period=period, cycles=cycles, name=f"{name}:hrt",
+                                on_finish=self.close_channels, switch_interval=switch_interval)
+        self.helpers = tuple(helpers)
+        composite = PriParallel if priority else Parallel
+        cpus = None if cpu is None else [{cpu}, *([None] * len(self.helpers))]
+        self.process = composite(self.loop, *self.helpers, name=name, cpus=cpus)
+
+    @property
+    def released(self) -> int:
+        """Releases of the loop so far."""
+        return self.loop.released
+
     def stats(self) -> LatenessStats:
         """The loop's lateness statistics so far."""
         return self.loop.stats()
+
+    def lateness_ns(self) -> list[int]:
+        """Per-release lateness in nanoseconds, oldest first."""
+        return self.loop.lateness_ns()
 
     def __repr__(self) -> str:
         return f"<Coupling {self.name!r} helpers={len(self.helpers)}>"

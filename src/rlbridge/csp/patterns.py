@@ -29,14 +29,25 @@ function                      thesis  what the HRT loop touches each cycle
                                       a write may wake the send thread (one futex call)
 ============================  ======  ========================================================
 
-Why the proper patterns keep the loop's timing: every operation the loop does is a ring
-buffer operation (no lock, no system call), except ringing a doorbell when a consumer sleeps
-(``send_buffered``, ``send_naive``). Whatever waits (for the network, for a value) waits in a
-lower-priority thread. In CPython the loop still shares the GIL with those threads and with the
-SDK's receive and send threads: see ``docs/gil.md`` for what that costs. While its loop runs, a
-coupling holds the GIL switch interval at :data:`HRT_SWITCH_INTERVAL` (0.1 ms; loop option
-``switch_interval``), so that a computing Python thread delays the loop by at most that much.
-Where even that is too much, run the loop in its own process (:mod:`rlbridge.csp.shm`).
+Where the loop runs (``layout``). The five proper patterns (5.3, 5.4, 5.5, 5.6, 5.10) put
+the loop in **its own OS process** by default (``layout="process"``,
+:class:`~rlbridge.csp.isolated.IsolatedCoupling`): its interpreter holds nothing but the loop,
+the bridge and the pattern's helpers stay in the calling process, values cross in shared
+memory (:mod:`rlbridge.csp.patterns_process` says which helper does what). That is the layout
+whose p99 jitter stayed at the loop-alone reference, where every in-process layout lost
++74 to +370 us to the GIL (docs/gil.md, docs/jitter.md). It asks two things of the control
+law: it must be picklable (a module-level function or class instance; its state lives in the
+loop process, :attr:`~rlbridge.csp.isolated.IsolatedCoupling.final_control` returns it), and
+values are ``float64``. ``layout="thread"`` runs the loop as a thread of this process (any
+callable, any value type), holding the GIL switch interval at :data:`HRT_SWITCH_INTERVAL`
+(0.1 ms; loop option ``switch_interval``) while it runs. :data:`DEFAULT_LAYOUT` is
+``"thread"`` on CPUs where the shared-memory link cannot run (not x86). The naive patterns
+and :func:`reference` are in-process only: they exist to be compared.
+
+In the thread layout every operation the loop does is a ring buffer operation (no lock, no
+system call), except ringing a doorbell when a consumer sleeps (``send_buffered``,
+``send_naive``); whatever waits (for the network, for a value) waits in a lower-priority
+thread.
 
 Lifetimes: a coupling owns the channels it created. When the loop has run its ``cycles`` (or
 :meth:`Coupling.stop` is called) the run's stop event is set, its incoming bridge channels are
@@ -47,16 +58,16 @@ them, so the last values written by the loop are not lost. A coupling runs once.
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable, Sequence
 from typing import Any, Unpack
 
+from rlbridge.csp import patterns_process as isolated
 from rlbridge.csp.bridge import Bridge, Transport
-from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
+from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.connection import ConnectionClosed
 from rlbridge.csp.coupling import (
     HRT_SWITCH_INTERVAL,
+    BaseCoupling,
     ControlLoop,
     Coupling,
     LoopOptions,
@@ -65,12 +76,18 @@ from rlbridge.csp.coupling import (
     realtime_switch_interval,
 )
 from rlbridge.csp.errors import ChannelClosed, NoValueYet
+from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling, Layout
+from rlbridge.csp.patterns_process import unsubscriber
 from rlbridge.csp.process import Process
 
 __all__ = [
+    "DEFAULT_LAYOUT",
     "HRT_SWITCH_INTERVAL",
+    "BaseCoupling",
     "ControlLoop",
     "Coupling",
+    "IsolatedCoupling",
+    "Layout",
     "LoopOptions",
     "realtime_switch_interval",
     "receive_blocking",
@@ -116,15 +133,10 @@ def _writing(name: str, sink: Channel[Any] | OutgoingChannel, control: SendLaw,
     return Coupling(name, body, helpers=helpers, channels=channels, closers=closers, **loop)
 
 
-def _unsubscriber(bridge: Bridge, channel: IncomingChannel) -> Callable[[], None]:
-    """Close an incoming channel (waking a blocked reader) and unbind it on the server."""
-
-    def close() -> None:
-        channel.close()  # first: it must happen even when the link is already gone
-        with contextlib.suppress(ConnectionClosed, OSError):
-            bridge.unsubscribe(channel)
-
-    return close
+def _in_own_process(layout: Layout) -> bool:
+    if layout not in ("process", "thread"):
+        raise ValueError(f"layout must be 'process' or 'thread', got {layout!r}")
+    return layout == "process"
 
 
 # -- the baseline ------------------------------------------------------------------------------
@@ -141,26 +153,29 @@ def reference(control: Callable[[], object], **loop: Unpack[LoopOptions]) -> Cou
 def receive_nonblocking(
     bridge: Bridge, topic: str, msg_type: str, control: ReceiveLaw, *,
     field: str | None = "data", transport: Transport = "udp", initial: Any = 0.0,
-    **loop: Unpack[LoopOptions],
-) -> Coupling:
+    layout: Layout = DEFAULT_LAYOUT, **loop: Unpack[LoopOptions],
+) -> BaseCoupling:
     """Figure 5.3: the loop reads a non-blocking bridge channel of size 1 every cycle.
 
     The read is a ring operation; with nothing new it returns the latest value again (or
     ``initial``), so the loop never waits for the network. ``channels["in"]`` is the
     :class:`IncomingChannel` (``age_ns``, ``lost``, ``statistics()``).
     """
+    if _in_own_process(layout):
+        return isolated.receive_nonblocking(bridge, topic, msg_type, control, field=field,
+                                            transport=transport, initial=initial, loop=loop)
     incoming = bridge.subscribe(topic, msg_type, field, transport=transport, blocking=False,
                                 buffer_size=1, initial=initial)
     return _reading("receive-nonblocking", incoming, control, loop, channels={"in": incoming},
-                    closers=[_unsubscriber(bridge, incoming)])
+                    closers=[unsubscriber(bridge, incoming)])
 
 
 def receive_blocking(
     bridge: Bridge, topic: str, msg_type: str, control: ReceiveLaw, *,
     field: str | None = "data", transport: Transport = "udp", buffer_size: int = 16,
     process: Callable[[Any], Any] | None = None, initial: Any = 0.0,
-    **loop: Unpack[LoopOptions],
-) -> Coupling:
+    layout: Layout = DEFAULT_LAYOUT, **loop: Unpack[LoopOptions],
+) -> BaseCoupling:
     """Figure 5.4: a lower-priority process does the blocking read, the loop never waits.
 
     The helper reads every value from a blocking bridge channel (``buffer_size`` values of
@@ -169,6 +184,10 @@ def receive_blocking(
     The helper's timing follows the message rate; the loop's follows its timer.
     ``channels``: ``"in"`` (bridge, blocking) and ``"handoff"`` (local, non-blocking).
     """
+    if _in_own_process(layout):
+        return isolated.receive_blocking(bridge, topic, msg_type, control, field=field,
+                                         transport=transport, buffer_size=buffer_size,
+                                         process=process, initial=initial, loop=loop)
     incoming = bridge.subscribe(topic, msg_type, field, transport=transport, blocking=True,
                                 buffer_size=buffer_size)
     handoff: Channel[Any] = Channel(1, blocking=False, initial=initial,
@@ -181,7 +200,7 @@ def receive_blocking(
     return _reading("receive-blocking", handoff, control, loop,
                     helpers=[Pump(forward, name="receive-blocking:srt")],
                     channels={"in": incoming, "handoff": handoff},
-                    closers=[_unsubscriber(bridge, incoming), handoff.close])
+                    closers=[unsubscriber(bridge, incoming), handoff.close])
 
 
 def receive_naive(
@@ -198,7 +217,7 @@ def receive_naive(
     incoming = bridge.subscribe(topic, msg_type, field, transport=transport, blocking=True,
                                 buffer_size=1)
     return _reading("receive-naive", incoming, control, loop, channels={"in": incoming},
-                    closers=[_unsubscriber(bridge, incoming)])
+                    closers=[unsubscriber(bridge, incoming)])
 
 
 # -- send patterns -----------------------------------------------------------------------------
@@ -221,8 +240,8 @@ def send_naive(
 def send_buffered(
     bridge: Bridge, topic: str, msg_type: str, control: SendLaw, *,
     field: str | None = "data", transport: Transport = "udp", buffer_size: int = 64,
-    **loop: Unpack[LoopOptions],
-) -> Coupling:
+    layout: Layout = DEFAULT_LAYOUT, **loop: Unpack[LoopOptions],
+) -> BaseCoupling:
     """Figure 5.5: send every value, in order, through a lower-priority process.
 
     The loop writes a blocking buffered local channel (never blocks; overwrites and counts
@@ -231,6 +250,9 @@ def send_buffered(
     the helper drains the handoff before it stops, so no value written by the loop is lost.
     ``channels``: ``"handoff"`` (local) and ``"out"`` (bridge).
     """
+    if _in_own_process(layout):
+        return isolated.send_buffered(bridge, topic, msg_type, control, field=field,
+                                      transport=transport, buffer_size=buffer_size, loop=loop)
     out = bridge.publish(topic, msg_type, field, transport=transport, through_buffer=True,
                          buffer_size=max(buffer_size, 1024))
     handoff: Channel[Any] = Channel(buffer_size, blocking=True, name=f"{topic} handoff")
@@ -255,14 +277,17 @@ def send_buffered(
 def send_sampled(
     bridge: Bridge, topic: str, msg_type: str, control: SendLaw, *,
     rate_hz: float = 100.0, field: str | None = "data", transport: Transport = "udp",
-    **loop: Unpack[LoopOptions],
-) -> Coupling:
+    layout: Layout = DEFAULT_LAYOUT, **loop: Unpack[LoopOptions],
+) -> BaseCoupling:
     """Figure 5.6: send a sub-sample at ``rate_hz`` from a lower-priority timed process.
 
     The loop writes a non-blocking local channel of size 1 (the latest value wins); the
     helper wakes at ``rate_hz``, reads the latest value, writes it to a ``through_buffer``
     bridge channel and calls ``bridge.send()``. ``channels``: ``"handoff"``, ``"out"``.
     """
+    if _in_own_process(layout):
+        return isolated.send_sampled(bridge, topic, msg_type, control, rate_hz=rate_hz,
+                                     field=field, transport=transport, loop=loop)
     out = bridge.publish(topic, msg_type, field, transport=transport, through_buffer=True)
     handoff: Channel[Any] = Channel(1, blocking=False, name=f"{topic} sample")
 
@@ -282,13 +307,16 @@ def send_sampled(
 def send_loop(
     bridge: Bridge, topic: str, msg_type: str, control: SendLaw, *,
     field: str | None = "data", transport: Transport = "udp", buffer_size: int = 1024,
-    **loop: Unpack[LoopOptions],
-) -> Coupling:
+    layout: Layout = DEFAULT_LAYOUT, **loop: Unpack[LoopOptions],
+) -> BaseCoupling:
     """Figure 5.10: the loop writes a ``through_buffer`` channel; the SDK's send loop sends.
 
     The bridge must have been opened with ``Bridge.connect(send_rate_hz=...)``; values then
     leave at that rate in one packet per tick, and the loop's write is a ring operation only.
     """
+    if _in_own_process(layout):
+        return isolated.send_loop(bridge, topic, msg_type, control, field=field,
+                                  transport=transport, buffer_size=buffer_size, loop=loop)
     if bridge.send_rate_hz is None:
         raise ValueError("send_loop needs a bridge opened with Bridge.connect(send_rate_hz=...)"
                          "; without it buffered values wait for an explicit bridge.send()")

@@ -18,7 +18,8 @@ Theory of operation. One :class:`ShmLink` segment (``multiprocessing.shared_memo
   then publishes the new tail. A full ring refuses the value and counts it in ``dropped``
   (a shared counter only the loop writes), so a slow pump loses values visibly, never the
   loop's timing.
-* a **stop word** the owner sets to ask the loop process to end.
+* a **stop word** the owner sets to ask the loop process to end, and a **release counter**
+  the loop bumps every cycle, so the SDK process can watch it run.
 
 Every access is one aligned 8-byte load or store of a ``memoryview`` item: no lock, no system
 call, no allocation except the ``float`` object a read returns. Correctness rests on those
@@ -47,7 +48,7 @@ from typing import Any, Final, Protocol
 __all__ = ["HrtProcess", "ShmLink", "ShmLinkError", "forwarder"]
 
 _MAGIC: Final = 0x524C42_53484D_01  # "RLB" "SHM" v1
-_HEADER: Final = 8  # words: magic, inputs, outputs, capacity, stop, 3 spare
+_HEADER: Final = 8  # words: magic, inputs, outputs, capacity, stop, releases, 2 spare
 _RING_HEADER: Final = 16  # head and dropped in one cache line, tail in the next
 _TORN_RETRIES: Final = 4
 _STRONG_ORDERING: Final = frozenset({"x86_64", "amd64", "i386", "i686", "x86"})
@@ -64,7 +65,8 @@ class ShmLinkError(RuntimeError):
 class ShmLink:
     """Latest-value slots in, SPSC rings out, in one shared-memory segment; see module doc.
 
-    Loop side (one thread): :meth:`get`, :meth:`push`, :attr:`stop_requested`.
+    Loop side (one thread): :meth:`get`, :meth:`push`, :attr:`stop_requested`,
+    :meth:`count_release`.
     SDK side (one thread): :meth:`put`, :meth:`drain`, :meth:`request_stop`.
     """
 
@@ -95,12 +97,17 @@ class ShmLink:
         slots = ((2 * inputs + 7) // 8) * 8
         return 8 * (_HEADER + slots + outputs * (_RING_HEADER + capacity))
 
+    @staticmethod
+    def supported() -> bool:
+        """Whether this machine's store ordering lets a link run here (x86 and x86-64)."""
+        return platform.machine().lower() in _STRONG_ORDERING
+
     @classmethod
     def create(cls, inputs: int = 1, outputs: int = 1, capacity: int = 4096,
                *, name: str | None = None) -> ShmLink:
         """A new segment, owned (unlinked on :meth:`close`) by the calling process."""
-        machine = platform.machine().lower()
-        if machine not in _STRONG_ORDERING:
+        if not cls.supported():
+            machine = platform.machine().lower()
             raise ShmLinkError(f"ShmLink relies on x86 store ordering; this is {machine!r} "
                                "(see the rlbridge.csp.shm module docstring)")
         if inputs < 0 or outputs < 0 or inputs + outputs == 0:
@@ -138,6 +145,11 @@ class ShmLink:
             # exits. (SharedMemory(track=False) is 3.13+.)
             resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
         return link
+
+    @property
+    def closed(self) -> bool:
+        """This process has detached (after :meth:`close`, nothing else may be called)."""
+        return self._closed
 
     @property
     def name(self) -> str:
@@ -204,6 +216,15 @@ class ShmLink:
         """The owner asked the loop to end."""
         return bool(self._q[4])
 
+    def count_release(self) -> None:
+        """Count one release of the loop (one 8-byte store), so the SDK side sees progress."""
+        self._q[5] += 1
+
+    @property
+    def releases(self) -> int:
+        """Releases the loop has counted with :meth:`count_release` (any side may read)."""
+        return int(self._q[5])
+
     # -- lifetime ------------------------------------------------------------------------------
 
     def close(self) -> None:
@@ -262,6 +283,11 @@ class HrtProcess:
     def start(self) -> None:
         """Start the loop's process (its own interpreter: no GIL shared with the SDK)."""
         self._proc.start()
+
+    @property
+    def sentinel(self) -> int:
+        """Ready when the process ends (for ``multiprocessing.connection.wait``)."""
+        return self._proc.sentinel
 
     def join(self, timeout: float | None = None) -> bool:
         """Wait for the loop process; ``False`` if it is still running after ``timeout``."""
