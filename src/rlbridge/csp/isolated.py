@@ -13,7 +13,9 @@ locks: one latest-value slot in (receive patterns) or one SPSC ring out (send pa
 What that asks of the control law: it runs in the other process, so it must be picklable (a
 module-level function, or an instance of a module-level class) and its state lives there;
 after the run :attr:`IsolatedCoupling.final_control` holds the law as the loop left it.
-Values are ``float64``: a receive law gets a ``float``, a send law must return a number.
+Values are ``float64``: a receive law gets a ``float``, a send law must return a number. The
+loop process is started with ``spawn`` and imports the module that defines the law, your
+script included: its main code belongs under ``if __name__ == "__main__":``.
 
 Lifetimes: :meth:`IsolatedCoupling.run` (or the owner thread of ``start()``) owns, in order,
 the SRT helper threads, the loop process and the result pipe; it stops them in reverse order,
@@ -94,8 +96,9 @@ def check_picklable(control: object, what: str) -> None:
         raise TypeError(
             f"{what}: the control law {control!r} cannot be sent to the loop's own process "
             f"({type(exc).__name__}: {exc}). Use a module-level function or an instance of a "
-            "module-level class, or pass layout='thread' to run the loop in this process "
-            "(docs/gil.md says what that costs)") from None
+            "module-level class (in a script, keep the main code under if __name__ == "
+            "'__main__': the loop process imports it), or pass layout='thread' to run the "
+            "loop in this process (docs/gil.md says what that costs)") from None
 
 
 def _loop_body(link: ShmLink, kind: LoopKind, control: Callable[..., Any],
