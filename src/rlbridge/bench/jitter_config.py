@@ -9,6 +9,7 @@ many rounds the target held), which is what survives a shared, noisy machine.
 from __future__ import annotations
 
 import math
+import random
 import statistics
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -200,13 +201,58 @@ class ScenarioResult:
         ratios = self.paired(ref, lambda mine, theirs: mine / theirs if theirs else math.inf)
         return statistics.median(ratios) if ratios else math.nan
 
+    def delta_ci(self, ref: ScenarioResult, level: float = 0.9) -> tuple[float, float]:
+        """A bootstrap confidence interval of :meth:`paired_delta` (rounds resampled)."""
+        return bootstrap_median_ci(self.paired(ref, lambda mine, theirs: mine - theirs), level)
+
+    def verdict(self, ref: ScenarioResult) -> str:
+        """``met``, ``missed`` or ``unresolved``: the whole interval on one side of the target.
+
+        Judging the median alone calls a coin toss a result when one round's p99 moves by an
+        order of magnitude with the host's load; the interval says when the run could not tell.
+        """
+        allowed = allowance(ref.median("p99_us"))
+        low, high = self.delta_ci(ref)
+        if math.isnan(low):
+            return "no rounds"
+        if high <= allowed:
+            return "met"
+        if low > allowed:
+            return "missed"
+        return "unresolved"
+
     def rounds_met(self, ref: ScenarioResult) -> tuple[int, int]:
         """(rounds in which the target held against that round's reference, rounds paired)."""
         held = self.paired(ref, lambda mine, theirs: float(target_ok(theirs, mine - theirs)))
         return int(sum(held)), len(held)
 
 
+def allowance(ref_p99: float) -> float:
+    """How much worse than the reference's p99 the target allows: 10 % or 20 us, the larger."""
+    return max(0.1 * ref_p99, 20.0)
+
+
 def target_ok(ref_p99: float, delta_p99: float) -> bool:
     """The target: p99 within 10 % or 20 us (whichever is larger) of the reference's."""
-    return delta_p99 <= max(0.1 * ref_p99, 20.0)
+    return delta_p99 <= allowance(ref_p99)
+
+
+BOOTSTRAP_RESAMPLES = 4000
+
+
+def bootstrap_median_ci(values: Sequence[float], level: float = 0.9,
+                        resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0
+                        ) -> tuple[float, float]:
+    """Percentile-bootstrap interval of the median of ``values`` (fixed seed: reproducible).
+
+    Rounds are the unit that is resampled: within a round the load is shared, between
+    rounds it is not, which is what the interval has to cover.
+    """
+    if not values:
+        return math.nan, math.nan
+    rng = random.Random(seed)
+    n = len(values)
+    medians = sorted(statistics.median(rng.choices(values, k=n)) for _ in range(resamples))
+    tail = (1.0 - level) / 2
+    return medians[int(tail * (resamples - 1))], medians[int((1 - tail) * (resamples - 1))]
 

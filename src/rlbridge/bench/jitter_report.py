@@ -18,8 +18,9 @@ from rlbridge.bench.jitter_config import (
     GIL_INTERVALS,
     JitterConfig,
     ScenarioResult,
+    allowance,
+    bootstrap_median_ci,
     interval_label,
-    target_ok,
 )
 
 
@@ -65,28 +66,32 @@ def render_markdown(config: JitterConfig, results: list[ScenarioResult],
         "the same round (which cancels the load that drifts between rounds): *d p99* is the "
         "median over the rounds of (p99 - reference p99), *p99/ref* the median of their "
         "ratio, *rounds met* in how many rounds p99 <= max(1.1 x, +20 us) of that round's "
-        "reference. *target*: d p99 <= max(10 % of the reference's median p99, 20 us). "
-        "*missed*: releases skipped because the loop was still busy (median per run).",
+        "reference. *90 % CI*: a bootstrap interval of d p99 (rounds resampled). *target*: "
+        "d p99 <= max(10 % of the reference's median p99, 20 us); *met* or *missed* when the "
+        "whole interval is on one side of that, *unresolved* when the run cannot tell. "
+        "*missed* (column): releases skipped because the loop was still busy (median per "
+        "run).",
         "",
-        "| group | scenario | p50 us | p99 us | max us | missed | d p99 us | p99/ref "
-        "| rounds met | target |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| group | scenario | p50 us | p99 us | max us | missed | d p99 us | 90 % CI us "
+        "| p99/ref | rounds met | target |",
+        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|---|",
     ]
     refs = {r.scenario.group: r for r in results if r.scenario.name == "reference"}
     default_ref = next((r for r in results if r.scenario.name == "reference"), None)
     for res in results:
         ref = refs.get(res.scenario.group, default_ref)
-        paired = ["", "", "", ""]
+        paired = ["", "", "", "", ""]
         if ref is not None and res is not ref:
             delta = res.paired_delta(ref)
+            low, high = res.delta_ci(ref)
             met, rounds = res.rounds_met(ref)
-            verdict = "met" if target_ok(ref.median("p99_us"), delta) else "missed"
+            verdict = res.verdict(ref)
             if "naive" in res.scenario.name:
                 # p99 of a naive receive is capped at one period (late releases are
                 # skipped, see "missed"): the target is for the proper patterns only
                 verdict = "n/a (naive)"
-            paired = [f"{delta:+.0f}", f"{res.paired_ratio(ref):.2f}", f"{met}/{rounds}",
-                      verdict]
+            paired = [f"{delta:+.0f}", f"{low:+.0f} .. {high:+.0f}",
+                      f"{res.paired_ratio(ref):.2f}", f"{met}/{rounds}", verdict]
         lines.append(
             f"| {res.scenario.group} | {res.scenario.label} | {res.median('p50_us'):.0f} | "
             f"{res.median('p99_us'):.0f} | {res.median('max_us'):.0f} | "
@@ -217,23 +222,24 @@ def _plot_gil(plt: Any, results: list[ScenarioResult], path: Path) -> None:
 def pooled_deltas(paths: Sequence[Path]) -> str:
     """Pool the per-round differences to the same-round reference over several runs' JSON.
 
-    One run's five rounds cannot separate a 200 us effect from a machine whose reference p99
+    One run's rounds cannot separate a 200 us effect from a machine whose reference p99
     swings by milliseconds between rounds; the same condition measured in several runs can.
-    Returns a markdown table: median difference of p50 and p99, and in how many rounds the
-    p99 was worse than the reference's.
+    Returns a markdown table: median difference of p50 and p99 with a bootstrap interval of
+    the latter, in how many rounds the p99 was worse than the reference's, and the verdict
+    against the target (allowance from the pooled reference's median p99).
     """
     pool: dict[tuple[str, str], tuple[list[float], list[float]]] = {}
+    ref_p99: list[float] = []
     for path in paths:
-        data = json.loads(path.read_text())
-        results = data["results"]
+        results = json.loads(path.read_text())["results"]
         refs = {r["scenario"]["switch_interval"]: r for r in results
                 if r["scenario"]["name"] == "reference"}
+        if None in refs:
+            ref_p99 += [float(run["p99_us"]) for run in refs[None]["runs"]]
         for res in results:
             sc = res["scenario"]
-            if sc["name"] == "reference":
-                continue
             ref = refs.get(sc["switch_interval"], refs.get(None))
-            if ref is None:
+            if sc["name"] == "reference" or ref is None:
                 continue
             by_round = {run["round"]: run for run in ref["runs"]}
             d50, d99 = pool.setdefault((sc["name"], sc["group"]), ([], []))
@@ -242,12 +248,17 @@ def pooled_deltas(paths: Sequence[Path]) -> str:
                 if other is not None:
                     d50.append(run["p50_us"] - other["p50_us"])
                     d99.append(run["p99_us"] - other["p99_us"])
-    lines = ["| scenario | group | rounds | d p50 us | d p99 us | p99 worse than ref |",
-             "|---|---|---:|---:|---:|---:|"]
+    allowed = allowance(statistics.median(ref_p99)) if ref_p99 else 20.0
+    lines = [f"Target allowance: +{allowed:.0f} us (pooled reference median p99 "
+             f"{statistics.median(ref_p99) if ref_p99 else math.nan:.0f} us).", "",
+             "| scenario | group | rounds | d p50 us | d p99 us | 90 % CI us "
+             "| p99 worse than ref | target |", "|---|---|---:|---:|---:|---|---:|---|"]
     for (name, group), (d50, d99) in pool.items():
         worse = sum(1 for d in d99 if d > 0)
+        low, high = bootstrap_median_ci(d99)
+        verdict = ("n/a (naive)" if "naive" in name else "met" if high <= allowed
+                   else "missed" if low > allowed else "unresolved")
         lines.append(f"| {name} | {group} | {len(d99)} | {statistics.median(d50):+.0f} | "
-                     f"{statistics.median(d99):+.0f} | {worse}/{len(d99)} |")
+                     f"{statistics.median(d99):+.0f} | {low:+.0f} .. {high:+.0f} | "
+                     f"{worse}/{len(d99)} | {verdict} |")
     return "\n".join(lines)
-
-

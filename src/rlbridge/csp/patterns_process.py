@@ -8,10 +8,10 @@ the bridge is an SRT helper thread of *this* process:
 ======================  ========================================================================
 pattern (thesis)        SRT helper in this process
 ======================  ========================================================================
-receive non-blocking    a ticker at the loop's rate copies the non-blocking channel's latest
-(5.3)                   value into the slot (the loop sees a value at most one period later)
-receive blocking (5.4)  a pump blocks on the blocking channel, applies ``process`` and puts
-                        every value into the slot as it arrives
+receive non-blocking    a pump blocks on a size-1 channel (only the newest value is kept) and
+(5.3)                   puts each value into the slot as it arrives
+receive blocking (5.4)  a pump blocks on a buffered channel (``buffer_size`` values of slack),
+                        applies ``process`` and puts every value into the slot as it arrives
 send buffered (5.5)     a ticker at the loop's rate drains the ring (every value, in order)
                         into a ``through_buffer`` channel and calls ``bridge.send()``
 send sampled (5.6)      a ticker at ``rate_hz`` drains the ring and sends the newest value
@@ -96,21 +96,15 @@ def receive_nonblocking(bridge: Bridge, topic: str, msg_type: str,
                         control: Callable[[float], object], *, field: str | None,
                         transport: Transport, initial: Any, loop: LoopOptions
                         ) -> IsolatedCoupling:
-    """Figure 5.3 across processes: the loop reads a latest-value slot every cycle."""
-    spec = _spec("receive-nonblocking", "receive", control, loop)
-    incoming = bridge.subscribe(topic, msg_type, field, transport=transport, blocking=False,
-                                buffer_size=1, initial=initial)
-    closers = [unsubscriber(bridge, incoming)]
-    link = _new_link(closers, 1, 0)
-    link.put(0, float(initial))
-    read, put = incoming.read, link.put
+    """Figure 5.3 across processes: the loop reads a latest-value slot every cycle.
 
-    def copy() -> None:
-        put(0, float(read()))
-
-    return _coupling(spec, control, link,
-                     helpers=[Ticker(copy, _rate(loop), name="receive-nonblocking:srt")],
-                     channels={"in": incoming}, closers=closers)
+    The slot is filled as values arrive (a helper blocked on a size-1 channel, which keeps
+    only the newest), not polled at the loop's rate: a poller would add up to a period of
+    latency and wake this process once per loop cycle for nothing.
+    """
+    return _fed_by_arrival("receive-nonblocking", bridge, topic, msg_type, control,
+                           field=field, transport=transport, buffer_size=1, process=None,
+                           initial=initial, loop=loop)
 
 
 def receive_blocking(bridge: Bridge, topic: str, msg_type: str,
@@ -119,7 +113,18 @@ def receive_blocking(bridge: Bridge, topic: str, msg_type: str,
                      process: Callable[[Any], Any] | None, initial: Any, loop: LoopOptions
                      ) -> IsolatedCoupling:
     """Figure 5.4 across processes: a pump puts every (processed) value into the slot."""
-    spec = _spec("receive-blocking", "receive", control, loop)
+    return _fed_by_arrival("receive-blocking", bridge, topic, msg_type, control, field=field,
+                           transport=transport, buffer_size=buffer_size, process=process,
+                           initial=initial, loop=loop)
+
+
+def _fed_by_arrival(name: str, bridge: Bridge, topic: str, msg_type: str,
+                    control: Callable[[float], object], *, field: str | None,
+                    transport: Transport, buffer_size: int,
+                    process: Callable[[Any], Any] | None, initial: Any, loop: LoopOptions
+                    ) -> IsolatedCoupling:
+    """A loop reading slot 0, which a helper blocked on the bridge channel keeps current."""
+    spec = _spec(name, "receive", control, loop)
     incoming = bridge.subscribe(topic, msg_type, field, transport=transport, blocking=True,
                                 buffer_size=buffer_size)
     closers = [unsubscriber(bridge, incoming)]
@@ -131,8 +136,7 @@ def receive_blocking(bridge: Bridge, topic: str, msg_type: str,
         value = read()
         put(0, float(value if process is None else process(value)))
 
-    return _coupling(spec, control, link,
-                     helpers=[Pump(forward, name="receive-blocking:srt")],
+    return _coupling(spec, control, link, helpers=[Pump(forward, name=f"{name}:srt")],
                      channels={"in": incoming}, closers=closers)
 
 
