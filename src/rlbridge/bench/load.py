@@ -270,11 +270,16 @@ def phase_table(r: Run) -> str:
 
 
 def first_hop_lost(r: Run) -> int:
-    """Values that never reached the server (sequence gaps its publish channels counted)."""
+    """Values that never reached the server (sequence gaps its publish channels counted).
+
+    Only publish channels count: the server numbers nothing it receives on a subscription,
+    so a subscribe channel reports ``lost`` as -1 ("measured by the client"), and summing
+    those took one per subscription off the figure, down to below zero.
+    """
     if not r.phases:
         return 0
-    return sum(int(c.get("lost", 0)) for s in r.phases[-1].stats1.get("sessions", [])
-               for c in s["channels"].values())
+    return sum(int(c["lost"]) for s in r.phases[-1].stats1.get("sessions", [])
+               for c in s["channels"].values() if c.get("direction") == "publish")
 
 
 def totals_line(r: Run) -> str:
