@@ -22,7 +22,8 @@ from rlbridge.bench.base import Params, Role
 #: Modules whose ``ROLES`` a child may run (the child's entry point refuses anything else).
 WORKER_MODULES = ("rlbridge.bench.child", "rlbridge.bench.throughput",
                   "rlbridge.bench.latency", "rlbridge.bench.baselines",
-                  "rlbridge.bench.ros2_roles", "rlbridge.bench.netpath")
+                  "rlbridge.bench.ros2_roles", "rlbridge.bench.netpath",
+                  "rlbridge.bench.load_roles")
 
 
 def emit(event: str, **fields: Any) -> None:
