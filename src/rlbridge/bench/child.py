@@ -93,6 +93,7 @@ class Tally:
         self._expect_at = 0.0
 
     def add(self, n: int, now: float) -> None:
+        """Count ``n`` values that arrived at ``now``."""
         if n:
             if not self.received:
                 self.t_first = now
@@ -100,6 +101,7 @@ class Tally:
             self.t_last = now
 
     def done(self, now: float) -> bool:
+        """True once every expected value arrived, or the idle wait after ``expect`` ran out."""
         if self._expected is None:
             msg = self.control.poll("expect")
             if msg is None:
@@ -110,6 +112,7 @@ class Tally:
         return now - max(self.t_last, self._expect_at) > self.idle_s
 
     def report(self, **extra: Any) -> None:
+        """Send the counts (and ``extra``) to the parent as the ``result`` event."""
         emit("result", received=self.received, t_first=self.t_first, t_last=self.t_last,
              samples=self.samples, **extra)
 

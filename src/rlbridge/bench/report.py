@@ -32,6 +32,7 @@ def _version(dist: str) -> str:
 
 
 def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), for the report header."""
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -56,6 +57,7 @@ def machine_info() -> dict[str, str]:
 
 
 def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A markdown table; every column but the first right-aligned (they hold figures)."""
     out = ["| " + " | ".join(headers) + " |",
            "|" + "|".join("---:" if i else "---" for i in range(len(headers))) + "|"]
     out += ["| " + " | ".join(row) + " |" for row in rows]
@@ -63,6 +65,7 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str
 
 
 def report_header(title: str, command: Sequence[str]) -> str:
+    """A report's title, the command that produced it, the date and the machine."""
     info = machine_info()
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     lines = [f"### {title}", "", f"Command: `{shlex.join(command)}`  ", f"Date: {when}  "]

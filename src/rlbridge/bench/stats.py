@@ -28,4 +28,5 @@ def median(values: Sequence[float]) -> float:
 
 
 def ratio(value: float, base: float) -> float:
+    """``value / base``, NaN when either was not measured (or the base is zero)."""
     return value / base if base and not math.isnan(base) and not math.isnan(value) else math.nan

@@ -85,6 +85,7 @@ class Worker:
 
     @property
     def pid(self) -> int:
+        """The child's process id (for ``/proc`` readings)."""
         return self.proc.pid
 
     def send(self, cmd: str, **fields: Any) -> None:
@@ -130,9 +131,11 @@ class Worker:
         self._cpu0 = cpu_seconds(self.pid)
 
     def cpu_since_mark(self) -> float:
+        """CPU seconds the child used since :meth:`mark_cpu`."""
         return cpu_seconds(self.pid) - self._cpu0
 
     def stderr_tail(self) -> str:
+        """The end of the child's stderr, as a suffix for an error message (empty if none)."""
         with contextlib.suppress(OSError):
             self._stderr.seek(0)
             tail = self._stderr.read()[-1500:].decode(errors="replace").strip()
@@ -190,6 +193,7 @@ class ProcessGroup:
         return "".join(f"\n--- {w.name} (pid {w.pid}) ---{w.stderr_tail()}" for w in self._workers)
 
     def close(self) -> None:
+        """Stop every worker, the last started first."""
         for worker in reversed(self._workers):
             worker.stop()
         self._workers.clear()
@@ -225,6 +229,7 @@ class Flow:
         return n / span if n and span > 0 else math.nan
 
     def cpu_per_million(self, name: str) -> float:
+        """CPU seconds process ``name`` spent per million values received."""
         n = int(self.received["received"])
         return self.cpu_s[name] / n * 1e6 if n else math.nan
 

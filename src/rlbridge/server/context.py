@@ -37,4 +37,5 @@ class ServerContext:
     report: Callable[[], dict[str, Any]] | None = None
 
     def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""
         self.counters[name] = self.counters.get(name, 0) + n

@@ -95,6 +95,7 @@ class Session:
 
     # -- transports ------------------------------------------------------------------------
     def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
+        """The session's TCP connection: its sink, and how to close it when the session ends."""
         self.tcp = sink
         self._close_tcp = close
 
@@ -115,6 +116,7 @@ class Session:
         return self.tcp if self.tcp is not None else self.udp
 
     def send_control(self, packet: Packet, via: PacketSink | None = None) -> None:
+        """Send a control packet through ``via``, else the session's control path (if any)."""
         sink = via or self.control
         if sink is not None:
             sink.send(packet)
