@@ -9,6 +9,7 @@ row per interval, ``--out`` gets the section, and no process is left behind.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import pytest
@@ -57,6 +58,7 @@ def test_load_runs_every_phase(tmp_path: Path, client: str) -> None:
         assert float(row[3].replace(",", "")) > 0, row  # values delivered
     assert "Slow consumer (subscribed over TCP to 3 of the clients' topics" in result.output
     assert "Whole run: " in result.output
+    assert re.search(r"of which [\d,]+ never reached the server", result.output), result.output
     assert "<!-- bench:load begin -->" in out.read_text()
     assert _children() <= before
 

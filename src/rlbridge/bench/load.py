@@ -21,12 +21,8 @@ own counters (``Stats``). The parent only coordinates: it sleeps between samples
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import subprocess
-import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -38,7 +34,6 @@ from rlbridge.bench.common import (
     LoopbackLink,
     Params,
     ProcessGroup,
-    Side,
     Worker,
     cpu_seconds,
     fmt,
@@ -50,22 +45,6 @@ from rlbridge.bench.common import (
 
 MODULE = "rlbridge.bench.load_roles"
 MiB = 1 << 20
-
-
-class LoadGroup(ProcessGroup):
-    """A process group that can also start ``load_roles`` children (their own entry point)."""
-
-    def start(self, name: str, side: Side, module: str, role: str, params: Params) -> Worker:
-        if module != MODULE:
-            return super().start(name, side, module, role, params)
-        argv = [sys.executable, "-c", f"from {MODULE} import worker_main; worker_main()",
-                role, json.dumps(params), str(self.lifetime_s)]
-        stderr = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Worker.stop
-        proc = self.link.popen(side, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                               stderr=stderr)
-        worker = Worker(name, proc, stderr)
-        self._workers.append(worker)
-        return worker
 
 
 def run_delay_s(pid: int) -> float:
@@ -151,7 +130,7 @@ def run(settings: Settings, plan: Plan, progress: Callable[[str], None],
     s = settings
     total_s = s.warmup_s + sum(p[1] for p in plan)
     load_before = os.getloadavg()
-    group = LoadGroup(link or LoopbackLink(), lifetime_s=total_s + 600)
+    group = ProcessGroup(link or LoopbackLink(), lifetime_s=total_s + 600)
     with group:
         try:
             return _run(group, s, plan, progress, total_s, load_before)
@@ -159,7 +138,7 @@ def run(settings: Settings, plan: Plan, progress: Callable[[str], None],
             raise BenchError(f"{exc}{group.diagnostics()}") from None
 
 
-def _run(group: LoadGroup, s: Settings, plan: Plan, progress: Callable[[str], None],
+def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str], None],
          total_s: float, load_before: tuple[float, float, float]) -> Run:
     from rlbridge.csp.bridge import Bridge
 
@@ -270,11 +249,16 @@ def phase_table(r: Run) -> str:
 
 
 def first_hop_lost(r: Run) -> int:
-    """Values that never reached the server (sequence gaps its publish channels counted)."""
+    """Values that never reached the server (sequence gaps its publish channels counted).
+
+    Only publish channels count: the server numbers nothing it receives on a subscription,
+    so a subscribe channel reports ``lost`` as -1 ("measured by the client"), and summing
+    those took one per subscription off the figure, down to below zero.
+    """
     if not r.phases:
         return 0
-    return sum(int(c.get("lost", 0)) for s in r.phases[-1].stats1.get("sessions", [])
-               for c in s["channels"].values())
+    return sum(int(c["lost"]) for s in r.phases[-1].stats1.get("sessions", [])
+               for c in s["channels"].values() if c.get("direction") == "publish")
 
 
 def totals_line(r: Run) -> str:

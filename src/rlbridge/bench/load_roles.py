@@ -271,22 +271,3 @@ def raw_clients(params: Params) -> None:
 
 ROLES: dict[str, Role] = {"clients": clients, "raw": raw_clients, "slow": slow}
 
-
-def worker_main() -> None:
-    """Child entry point; ``common.worker_main`` only runs the modules it lists."""
-    import json
-    import os
-    import sys
-
-    role, params, lifetime = sys.argv[1:4]
-    timer = threading.Timer(float(lifetime), lambda: os._exit(4))
-    timer.daemon = True
-    timer.start()
-    try:
-        ROLES[role](json.loads(params))
-    except Exception as exc:
-        emit("error", message=f"{type(exc).__name__}: {exc}")
-        raise
-    sys.stdout.flush()
-    os._exit(0)
-

@@ -33,41 +33,48 @@ and :func:`~rlbridge.netem.netns.cleanup_stale_namespaces` removes the namespace
 from __future__ import annotations
 
 import contextlib
-import ipaddress
 import os
 import socket
 import subprocess
 from collections.abc import Sequence
 from contextlib import ExitStack
 from types import TracebackType
-from typing import Any, Literal, Self
+from typing import Any, Self
 
-from rlbridge.netem.impairment import Direction, Impairment, split_direction
+from rlbridge.netem.impairment import Direction, Impairment
+from rlbridge.netem.link_settings import (
+    DEFAULT_NETWORK,
+    MAX_LIFETIME_S,
+    Side,
+    check_bounds,
+    describe,
+    host_pair,
+    impairment_pair,
+    side_index,
+    simple_pair,
+)
 from rlbridge.netem.netns import (
     call_in_namespace,
     create_namespace,
     delete_namespace,
     exec_argv,
     namespace_name,
-    namespace_pids,
     new_run_token,
-    terminate_pids,
+)
+from rlbridge.netem.ns_children import (
+    CHILD_GRACE_S,
+    NamespaceChildren,
+    terminate_namespace_processes,
 )
 from rlbridge.netem.relay_process import RelayProcess
 from rlbridge.netem.signals import sigterm_raises
 from rlbridge.netem.stats import LinkStats
 from rlbridge.netem.tun import configure_point_to_point, open_tun, tx_dropped
 
-Side = Literal["a", "b"]
+__all__ = ["CHILD_GRACE_S", "DEFAULT_NETWORK", "IFNAME", "MAX_LIFETIME_S", "EmulatedLink", "Side"]
 
 IFNAME = "rlb0"
 """Name of the TUN device in each namespace (names are per namespace, so no clash)."""
-
-DEFAULT_NETWORK = "10.203.0.0/30"
-"""Addresses that exist only inside the link's two namespaces, so every link can reuse them."""
-
-MAX_LIFETIME_S = 24 * 3600.0
-CHILD_GRACE_S = 2.0
 
 
 class EmulatedLink:
@@ -99,25 +106,10 @@ class EmulatedLink:
         relay_cpus: frozenset[int] | None = None,
         relay_rt_priority: int | None = None,
     ) -> None:
-        if (a_to_b is None) != (b_to_a is None):
-            raise ValueError("give both a_to_b and b_to_a, or neither")
-        if a_to_b is not None and b_to_a is not None:
-            if (delay_ms, loss_pct, jitter_ms, direction) != (0.0, 0.0, 0.0, "both"):
-                raise ValueError("give either delay/loss/jitter/direction or a_to_b/b_to_a")
-            self._impairments = (a_to_b, b_to_a)
-        else:
-            self._impairments = split_direction(_simple(delay_ms, loss_pct, jitter_ms), direction)
-        if not 68 <= mtu <= 65535:
-            raise ValueError(f"mtu must be in [68, 65535], got {mtu}")
-        if not 0.0 < max_lifetime_s <= MAX_LIFETIME_S:
-            raise ValueError(
-                f"max_lifetime_s must be in (0, {MAX_LIFETIME_S}], got {max_lifetime_s}"
-            )
-        hosts = ipaddress.IPv4Network(network).hosts()
-        try:
-            self._addrs = (str(next(hosts)), str(next(hosts)))
-        except StopIteration:
-            raise ValueError(f"network {network} has fewer than two host addresses") from None
+        self._impairments = impairment_pair(delay_ms, loss_pct, jitter_ms, direction,
+                                            a_to_b, b_to_a)
+        check_bounds(mtu, max_lifetime_s, relay_rt_priority)
+        self._addrs = host_pair(network)
         token = new_run_token()
         self._names = (namespace_name(token, "a"), namespace_name(token, "b"))
         self._seed = seed
@@ -125,14 +117,12 @@ class EmulatedLink:
         self._max_lifetime_s = max_lifetime_s
         self._handle_sigterm = handle_sigterm
         self._relay_cpus = relay_cpus
-        if relay_rt_priority is not None and not 1 <= relay_rt_priority <= 99:
-            raise ValueError(f"relay_rt_priority must be in [1, 99], got {relay_rt_priority}")
         self._relay_rt_priority = relay_rt_priority
-        self.name = _describe(self._impairments)
+        self.name = describe(self._impairments)
         """A short label for reports, e.g. ``netem a_to_b=7.5ms/1% b_to_a=clean``."""
         self._stack: ExitStack | None = None
         self._relay: RelayProcess | None = None
-        self._children: list[subprocess.Popen[Any]] = []
+        self._children = NamespaceChildren()
 
     # -- lifetime ---------------------------------------------------------------------
 
@@ -160,7 +150,7 @@ class EmulatedLink:
                 create_namespace(name)
                 stack.callback(delete_namespace, name)
             # Runs before the deletions: nothing may be left running in a namespace.
-            stack.callback(self._terminate_namespace_processes)
+            stack.callback(terminate_namespace_processes, self._names)
             fds: list[int] = []
             stack.callback(_close_all, fds)
             fds.append(open_tun(self._names[0], IFNAME))
@@ -182,7 +172,7 @@ class EmulatedLink:
             fds.clear()  # RelayProcess.start owns (and closes here) the descriptors now
             stack.callback(relay.stop)
             relay.start()
-            stack.callback(self._terminate_children)
+            stack.callback(self._children.terminate)
         except BaseException:
             stack.close()
             raise
@@ -195,25 +185,6 @@ class EmulatedLink:
         self._relay = None
         if stack is not None:
             stack.close()
-
-    def _terminate_children(self) -> None:
-        running = [p for p in self._children if p.poll() is None]
-        for proc in running:
-            with contextlib.suppress(ProcessLookupError):
-                proc.terminate()
-        for proc in running:
-            try:
-                proc.wait(timeout=CHILD_GRACE_S)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        self._children.clear()
-
-    def _terminate_namespace_processes(self) -> None:
-        for name in self._names:
-            pids = [pid for pid in namespace_pids(name) if pid != os.getpid()]
-            if pids:
-                terminate_pids(pids, CHILD_GRACE_S)
 
     # -- description ------------------------------------------------------------------
 
@@ -254,11 +225,11 @@ class EmulatedLink:
 
     def namespace(self, side: Side) -> str:
         """Namespace name of ``side``."""
-        return self._names[_index(side)]
+        return self._names[side_index(side)]
 
     def address(self, side: Side) -> str:
         """Address of ``side`` on the link."""
-        return self._addrs[_index(side)]
+        return self._addrs[side_index(side)]
 
     def __repr__(self) -> str:
         state = "up" if self._stack is not None else "down"
@@ -276,9 +247,7 @@ class EmulatedLink:
     def popen_in(self, side: Side, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[Any]:
         """Start ``argv`` in ``side``'s namespace; it is terminated when the link closes."""
         self._require_up()
-        proc: subprocess.Popen[Any] = subprocess.Popen(self.exec_argv(side, argv), **kwargs)
-        self._children.append(proc)
-        return proc
+        return self._children.popen(self.namespace(side), argv, **kwargs)
 
     def popen(self, side: Side, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[Any]:
         """Same as :meth:`popen_in`; the name ``rlbridge.bench.common.Link`` expects."""
@@ -331,13 +300,13 @@ class EmulatedLink:
         The direction(s) not named become clean.  Applies to packets arriving from now
         on; packets in flight keep their release times.
         """
-        self.set_impairments(*split_direction(_simple(delay_ms, loss_pct, jitter_ms), direction))
+        self.set_impairments(*simple_pair(delay_ms, loss_pct, jitter_ms, direction))
 
     def set_impairments(self, a_to_b: Impairment, b_to_a: Impairment) -> None:
         """Set both directions' impairments (rate limits, burst loss, reordering...)."""
         self._require_relay().set_impairments(a_to_b, b_to_a)
         self._impairments = (a_to_b, b_to_a)
-        self.name = _describe(self._impairments)
+        self.name = describe(self._impairments)
 
     def stats(self) -> LinkStats:
         """Packets relayed and dropped per direction, and the relay's own lateness."""
@@ -360,38 +329,6 @@ class EmulatedLink:
         if self._relay is None:
             raise RuntimeError("the link is not started (use it in a 'with' block)")
         return self._relay
-
-
-def _describe(impairments: tuple[Impairment, Impairment]) -> str:
-    def one(imp: Impairment) -> str:
-        if imp.is_clean:
-            return "clean"
-        parts = [f"{imp.delay_ms:g}ms"]
-        if imp.jitter_ms:
-            parts.append(f"+-{imp.jitter_ms:g}ms")
-        if imp.loss_pct:
-            parts.append(f"{imp.loss_pct:g}%")
-        if imp.bursts is not None:
-            parts.append(f"GE~{imp.bursts.mean_loss_pct:.2g}%")
-        if imp.rate_kbit is not None:
-            parts.append(f"{imp.rate_kbit:g}kbit")
-        return "/".join(parts)
-
-    return f"netem a_to_b={one(impairments[0])} b_to_a={one(impairments[1])}"
-
-
-def _simple(delay_ms: float, loss_pct: float, jitter_ms: float) -> Impairment:
-    return Impairment(
-        delay_ms=float(delay_ms), loss_pct=float(loss_pct), jitter_ms=float(jitter_ms)
-    )
-
-
-def _index(side: Side) -> int:
-    if side == "a":
-        return 0
-    if side == "b":
-        return 1
-    raise ValueError(f"side must be 'a' or 'b', got {side!r}")
 
 
 def _close_all(fds: list[int]) -> None:

@@ -5,26 +5,27 @@ reach ``handle`` from either transport (a session may use TCP and UDP channels a
 requirement 5) and each channel sends through the sink of the transport it chose. Bad input is
 answered with an error packet naming the problem and the session goes on; only a broken byte
 stream or a dead link ends it.
+
+What may be connected is decided in :mod:`~rlbridge.server.connect`, the liveness timer is
+:mod:`~rlbridge.server.watchdog`; this module routes packets and keeps the session's counters.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
 
-from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS, Reliability
-from rlbridge.server.access import AllowList, KeyStore
+from rlbridge.adapters.base import BindingError
 from rlbridge.server.bindings import Inbound, Outbound
-from rlbridge.server.config import ServerConfig
-from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.connect import bind, refusal
+from rlbridge.server.context import ServerContext
 from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.sinks import PacketSink, UdpSink
+from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
     Batch,
     Disconnect,
@@ -41,7 +42,9 @@ from rlbridge.wire import (
     TopicError,
     Value,
 )
-from rlbridge.wire.link import LinkMonitor, LinkState
+from rlbridge.wire.link import LinkMonitor
+
+__all__ = ["CHANNEL_TOTALS", "ServerContext", "Session"]
 
 log = logging.getLogger("rlbridge.server")
 
@@ -49,28 +52,6 @@ log = logging.getLogger("rlbridge.server")
 CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values")
 
 TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
-
-
-@dataclass
-class ServerContext:
-    """What every session shares: settings, middleware, codec, the loop and its hand-off."""
-
-    config: ServerConfig
-    adapter: MiddlewareAdapter
-    codec: PacketCodec
-    loop: asyncio.AbstractEventLoop
-    handoff: LoopHandoff
-    udp_transport: asyncio.DatagramTransport | None = None
-    counters: dict[str, int] = field(default_factory=dict)
-    keys: KeyStore | None = None
-    #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
-    handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
-    allow: AllowList = field(default_factory=lambda: AllowList(()))
-    #: Server totals and every session's counters (set by the registry; see ``Stats``).
-    report: Callable[[], dict[str, Any]] | None = None
-
-    def count(self, name: str, n: int = 1) -> None:
-        self.counters[name] = self.counters.get(name, 0) + n
 
 
 class Session:
@@ -110,12 +91,11 @@ class Session:
         self.codec: PacketCodec = ctx.codec
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
-        self._timer: asyncio.TimerHandle | None = None
-        self._tcp_bytes_at_heartbeat = (-1, -1)
-        self._arm_timer()
+        self._watchdog = SessionWatchdog(self)
 
     # -- transports ------------------------------------------------------------------------
     def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
+        """The session's TCP connection: its sink, and how to close it when the session ends."""
         self.tcp = sink
         self._close_tcp = close
 
@@ -136,6 +116,7 @@ class Session:
         return self.tcp if self.tcp is not None else self.udp
 
     def send_control(self, packet: Packet, via: PacketSink | None = None) -> None:
+        """Send a control packet through ``via``, else the session's control path (if any)."""
         sink = via or self.control
         if sink is not None:
             sink.send(packet)
@@ -235,49 +216,27 @@ class Session:
         return Batch(packet.channel, packet.first_seq, packet.stamps[:ok], packet.values[:ok])
 
     def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
-        cfg = self.ctx.config
         ch = req.channel
-        refuse: tuple[ErrorCode, str] | None = None
         existing = self.inbound.get(ch) or self.outbound.get(ch)
         if existing is not None and existing.request == req:
             # A retransmitted request (its ack was lost on UDP): answer it again.
             self.send_control(TopicAck(ch, existing.spec.msg_type, existing.spec.default), via)
             return
-        if existing is not None:
-            refuse = (ErrorCode.CHANNEL_IN_USE, f"channel {ch} is already connected")
-        elif len(self.inbound) + len(self.outbound) >= cfg.max_channels:
-            refuse = (ErrorCode.LIMIT, f"this session already has {cfg.max_channels} channels, "
-                      "the server's limit")
-        elif req.transport == "tcp" and self.tcp is None:
-            refuse = (ErrorCode.TRANSPORT_DISABLED,
-                      "TCP channel on a session without a TCP connection")
-        elif req.transport == "udp" and self.ctx.udp_transport is None:
-            refuse = (ErrorCode.TRANSPORT_DISABLED, "this server runs without UDP (--no-udp)")
-        elif len(req.topic) > cfg.max_topic_length:
-            refuse = (ErrorCode.LIMIT, f"topic name of {len(req.topic)} characters is longer "
-                      f"than the server's limit of {cfg.max_topic_length}")
+        refuse = refusal(self, req)
         if refuse is not None:
             self.send_control(TopicError(ch, int(refuse[0]), refuse[1]), via)
             return
-        default_rel: Reliability = "reliable" if req.transport == "tcp" else "best_effort"
-        qos = QoS(req.reliability or default_rel, req.depth)
-        adapter = self.ctx.adapter
         try:
-            spec = adapter.resolve(req.msg_type, req.field)
-            if req.direction == "publish":
-                pub = adapter.create_publisher(req.topic, spec.msg_type, req.field, qos)
-                self.inbound[ch] = Inbound(ch, spec, pub, req, self.link.clock)
-            else:
-                out = Outbound(ch, spec, _ChannelSink(self, req.transport), cfg.max_batch,
-                               req.redundancy if req.transport == "udp" else 0, req)
-                out.subscription = adapter.subscribe(
-                    req.topic, spec.msg_type, req.field, qos, self.ctx.handoff.wrap(out.on_values)
-                )
-                self.outbound[ch] = out
+            binding = bind(self, req)
         except BindingError as exc:
             code = ErrorCode.__members__.get(exc.code, ErrorCode.INTERNAL)
             self.send_control(TopicError(ch, int(code), exc.reason), via)
             return
+        if isinstance(binding, Inbound):
+            self.inbound[ch] = binding
+        else:
+            self.outbound[ch] = binding
+        spec = binding.spec
         log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
         self.send_control(TopicAck(ch, spec.msg_type, spec.default), via)
@@ -291,53 +250,13 @@ class Session:
         self._retire(binding.stats())
         binding.close()
 
-    # -- watchdog --------------------------------------------------------------------------
-    def _arm_timer(self) -> None:
-        now = time.monotonic_ns()
-        deadline = self.link.next_deadline(now)
-        loop = self.ctx.loop
-        self._timer = loop.call_at(loop.time() + (deadline - now) / 1e9, self._on_timer)
-
-    def _on_timer(self) -> None:
-        if self.closed:
-            return
-        now = time.monotonic_ns()
-        if self.link.state(now) is LinkState.LOST:
-            self.ctx.count("sessions_timed_out")
-            self.close("watchdog: no packet from the client within "
-                       f"{self.ctx.config.timeout_ms} ms", notify=True)
-            return
-        if self.link.heartbeat_due(now):
-            hb = self.link.make_heartbeat(now, time.time_ns())
-            for sink in self._heartbeat_sinks():
-                sink.send(hb)
-            self._tcp_bytes_at_heartbeat = self._tcp_traffic()
-        self._arm_timer()
-
-    def _tcp_traffic(self) -> tuple[int, int]:
-        return getattr(self.tcp, "bytes_out", -1), self.tcp_bytes_in
-
-    def _heartbeat_sinks(self) -> list[PacketSink]:
-        """Both transports, but not a TCP connection that carried data either way since the
-        last heartbeat while the client also has UDP (where heartbeats keep flowing): a
-        heartbeat segment amid a stream makes the receiver's kernel delay its ACKs (it
-        expects to piggyback them), and with Nagle on the sender then holds the next value
-        for that delayed ACK, ~40 ms every heartbeat period (docs/evaluation.md)."""
-        tcp, udp = self.tcp, self.udp
-        if tcp is None or udp is None:
-            return [s for s in (tcp, udp) if s is not None]
-        if self._tcp_traffic() != self._tcp_bytes_at_heartbeat:
-            return [udp]
-        return [tcp, udp]
-
     # -- lifetime --------------------------------------------------------------------------
     def close(self, reason: str, *, notify: bool = True, code: int = 0) -> None:
         """Release every binding and transport; idempotent."""
         if self.closed:
             return
         self.closed = True
-        if self._timer is not None:
-            self._timer.cancel()
+        self._watchdog.stop()
         if notify:
             self.send_control(Disconnect(code, reason))
         bindings: list[Inbound | Outbound] = [*self.inbound.values(), *self.outbound.values()]
@@ -404,31 +323,3 @@ class Session:
             "channels": channels,
         }
 
-
-class _ChannelSink:
-    """The sink of a channel's chosen transport, looked up at send time.
-
-    A UDP channel may be connected before the client's first datagram told us its address, and
-    a client's address may change (NAT rebinding); looking the sink up per send handles both.
-    """
-
-    def __init__(self, session: Session, transport: str) -> None:
-        self._session = session
-        self._udp = transport == "udp"
-        self._dropped = 0
-
-    @property
-    def dropped(self) -> int:
-        return self._dropped
-
-    def congested(self) -> bool:
-        sink = self._session.udp if self._udp else self._session.tcp
-        return sink is not None and sink.congested()
-
-    def send(self, packet: Packet, *, data: bool = False) -> bool:
-        s = self._session
-        sink = s.udp if self._udp else s.tcp
-        if sink is None or not sink.send(packet, data=data):
-            self._dropped += 1
-            return False
-        return True

@@ -1,0 +1,90 @@
+"""A session's topic-connect requests: which it refuses, and what an accepted one binds.
+
+Refusals are decided before the middleware is asked anything, from the server's limits and the
+transports this session has, so a refused request costs no middleware endpoint. An accepted
+request becomes an :class:`Inbound` binding (client -> middleware) or an :class:`Outbound` one
+(middleware -> client) that sends through its transport's sink as it is at send time.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from rlbridge.adapters.base import QoS, Reliability
+from rlbridge.server.bindings import Inbound, Outbound
+from rlbridge.wire import ErrorCode, Packet, TopicConnect
+
+if TYPE_CHECKING:
+    from rlbridge.server.session import Session
+
+
+def refusal(session: Session, req: TopicConnect) -> tuple[ErrorCode, str] | None:
+    """Why ``session`` may not connect ``req`` (code and reason for its TopicError), or None."""
+    cfg = session.ctx.config
+    ch = req.channel
+    if ch in session.inbound or ch in session.outbound:
+        return ErrorCode.CHANNEL_IN_USE, f"channel {ch} is already connected"
+    if len(session.inbound) + len(session.outbound) >= cfg.max_channels:
+        return ErrorCode.LIMIT, (f"this session already has {cfg.max_channels} channels, "
+                                 "the server's limit")
+    if req.transport == "tcp" and session.tcp is None:
+        return ErrorCode.TRANSPORT_DISABLED, "TCP channel on a session without a TCP connection"
+    if req.transport == "udp" and session.ctx.udp_transport is None:
+        return ErrorCode.TRANSPORT_DISABLED, "this server runs without UDP (--no-udp)"
+    if len(req.topic) > cfg.max_topic_length:
+        return ErrorCode.LIMIT, (f"topic name of {len(req.topic)} characters is longer than "
+                                 f"the server's limit of {cfg.max_topic_length}")
+    return None
+
+
+def bind(session: Session, req: TopicConnect) -> Inbound | Outbound:
+    """The middleware endpoint of an accepted ``req``; raises ``BindingError`` if it refuses.
+
+    The QoS follows the transport unless the client chose: reliable over TCP, best effort
+    over UDP, so the middleware does not retransmit what the client's transport would not.
+    """
+    ctx = session.ctx
+    default_rel: Reliability = "reliable" if req.transport == "tcp" else "best_effort"
+    qos = QoS(req.reliability or default_rel, req.depth)
+    adapter = ctx.adapter
+    spec = adapter.resolve(req.msg_type, req.field)
+    if req.direction == "publish":
+        pub = adapter.create_publisher(req.topic, spec.msg_type, req.field, qos)
+        return Inbound(req.channel, spec, pub, req, session.link.clock)
+    out = Outbound(req.channel, spec, ChannelSink(session, req.transport), ctx.config.max_batch,
+                   req.redundancy if req.transport == "udp" else 0, req)
+    out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
+                                         ctx.handoff.wrap(out.on_values))
+    return out
+
+
+class ChannelSink:
+    """The sink of a channel's chosen transport, looked up at send time.
+
+    A UDP channel may be connected before the client's first datagram told us its address, and
+    a client's address may change (NAT rebinding); looking the sink up per send handles both.
+    """
+
+    def __init__(self, session: Session, transport: str) -> None:
+        self._session = session
+        self._udp = transport == "udp"
+        self._dropped = 0
+
+    @property
+    def dropped(self) -> int:
+        """Packets that found no sink, or a sink that refused them."""
+        return self._dropped
+
+    def congested(self) -> bool:
+        """True while the transport's sink is backed up (a latest-value channel then waits)."""
+        sink = self._session.udp if self._udp else self._session.tcp
+        return sink is not None and sink.congested()
+
+    def send(self, packet: Packet, *, data: bool = False) -> bool:
+        """Send through the channel's transport as it is now; False (and counted) if not sent."""
+        s = self._session
+        sink = s.udp if self._udp else s.tcp
+        if sink is None or not sink.send(packet, data=data):
+            self._dropped += 1
+            return False
+        return True

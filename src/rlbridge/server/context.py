@@ -1,0 +1,41 @@
+"""What every session of one server shares, handed to each at creation instead of globals.
+
+One object per running server, so two servers in one process (tests, ``ServerThread`` next to
+a CLI server) never see each other's settings, counters or keys.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from rlbridge.adapters.base import MiddlewareAdapter
+from rlbridge.server.access import AllowList, KeyStore
+from rlbridge.server.config import ServerConfig
+from rlbridge.server.handoff import LoopHandoff
+from rlbridge.wire import PacketCodec
+
+
+@dataclass
+class ServerContext:
+    """What every session shares: settings, middleware, codec, the loop and its hand-off."""
+
+    config: ServerConfig
+    adapter: MiddlewareAdapter
+    codec: PacketCodec
+    loop: asyncio.AbstractEventLoop
+    handoff: LoopHandoff
+    udp_transport: asyncio.DatagramTransport | None = None
+    counters: dict[str, int] = field(default_factory=dict)
+    keys: KeyStore | None = None
+    #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
+    handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
+    allow: AllowList = field(default_factory=lambda: AllowList(()))
+    #: Server totals and every session's counters (set by the registry; see ``Stats``).
+    report: Callable[[], dict[str, Any]] | None = None
+
+    def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""
+        self.counters[name] = self.counters.get(name, 0) + n
