@@ -8,31 +8,16 @@ row per interval, ``--out`` gets the section, and no process is left behind.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
+from proc_children import children
 from rlbridge.bench.cli import bench_app
 
 pytestmark = pytest.mark.timeout(120)
-
-
-def _children() -> set[int]:
-    found = set()
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        if int(fields[1]) == os.getpid() and fields[0] != "Z":
-            found.add(int(entry.name))
-    return found
 
 
 def _table(text: str) -> dict[str, list[str]]:
@@ -47,7 +32,7 @@ def _table(text: str) -> dict[str, list[str]]:
 @pytest.mark.parametrize("client", ["raw", "sdk"])
 def test_load_runs_every_phase(tmp_path: Path, client: str) -> None:
     out = tmp_path / "load.md"
-    before = _children()
+    before = children()
     result = CliRunner().invoke(bench_app, [
         "load", "--clients", "3", "--channels", "2", "--rate", "20", "--processes", "2",
         "--phase-s", "1", "--slow-topics", "3", "--client", client, "--out", str(out)])
@@ -60,12 +45,12 @@ def test_load_runs_every_phase(tmp_path: Path, client: str) -> None:
     assert "Whole run: " in result.output
     assert re.search(r"of which [\d,]+ never reached the server", result.output), result.output
     assert "<!-- bench:load begin -->" in out.read_text()
-    assert _children() <= before
+    assert children() <= before
 
 
 def test_soak_has_a_row_per_interval(tmp_path: Path) -> None:
     out = tmp_path / "load.md"
-    before = _children()
+    before = children()
     result = CliRunner().invoke(bench_app, [
         "soak", "--minutes", "0.05", "--interval-s", "1", "--clients", "2", "--channels", "2",
         "--rate", "20", "--processes", "1", "--out", str(out)])
@@ -75,4 +60,4 @@ def test_soak_has_a_row_per_interval(tmp_path: Path) -> None:
     assert len(rows) == 3, result.output
     assert "Server RSS from the end of the first interval" in result.output
     assert "<!-- bench:soak begin -->" in out.read_text()
-    assert _children() <= before
+    assert children() <= before

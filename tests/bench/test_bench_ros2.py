@@ -8,25 +8,16 @@ options are one line, and that no worker process is left behind.
 
 from __future__ import annotations
 
-import contextlib
 import os
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
+from proc_children import children
 from rlbridge.bench.cli import bench_app
 
 pytestmark = [pytest.mark.ros2, pytest.mark.timeout(120)]
-
-
-def _children() -> set[int]:
-    """PIDs of this process's children, from each thread's ``/proc/.../children`` list."""
-    found: set[int] = set()
-    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
-        with contextlib.suppress(OSError):
-            found.update(int(pid) for pid in (task / "children").read_text().split())
-    return found
 
 
 def _table_rows(text: str) -> dict[str, list[list[str]]]:
@@ -46,7 +37,7 @@ def test_bench_ros2_runs_baseline_and_both_directions(
     monkeypatch.setenv("ROS_DOMAIN_ID", str(1 + (os.getpid() + 50) % 100))
     out = tmp_path / "ros2.md"
     out.write_text("# ROS 2\n\nhand-written text\n")
-    before = _children()
+    before = children()
     result = CliRunner().invoke(bench_app, [
         "ros2", "--count", "60", "--seconds", "0.3", "--repeats", "1",
         "--only", "rclpy,in-udp,out-tcp", "--out", str(out)])
@@ -63,7 +54,7 @@ def test_bench_ros2_runs_baseline_and_both_directions(
     assert text.count("<!-- bench:ros2 begin -->") == 1
     assert "Command: `rlbridge bench ros2 --count 60" in text
     assert "discovery LOCALHOST" in text
-    assert _children() <= before
+    assert children() <= before
 
 
 @pytest.mark.parametrize(("args", "phrase"), [

@@ -9,34 +9,18 @@ worker process is left behind.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
+from proc_children import children
 from rlbridge.bench import baselines
 from rlbridge.bench.cli import bench_app
 from rlbridge.bench.common import markdown_table, percentile, write_section
 
 pytestmark = pytest.mark.timeout(120)
-
-
-def _children() -> set[int]:
-    """PIDs of this process's live children (zombies excluded)."""
-    found = set()
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2 :].split()
-        if int(fields[1]) == os.getpid() and fields[0] != "Z":
-            found.add(int(entry.name))
-    return found
 
 
 def _rows(text: str) -> dict[str, list[str]]:
@@ -53,7 +37,7 @@ def _rows(text: str) -> dict[str, list[str]]:
 def test_throughput_runs_every_kind_of_row(tmp_path: Path) -> None:
     out = tmp_path / "bench.md"
     out.write_text("# Benchmarks\n\nhand-written text\n")
-    before = _children()
+    before = children()
     result = CliRunner().invoke(bench_app, [
         "throughput", "--count", "3000", "--seconds", "1", "--repeats", "1", "--batch", "256",
         "--only", "udp,zmq,zenoh,rlb-udp-1,rlb-tcp-batch", "--out", str(out)])
@@ -70,7 +54,7 @@ def test_throughput_runs_every_kind_of_row(tmp_path: Path) -> None:
     assert text.startswith("# Benchmarks\n\nhand-written text\n")
     assert text.count("<!-- bench:throughput begin -->") == 1
     assert "Command: `rlbridge bench throughput --count 3000" in text
-    assert _children() <= before
+    assert children() <= before
 
 
 def test_latency_runs_every_kind_of_row(tmp_path: Path,

@@ -12,12 +12,12 @@ import os
 import signal
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 from pattern_laws import Counter, FailsAt, Recorder, double, not_a_number
 from pattern_support import F64, WAIT, collect, drain, wait_until
 
+from proc_children import children, cmdline
 from rlbridge.csp import patterns
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
@@ -170,7 +170,7 @@ def test_a_killed_loop_process_is_reported(ctl: Bridge, topic: str) -> None:
     coupling.start()
     try:
         wait_until(lambda: coupling.released >= 10, "10 releases")
-        loops = [pid for pid in _children() if "spawn_main" in _cmdline(pid)]
+        loops = [pid for pid in children() if "spawn_main" in cmdline(pid)]
         assert len(loops) == 1, "the loop process is not a spawned child of this one"
         os.kill(loops[0], signal.SIGKILL)
         with pytest.raises(RuntimeError, match="without a report"):
@@ -178,26 +178,4 @@ def test_a_killed_loop_process_is_reported(ctl: Bridge, topic: str) -> None:
     finally:
         coupling.stop()
     assert coupling.link.closed
-    assert [pid for pid in _children() if "spawn_main" in _cmdline(pid)] == []
-
-
-def _children() -> list[int]:
-    """Processes whose parent is this one (from /proc: no extra dependency)."""
-    me, out = os.getpid(), []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == me:
-            out.append(int(entry.name))
-    return out
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return ""
+    assert [pid for pid in children() if "spawn_main" in cmdline(pid)] == []

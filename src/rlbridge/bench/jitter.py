@@ -7,12 +7,14 @@ The modules of the benchmark:
 * :mod:`~rlbridge.bench.jitter_runner`: the server, publisher, stress and worker processes
   around a run, and the rounds;
 * :mod:`~rlbridge.bench.jitter_worker`: one scenario in one process (and the publisher);
-* :mod:`~rlbridge.bench.jitter_shm`: the scenarios with the loop in its own process;
+* :mod:`~rlbridge.bench.jitter_shm`: the GIL study's hand-built separate-process loop
+  (``shm-1000``; the pattern suite measures the patterns' own process layout instead);
 * :mod:`~rlbridge.bench.jitter_report`: markdown, plot, pooling of several runs;
 * this module: :func:`run` (what the CLI calls) and ``python -m rlbridge.bench.jitter``, the
   entry point of the helper processes.
 
-Suites: ``patterns`` (the thesis figures 5.8-5.10, plus the loop in its own process) and
+Suites: ``patterns`` (the thesis figures 5.8-5.10, every proper pattern in its default layout,
+the loop in its own process, and in-process) and
 ``gil`` (the loop next to the SDK's threads at 100 Hz and 1 kHz traffic, a pure-Python thread,
 a ``sendto`` thread, for several ``sys.setswitchinterval`` values, the SDK threads at a
 real-time priority, and the loop in its own process: see docs/gil.md).
