@@ -103,38 +103,36 @@ def check_picklable(control: object, what: str) -> None:
 
 def _loop_body(link: ShmLink, kind: LoopKind, control: Callable[..., Any],
                info: dict[str, Any], run: list[Coupling]) -> Callable[[], None]:
-    """One release in the loop process: a slot read or a ring push, around the law.
+    """One release in the loop process: the law around a slot read or a ring push.
 
-    ``run`` holds the loop's coupling once it exists; the owner's stop word ends it.
+    ``run`` holds the loop's coupling once it exists; the owner's stop word ends it. The
+    scheduling the loop really runs with is recorded from inside it, on the first release.
     """
+    if kind == "receive":
+        get = link.get
 
-    def stop() -> None:
-        run[0].stop()
+        def step() -> None:
+            control(get(0))
+    else:
+        push = link.push
 
-    count, get, push = link.count_release, link.get, link.push
+        def step() -> None:
+            push(0, float(control()))
+
+    count = link.count_release
     first = [True]
 
-    def receive() -> None:
+    def body() -> None:
         if link.stop_requested:
-            stop()
-            return
-        if first[0]:  # where the loop really runs, recorded from inside it, once
-            first[0] = False
-            info.update(thread_scheduling())
-        count()
-        control(get(0))
-
-    def send() -> None:
-        if link.stop_requested:
-            stop()
+            run[0].stop()
             return
         if first[0]:
             first[0] = False
             info.update(thread_scheduling())
         count()
-        push(0, float(control()))
+        step()
 
-    return receive if kind == "receive" else send
+    return body
 
 
 def _loop_main(link: ShmLink, spec: LoopSpec, control: Callable[..., Any],
