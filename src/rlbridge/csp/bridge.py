@@ -21,7 +21,6 @@ import logging
 import os
 import sys
 import threading
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
@@ -31,8 +30,8 @@ from rlbridge.csp.auth import resolve_key
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import _MISSING, Channel
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
-from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.failsafe import GuardedChannel, OnLost, fail_safe
+from rlbridge.csp.io_priority import IoPriority
 from rlbridge.csp.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
 from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
@@ -62,7 +61,7 @@ class Bridge:
         self._incoming: dict[int, IncomingChannel] = {}
         self._outgoing: dict[int, OutgoingChannel] = {}
         self._events = LinkEvents(conn.link_state)
-        self._io_priority: int | None = None
+        self._io_priority = IoPriority(self._io_thread_ids)
         self._supervisor = None if backoff is None else ReconnectSupervisor(
             conn, backoff, self._bind_again)
         conn.keep_alive = self._supervisor is not None
@@ -244,32 +243,19 @@ class Bridge:
                 self._conn.send_control(TopicClose(channel.channel_id))
 
     def set_io_priority(self, priority: int = 40) -> bool:
-        """Run the SDK's receive and send threads at ``SCHED_FIFO`` ``priority``.
+        """Run the SDK's I/O threads at ``SCHED_FIFO`` ``priority``, below the loop (50).
 
-        Put them below the control loop (``PriParallel`` gives it 50) and above everything
-        else: a thread preempted by another process while it holds the GIL keeps the loop
-        waiting whatever the loop's own priority (docs/gil.md measures it at 1 kHz traffic).
-        Needs ``CAP_SYS_NICE``; returns ``False`` and says why in one ``RealTimeWarning`` when
-        refused. Opt-in, because a real-time thread that spins can starve the machine. The
-        receive thread of every later session (after a reconnect) gets the same priority.
+        A thread preempted while it holds the GIL keeps an in-process loop waiting whatever
+        its priority (docs/gil.md). Needs ``CAP_SYS_NICE``; ``False`` and one
+        ``RealTimeWarning`` when refused. Opt-in: a real-time thread that spins can starve
+        the machine. Later sessions' threads (after a reconnect) get the same priority.
         """
-        try:
-            self._apply_io_priority(priority)
-        except (OSError, AttributeError) as exc:
-            warnings.warn(RealTimeWarning(
-                f"SDK threads stay at normal priority: SCHED_FIFO {priority} refused ({exc}); "
-                "it needs CAP_SYS_NICE or RLIMIT_RTPRIO"), stacklevel=2)
-            return False
-        self._io_priority = priority
-        return True
+        return self._io_priority.request(priority)
 
-    def _apply_io_priority(self, priority: int) -> None:
+    def _io_thread_ids(self) -> list[int | None]:
         supervisor = self._supervisor
-        ids = [self._conn.receive_thread_id, self._sender.native_id,
-               None if supervisor is None else supervisor.native_id]
-        for tid in ids:
-            if tid is not None:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        return [self._conn.receive_thread_id, self._sender.native_id,
+                None if supervisor is None else supervisor.native_id]
 
     @property
     def send_rate_hz(self) -> float | None:
@@ -376,9 +362,7 @@ class Bridge:
                 self._conn.forget_topic(req.channel)
                 if channel is not None:
                     channel.close()
-        if self._io_priority is not None:
-            with contextlib.suppress(OSError):
-                self._apply_io_priority(self._io_priority)
+        self._io_priority.reapply()
         self._sender.resume()
         ack = self._conn.ack
         self._events.emit(self._conn.link_state,
