@@ -34,6 +34,9 @@ def jitter(
     isolate: Annotated[bool, typer.Option(
         help="Keep server, publishers and SDK threads off the loops' CPU.")] = True,
     mlock: Annotated[bool, typer.Option(help="mlockall in every loop process.")] = True,
+    interleave: Annotated[bool, typer.Option(
+        help="Patterns suite: run the reference between every two scenarios and compare each "
+             "with its neighbours (about twice the time per round).")] = True,
     out: Out = Path("docs/jitter.md"),
     plot: Annotated[Path, typer.Option(help="PNG of the jitter per cycle.")]
     = Path("docs/jitter.png"),
@@ -51,8 +54,9 @@ def jitter(
     run(JitterConfig(suite=suite, cycles=cycles, period=period_us / 1e6,  # type: ignore[arg-type]
                      repeats=repeats, stress=stress, publish_hz=publish_hz,
                      only=tuple(s for s in only.split(",") if s), priority=priority,
-                     cpu=None if cpu < 0 else cpu, isolate=isolate, mlock=mlock, out=out,
-                     plot=plot, command=command_line(sys.argv[1:])), typer.echo)
+                     cpu=None if cpu < 0 else cpu, isolate=isolate, mlock=mlock,
+                     interleave=interleave, out=out, plot=plot,
+                     command=command_line(sys.argv[1:])), typer.echo)
 
 
 @bench_app.command("channels")

@@ -9,7 +9,9 @@ The modules of the benchmark:
 * :mod:`~rlbridge.bench.jitter_worker`: one scenario in one process (and the publisher);
 * :mod:`~rlbridge.bench.jitter_shm`: the GIL study's hand-built separate-process loop
   (``shm-1000``; the pattern suite measures the patterns' own process layout instead);
-* :mod:`~rlbridge.bench.jitter_report`: markdown, plot, pooling of several runs;
+* :mod:`~rlbridge.bench.jitter_report`: markdown and plot;
+* :mod:`~rlbridge.bench.jitter_steal`: the comparison at equal host steal time;
+* :mod:`~rlbridge.bench.jitter_pool`: several runs' JSON pooled (``... jitter pool``);
 * this module: :func:`run` (what the CLI calls) and ``python -m rlbridge.bench.jitter``, the
   entry point of the helper processes.
 
@@ -39,10 +41,10 @@ from rlbridge.bench.jitter_config import (
     percentile,
     target_ok,
 )
+from rlbridge.bench.jitter_pool import pooled_deltas
 from rlbridge.bench.jitter_report import (
     machine_info,
     plot_results,
-    pooled_deltas,
     render_markdown,
     write_section,
 )
@@ -101,7 +103,8 @@ def _parser() -> argparse.ArgumentParser:
     pub.add_argument("--rate", type=float, default=100.0)
     pub.add_argument("--seconds", type=float, default=60.0)
     sub.add_parser("switch-cost", help="what a short GIL switch interval costs CPU-bound threads")
-    pool = sub.add_parser("pool", help="pool same-round differences over several runs' JSON")
+    pool = sub.add_parser("pool", help="pool the paired and equal-steal differences of several "
+                                       "runs' JSON")
     pool.add_argument("json", nargs="+", type=Path)
     return parser
 

@@ -3,7 +3,10 @@
 Scenarios (the rows), the run's configuration (built by the CLI), and the statistics: per run
 p50 / p99 / max of the absolute jitter; per scenario the median over the rounds, and the
 comparison with the reference *measured in the same round* (difference, ratio, and in how
-many rounds the target held), which is what survives a shared, noisy machine.
+many rounds the target held), which is what survives a shared, noisy machine. With
+``interleave`` (the pattern suite's default) the reference runs between every two scenarios and
+each scenario is compared with the two reference runs next to it, seconds apart instead of a
+round (minutes) apart.
 """
 
 from __future__ import annotations
@@ -116,6 +119,7 @@ class JitterConfig:
     cpu: int | None = None
     isolate: bool = True
     mlock: bool = True
+    interleave: bool = True
     out: Path | None = None
     plot: Path | None = None
     command: str = ""
@@ -137,6 +141,28 @@ class JitterConfig:
             keep = set(self.only)
             chosen = tuple(s for s in chosen if s.name in keep or s.name == "reference")
         return chosen
+
+    def round_order(self, rnd: int) -> list[int]:
+        """Indices into :meth:`scenarios` in the order round ``rnd`` runs them.
+
+        The scenarios rotate by one place per round, so none is always first or last. With
+        :attr:`interleave` the reference runs before each of them and once more at the end
+        (``R S1 R S2 ... Sn R``): the host's load drifts within seconds here (docs/jitter.md),
+        so the reference a round measured once cannot stand for a scenario run a minute later.
+        The GIL suite has a reference per switch interval and keeps one run per round.
+        """
+        scenarios = self.scenarios()
+        ref = next((i for i, s in enumerate(scenarios) if s.name == "reference"), None)
+        if not (self.interleave and self.suite == "patterns") or ref is None:
+            order = list(range(len(scenarios)))
+            shift = rnd % len(order)
+            return order[shift:] + order[:shift]
+        others = [i for i in range(len(scenarios)) if i != ref]
+        shift = rnd % len(others) if others else 0
+        out = [ref]
+        for index in others[shift:] + others[:shift]:
+            out += [index, ref]
+        return out
 
 
 # -- statistics ---------------------------------------------------------------------------------
@@ -160,12 +186,24 @@ class RunStats:
     samples: int
     missed: int
     round: int = 0
+    seq: int | None = None
+    """Position in the round's order; None in runs from before rounds were interleaved."""
+    steal_ms: float | None = None
+    """Time the hypervisor took from the loop's CPU during the loop (None: not measured)."""
 
     @classmethod
-    def of(cls, lateness_ns: Sequence[int], missed: int, rnd: int = 0) -> RunStats:
+    def of(cls, lateness_ns: Sequence[int], missed: int, rnd: int = 0, seq: int | None = None,
+           steal_ms: float | None = None) -> RunStats:
         ordered = sorted(lateness_ns)
         return cls(percentile(ordered, 50) / 1e3, percentile(ordered, 99) / 1e3,
-                   (ordered[-1] if ordered else 0) / 1e3, len(ordered), missed, rnd)
+                   (ordered[-1] if ordered else 0) / 1e3, len(ordered), missed, rnd, seq,
+                   steal_ms)
+
+    @classmethod
+    def from_json(cls, raw: dict[str, Any]) -> RunStats:
+        """A run as :func:`dataclasses.asdict` wrote it (older files lack the newer fields)."""
+        known = {f: raw[f] for f in cls.__dataclass_fields__ if f in raw}
+        return cls(**known)
 
 
 @dataclass
@@ -185,11 +223,26 @@ class ScenarioResult:
                attr: str = "p99_us") -> list[float]:
         """``combine(this, reference)`` per round, for the rounds both were measured in.
 
-        Pairing cancels the load that drifts from round to round on a shared machine.
+        Pairing cancels the load that drifts from round to round on a shared machine. The
+        reference value is the mean of the reference runs right before and after this run
+        when the round was interleaved, else the mean of the round's reference runs (one,
+        in a round that was not).
         """
-        theirs = {r.round: float(getattr(r, attr)) for r in ref.runs}
-        return [combine(float(getattr(r, attr)), theirs[r.round]) for r in self.runs
-                if r.round in theirs]
+        by_round: dict[int, list[RunStats]] = {}
+        for run in ref.runs:
+            if getattr(run, attr) is not None:  # steal_ms: None where not measured
+                by_round.setdefault(run.round, []).append(run)
+        out = []
+        for run in self.runs:
+            refs = by_round.get(run.round)
+            if not refs or getattr(run, attr) is None:
+                continue
+            seq = run.seq
+            near = [r for r in refs if seq is not None and r.seq is not None
+                    and abs(r.seq - seq) == 1]
+            theirs = statistics.fmean(float(getattr(r, attr)) for r in near or refs)
+            out.append(combine(float(getattr(run, attr)), theirs))
+        return out
 
     def paired_delta(self, ref: ScenarioResult, attr: str = "p99_us") -> float:
         """Median over rounds of (this - the reference measured in the same round)."""
@@ -211,15 +264,8 @@ class ScenarioResult:
         Judging the median alone calls a coin toss a result when one round's p99 moves by an
         order of magnitude with the host's load; the interval says when the run could not tell.
         """
-        allowed = allowance(ref.median("p99_us"))
         low, high = self.delta_ci(ref)
-        if math.isnan(low):
-            return "no rounds"
-        if high <= allowed:
-            return "met"
-        if low > allowed:
-            return "missed"
-        return "unresolved"
+        return judge(low, high, allowance(ref.median("p99_us")))
 
     def rounds_met(self, ref: ScenarioResult) -> tuple[int, int]:
         """(rounds in which the target held against that round's reference, rounds paired)."""
@@ -230,6 +276,15 @@ class ScenarioResult:
 def allowance(ref_p99: float) -> float:
     """How much worse than the reference's p99 the target allows: 10 % or 20 us, the larger."""
     return max(0.1 * ref_p99, 20.0)
+
+
+def judge(low: float, high: float, allowed: float) -> str:
+    """The verdict on an interval of d p99: the whole of it on one side of the allowance."""
+    if math.isnan(low):
+        return "no rounds"
+    if high <= allowed:
+        return "met"
+    return "missed" if low > allowed else "unresolved"
 
 
 def target_ok(ref_p99: float, delta_p99: float) -> bool:

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import json
 import math
 import os
 import platform
 import statistics
-from collections.abc import Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,9 +18,10 @@ from rlbridge.bench.jitter_config import (
     JitterConfig,
     ScenarioResult,
     allowance,
-    bootstrap_median_ci,
     interval_label,
+    judge,
 )
+from rlbridge.bench.jitter_steal import matched_ci, matched_delta, measured
 
 
 def machine_info() -> dict[str, str]:
@@ -61,20 +61,20 @@ def render_markdown(config: JitterConfig, results: list[ScenarioResult],
         f"{_treatment(results)}; server, publishers and the workers' other threads "
         f"{'kept off the loop CPU' if config.isolate and config.cpu is not None else 'anywhere'}.",
         "",
-        "Figures are medians over the rounds of each run's p50 / p99 / max of the absolute "
-        "jitter |release - deadline| in microseconds. Paired with the reference measured in "
-        "the same round (which cancels the load that drifts between rounds): *d p99* is the "
-        "median over the rounds of (p99 - reference p99), *p99/ref* the median of their "
-        "ratio, *rounds met* in how many rounds p99 <= max(1.1 x, +20 us) of that round's "
+        "Figures are medians over the runs of each run's p50 / p99 / max of the absolute "
+        "jitter |release - deadline| in microseconds. " + _pairing(config) + " *d p99* is "
+        "the median over the rounds of (p99 - reference p99), *p99/ref* the median of their "
+        "ratio, *rounds met* in how many rounds p99 <= max(1.1 x, +20 us) of that "
         "reference. *90 % CI*: a bootstrap interval of d p99 (rounds resampled). *target*: "
         "d p99 <= max(10 % of the reference's median p99, 20 us); *met* or *missed* when the "
         "whole interval is on one side of that, *unresolved* when the run cannot tell. "
         "*missed* (column): releases skipped because the loop was still busy (median per "
-        "run).",
+        "run). *steal ms*: time the hypervisor took from the loop's CPU while the loop ran "
+        "(median per run, /proc/stat; 10 ms resolution).",
         "",
-        "| group | scenario | p50 us | p99 us | max us | missed | d p99 us | 90 % CI us "
-        "| p99/ref | rounds met | target |",
-        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|---|",
+        "| group | scenario | p50 us | p99 us | max us | missed | steal ms | d p99 us "
+        "| 90 % CI us | p99/ref | rounds met | target |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---|",
     ]
     refs = {r.scenario.group: r for r in results if r.scenario.name == "reference"}
     default_ref = next((r for r in results if r.scenario.name == "reference"), None)
@@ -95,18 +95,73 @@ def render_markdown(config: JitterConfig, results: list[ScenarioResult],
         lines.append(
             f"| {res.scenario.group} | {res.scenario.label} | {res.median('p50_us'):.0f} | "
             f"{res.median('p99_us'):.0f} | {res.median('max_us'):.0f} | "
-            f"{res.median('missed'):.0f} | " + " | ".join(paired) + " |")
-    lines += ["", "Per round (p99 us):", "",
+            f"{res.median('missed'):.0f} | {_median_steal(res)} | " + " | ".join(paired)
+            + " |")
+    lines += _steal_table(results, lambda res: refs.get(res.scenario.group, default_ref))
+    lines += ["", "Per round (p99 us; where a round ran a scenario more than once, the "
+              "median of its runs and their number):", "",
               "| scenario | " + " | ".join(f"round {i + 1}" for i in range(config.repeats))
               + " |", "|---|" + "---:|" * config.repeats]
     for res in results:
-        by_round = {r.round: f"{r.p99_us:.0f}" for r in res.runs}
+        by_round = _per_round_p99(res)
         cells = " | ".join(by_round.get(i, "failed") for i in range(config.repeats))
         lines.append(f"| {res.scenario.group}: {res.scenario.name} | {cells} |")
     if plot is not None:
         lines += ["", f"![absolute jitter per cycle]({plot.name})"]
     lines.append(end)
     return "\n".join(lines) + "\n"
+
+
+def _steal_table(results: list[ScenarioResult],
+                 ref_of: Callable[[ScenarioResult], ScenarioResult | None]) -> list[str]:
+    """Each scenario against the reference runs with the same steal (:mod:`.jitter_steal`)."""
+    rows = []
+    for res in results:
+        ref = ref_of(res)
+        if ref is None or res is ref or not measured(res.runs) or not measured(ref.runs):
+            continue
+        groups = [(measured(res.runs), measured(ref.runs))]
+        low, high = matched_ci(groups)
+        d_steal = res.paired(ref, lambda mine, theirs: mine - theirs, "steal_ms")
+        verdict = ("n/a (naive)" if "naive" in res.scenario.name
+                   else judge(low, high, allowance(ref.median("p99_us"))))
+        rows.append(f"| {res.scenario.group} | {res.scenario.label} | {_median_steal(res)} | "
+                    f"{statistics.median(d_steal) if d_steal else math.nan:+.0f} | "
+                    f"{matched_delta(groups):+.0f} | {low:+.0f} .. {high:+.0f} | {verdict} |")
+    if not rows:
+        return []
+    return ["", "At equal steal: each run compared with the reference runs of this run whose "
+            "steal was closest to its own (the median p99 of the sqrt(n) nearest), which "
+            "takes the host's interference out of the comparison (`rlbridge.bench."
+            "jitter_steal`; interval: runs and reference runs resampled; same allowance). "
+            "*d steal*: the scenario's steal minus that of the reference runs next to it "
+            "(median); near zero, the pattern does not draw more host interference onto the "
+            "loop's CPU than the loop alone.", "",
+            "| group | scenario | steal ms | d steal ms | d p99 at equal steal us | 90 % CI us "
+            "| target |", "|---|---|---:|---:|---:|---|---|", *rows]
+
+
+def _pairing(config: JitterConfig) -> str:
+    if config.interleave and config.suite == "patterns":
+        return ("Each round ran the reference before every scenario and once more at the "
+                "end; each scenario is paired with the mean of the two reference runs next "
+                "to it (seconds apart, so the host's drifting load mostly cancels).")
+    return ("Each scenario is paired with the reference measured in the same round (which "
+            "cancels the load that drifts between rounds).")
+
+
+def _median_steal(res: ScenarioResult) -> str:
+    steal = [r.steal_ms for r in res.runs if r.steal_ms is not None]
+    return f"{statistics.median(steal):.0f}" if steal else "n/a"
+
+
+def _per_round_p99(res: ScenarioResult) -> dict[int, str]:
+    rounds: dict[int, list[float]] = {}
+    for run in res.runs:
+        rounds.setdefault(run.round, []).append(run.p99_us)
+    return {rnd: f"{values[0]:.0f}" if len(values) == 1
+            else f"{statistics.median(values):.0f} ({len(values)})"
+            for rnd, values in rounds.items()}
 
 
 def _treatment(results: list[ScenarioResult]) -> str:
@@ -135,9 +190,15 @@ def write_section(path: Path, section: str, title: str, markers: tuple[str, str]
     path.write_text(f"# {title}\n\n{section}")
 
 
-def _median_round(res: ScenarioResult) -> int:
+def _median_run(res: ScenarioResult) -> int:
+    """Index of the run with the median p99."""
     order = sorted(range(len(res.runs)), key=lambda i: res.runs[i].p99_us)
     return order[len(order) // 2] if order else 0
+
+
+def _run_in_round(res: ScenarioResult, rnd: int) -> int:
+    """Index of ``res``'s (first) run in round ``rnd``, or its last run if it has none there."""
+    return next((i for i, r in enumerate(res.runs) if r.round == rnd), len(res.runs) - 1)
 
 
 def plot_results(config: JitterConfig, results: list[ScenarioResult], path: Path) -> None:
@@ -156,13 +217,17 @@ def plot_results(config: JitterConfig, results: list[ScenarioResult], path: Path
         _plot_gil(plt, results, path)
         return
     fig, axes = plt.subplots(len(groups), 1, figsize=(10, 3.2 * len(groups)), squeeze=False)
-    rnd = _median_round(ref) if ref is not None else 0
+    ref_run = _median_run(ref) if ref is not None and ref.runs else None
+    rnd = ref.runs[ref_run].round if ref is not None and ref_run is not None else 0
     for ax, group in zip(axes[:, 0], groups, strict=True):
         members = ([ref] if ref is not None else []) + [
             r for r in results if r.scenario.group == group and r.scenario.name != "reference"]
         for res in members:
-            samples = res.lateness[min(rnd, len(res.lateness) - 1)]
-            stats = res.runs[min(rnd, len(res.runs) - 1)]
+            if not res.runs:
+                continue
+            index = ref_run if res is ref and ref_run is not None else _run_in_round(res, rnd)
+            samples = res.lateness[index]
+            stats = res.runs[index]
             ax.plot(range(len(samples)), [max(s / 1e3, 0.1) for s in samples],
                     ".", markersize=1.5,
                     label=f"{res.scenario.label} (p99 {stats.p99_us:.0f} us, "
@@ -215,50 +280,3 @@ def _plot_gil(plt: Any, results: list[ScenarioResult], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-
-
-def pooled_deltas(paths: Sequence[Path]) -> str:
-    """Pool the per-round differences to the same-round reference over several runs' JSON.
-
-    One run's rounds cannot separate a 200 us effect from a machine whose reference p99
-    swings by milliseconds between rounds; the same condition measured in several runs can.
-    Returns a markdown table: median difference of p50 and p99 with a bootstrap interval of
-    the latter, in how many rounds the p99 was worse than the reference's, and the verdict
-    against the target (allowance from the pooled reference's median p99).
-    """
-    pool: dict[tuple[str, str], tuple[list[float], list[float]]] = {}
-    ref_p99: list[float] = []
-    for path in paths:
-        results = json.loads(path.read_text())["results"]
-        refs = {r["scenario"]["switch_interval"]: r for r in results
-                if r["scenario"]["name"] == "reference"}
-        if None in refs:
-            ref_p99 += [float(run["p99_us"]) for run in refs[None]["runs"]]
-        for res in results:
-            sc = res["scenario"]
-            ref = refs.get(sc["switch_interval"], refs.get(None))
-            if sc["name"] == "reference" or ref is None:
-                continue
-            by_round = {run["round"]: run for run in ref["runs"]}
-            d50, d99 = pool.setdefault((sc["name"], sc["group"]), ([], []))
-            for run in res["runs"]:
-                other = by_round.get(run["round"])
-                if other is not None:
-                    d50.append(run["p50_us"] - other["p50_us"])
-                    d99.append(run["p99_us"] - other["p99_us"])
-    allowed = allowance(statistics.median(ref_p99)) if ref_p99 else 20.0
-    lines = [f"Target allowance: +{allowed:.0f} us (pooled reference median p99 "
-             f"{statistics.median(ref_p99) if ref_p99 else math.nan:.0f} us).", "",
-             "| scenario | group | rounds | d p50 us | d p99 us | 90 % CI us "
-             "| p99 worse than ref | target |", "|---|---|---:|---:|---:|---|---:|---|"]
-    for (name, group), (d50, d99) in pool.items():
-        worse = sum(1 for d in d99 if d > 0)
-        low, high = bootstrap_median_ci(d99)
-        verdict = ("n/a (naive)" if "naive" in name else "met" if high <= allowed
-                   else "missed" if low > allowed else "unresolved")
-        lines.append(f"| {name} | {group} | {len(d99)} | {statistics.median(d50):+.0f} | "
-                     f"{statistics.median(d99):+.0f} | {low:+.0f} .. {high:+.0f} | "
-                     f"{worse}/{len(d99)} | {verdict} |")
-    return "\n".join(lines)

@@ -8,8 +8,9 @@
   sockets and heap. Every worker, the reference's included, gets the same treatment: the
   same priority (``PriParallel``), the same CPU for the loop thread (``--cpu``), the same
   memory locking and timer slack.
-* ``repeats`` rounds, each measuring the reference and every scenario in a rotated order;
-  figures are compared with the reference of the same round.
+* ``repeats`` rounds, each measuring every scenario in a rotated order with the reference
+  between every two of them (:meth:`~rlbridge.bench.jitter_config.JitterConfig.round_order`);
+  figures are compared with the reference runs next to them.
 * ``--stress`` runs ``stress --cpu 2 --io 2 --hdd 1`` (the thesis's load, scaled to this box)
   for the whole run, in its own process group, killed at the end.
 """
@@ -199,37 +200,34 @@ def run_worker(scenario: Scenario, config: JitterConfig, port: int,
 
 def run_suite(config: JitterConfig, progress: Callable[[str], None] = print
               ) -> list[ScenarioResult]:
-    """Measure every scenario ``repeats`` times (rotated order per round)."""
+    """Measure every scenario ``repeats`` times, in :meth:`JitterConfig.round_order`."""
     scenarios = config.scenarios()
     results = [ScenarioResult(s) for s in scenarios]
     per_run = config.cycles * config.period + 3.0
-    seconds = per_run * len(scenarios) * config.repeats * 1.5 + 60
+    seconds = per_run * len(config.round_order(0)) * config.repeats * 1.5 + 60
     with tempfile.TemporaryDirectory(prefix="rlbridge-jitter-") as tmp:
         workdir = Path(tmp)
         with environment(config, workdir, seconds) as port:
             for rnd in range(config.repeats):
-                order = list(range(len(scenarios)))
-                shift = rnd % len(order)
-                order = order[shift:] + order[:shift]
-                for index in order:
+                for seq, index in enumerate(config.round_order(rnd)):
                     sc = scenarios[index]
-                    tag = f"r{rnd}-{sc.name}-{sc.switch_interval or 'default'}"
+                    tag = f"r{rnd}-{seq}-{sc.name}-{sc.switch_interval or 'default'}"
                     try:
                         data = run_worker(sc, config, port, workdir, tag)
                     except RuntimeError as exc:  # one bad run must not lose the others
                         progress(f"round {rnd + 1}/{config.repeats} {sc.name}: {exc}")
                         continue
-                    stats = RunStats.of(data["lateness_ns"], data["missed"], rnd)
+                    stats = RunStats.of(data["lateness_ns"], data["missed"], rnd, seq,
+                                        data["info"].get("steal_ms"))
                     results[index].runs.append(stats)
                     results[index].lateness.append(data["lateness_ns"])
                     results[index].info.append(data["info"])
+                    steal = "" if stats.steal_ms is None else f"  steal {stats.steal_ms:.0f} ms"
                     progress(f"round {rnd + 1}/{config.repeats} {sc.group:>24} "
                              f"{sc.name:<20} p50 {stats.p50_us:8.1f} us  p99 "
                              f"{stats.p99_us:8.1f} us  max {stats.max_us:8.1f} us  "
-                             f"missed {stats.missed}")
+                             f"missed {stats.missed}{steal}")
     return results
-
-
 
 
 def treatment_args(priority: bool, cpu: int | None, mlock: bool) -> list[str]:

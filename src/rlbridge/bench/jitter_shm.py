@@ -47,7 +47,7 @@ def hrt_loop(link: ShmLink, options: dict[str, Any], mlock: bool, result: str) -
     coupling = Coupling("shm", probed(body, info), **options)
     stop = threading.Event()
     data = run_measured(coupling, "shm", info, stop, [],
-                        options["cycles"] * options["period"] + 15.0)
+                        options["cycles"] * options["period"] + 15.0, cpu=options["cpu"])
     stop.set()
     data["info"]["ring_dropped"] = link.dropped(0)
     data["info"]["torn_reads"] = link.torn_reads

@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import json
 import math
+import os
 import socket
 import statistics
 import sys
@@ -183,7 +184,7 @@ def worker_main(args: argparse.Namespace) -> None:
         if incoming is not None and not wait_first_value(incoming):
             raise SystemExit(f"no value arrived on {TOPIC_IN} within 5 s: is the publisher up?")
         result = run_measured(coupling, name, info, stop, extra,
-                              args.cycles * args.period + 15.0)
+                              args.cycles * args.period + 15.0, cpu=args.cpu)
     finally:
         stop.set()
         for thread in extra:
@@ -195,16 +196,25 @@ def worker_main(args: argparse.Namespace) -> None:
 
 def run_measured(coupling: patterns.BaseCoupling, name: str, info: dict[str, Any],
                  stop: threading.Event, extra: list[threading.Thread],
-                 limit: float) -> dict[str, Any]:
-    """Run the coupling next to ``extra`` threads and a watchdog; the worker's JSON result."""
+                 limit: float, cpu: int | None = None) -> dict[str, Any]:
+    """Run the coupling next to ``extra`` threads and a watchdog; the worker's JSON result.
+
+    Also records how much time the hypervisor stole from the loop's CPU (``cpu``; all CPUs
+    when the loop is not pinned) while the loop ran: on a VM that, not our code, is what
+    most often makes one run's p99 ten times another's.
+    """
     extra.append(threading.Thread(target=_watchdog, args=(coupling, stop, limit, info),
                                   name="watchdog"))
     for thread in extra:
         thread.start()
     clocks = _thread_clocks()
+    stolen = cpu_steal_ticks(cpu)
     wall = time.monotonic()
     coupling.run()
     wall = time.monotonic() - wall
+    after = cpu_steal_ticks(cpu)
+    if stolen is not None and after is not None:
+        info["steal_ms"] = round((after - stolen) * 1000 / _CLOCK_TICKS, 1)
     info["thread_cpu_percent"] = {
         thread: round(100 * (time.clock_gettime(clock) - t0) / wall, 2)
         for thread, (clock, t0) in clocks.items()}
@@ -213,6 +223,23 @@ def run_measured(coupling: patterns.BaseCoupling, name: str, info: dict[str, Any
         info.update(coupling.loop_info)  # recorded inside the loop's own process
     return {"scenario": name, "lateness_ns": coupling.lateness_ns(),
             "missed": coupling.stats().missed, "released": coupling.released, "info": info}
+
+
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def cpu_steal_ticks(cpu: int | None) -> int | None:
+    """The ``steal`` counter of /proc/stat for ``cpu`` (None: all CPUs); None where absent."""
+    label = "cpu" if cpu is None else f"cpu{cpu}"
+    try:
+        with open("/proc/stat") as stat:
+            for line in stat:
+                fields = line.split()
+                if fields and fields[0] == label:
+                    return int(fields[8]) if len(fields) > 8 else None
+    except OSError:
+        return None
+    return None
 
 
 def _thread_clocks() -> dict[str, tuple[int, float]]:
