@@ -137,6 +137,19 @@ def test_pool_reads_old_and_interleaved_runs(tmp_path: Path) -> None:
     assert cells[8] == "+200"
 
 
+def test_pool_refuses_a_file_that_is_not_a_run_in_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"results": [{"scenario": {"name": "reference"}}]}')
+    for path, expected in ((bad, "bad.json: not the JSON of a `rlbridge bench jitter` run"),
+                           (tmp_path / "missing.json", "No such file")):
+        with pytest.raises(SystemExit) as exc:
+            jitter.main(["pool", str(path)])
+        message = str(exc.value.code)
+        assert message.startswith("pool: ")
+        assert expected in message
+        assert "\n" not in message
+
+
 def test_generated_section_is_replaced_and_prose_kept(tmp_path: Path) -> None:
     doc = tmp_path / "doc.md"
     markers = ("<!-- b -->", "<!-- e -->")

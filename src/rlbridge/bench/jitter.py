@@ -125,7 +125,10 @@ def main(argv: Sequence[str] | None = None) -> None:
 
         print(switch_cost())
     else:
-        print(pooled_deltas(args.json))
+        try:
+            print(pooled_deltas(args.json))
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"pool: {exc}") from None
 
 
 def command_line(argv: Sequence[str]) -> str:

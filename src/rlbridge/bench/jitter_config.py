@@ -307,7 +307,14 @@ def bootstrap_median_ci(values: Sequence[float], level: float = 0.9,
         return math.nan, math.nan
     rng = random.Random(seed)
     n = len(values)
-    medians = sorted(statistics.median(rng.choices(values, k=n)) for _ in range(resamples))
+    return percentile_interval([statistics.median(rng.choices(values, k=n))
+                                for _ in range(resamples)], level)
+
+
+def percentile_interval(estimates: Sequence[float], level: float) -> tuple[float, float]:
+    """The central ``level`` share of bootstrap ``estimates``: the percentile interval."""
+    ordered = sorted(estimates)
+    last = len(ordered) - 1
     tail = (1.0 - level) / 2
-    return medians[int(tail * (resamples - 1))], medians[int((1 - tail) * (resamples - 1))]
+    return ordered[int(tail * last)], ordered[int((1 - tail) * last)]
 

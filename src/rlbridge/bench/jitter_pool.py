@@ -30,14 +30,22 @@ __all__ = ["pooled_deltas", "results_from_json"]
 
 
 def results_from_json(path: Path, round_offset: int = 0) -> list[ScenarioResult]:
-    """The scenarios and runs of a run's JSON (rounds shifted so that files do not mix)."""
+    """The scenarios and runs of a run's JSON (rounds shifted so that files do not mix).
+
+    Raises ``ValueError`` naming the file when it is not such a result (``OSError`` when it
+    cannot be read).
+    """
     out = []
-    for raw in json.loads(path.read_text())["results"]:
-        res = ScenarioResult(Scenario(**raw["scenario"]))
-        for run in raw["runs"]:
-            stats = RunStats.from_json(run)
-            res.runs.append(dataclasses.replace(stats, round=stats.round + round_offset))
-        out.append(res)
+    try:
+        for raw in json.loads(path.read_text())["results"]:
+            res = ScenarioResult(Scenario(**raw["scenario"]))
+            for run in raw["runs"]:
+                stats = RunStats.from_json(run)
+                res.runs.append(dataclasses.replace(stats, round=stats.round + round_offset))
+            out.append(res)
+    except (ValueError, KeyError, TypeError) as exc:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{path}: not the JSON of a `rlbridge bench jitter` run "
+                         f"({type(exc).__name__}: {exc})") from None
     return out
 
 

@@ -25,7 +25,7 @@ import random
 import statistics
 from collections.abc import Sequence
 
-from rlbridge.bench.jitter_config import BOOTSTRAP_RESAMPLES, RunStats
+from rlbridge.bench.jitter_config import BOOTSTRAP_RESAMPLES, RunStats, percentile_interval
 
 Measured = tuple[float, float]
 """(steal ms, p99 us) of one run."""
@@ -87,6 +87,4 @@ def matched_ci(groups: Sequence[tuple[Sequence[Measured], Sequence[Measured]]],
             pooled += matched_deltas(rng.choices(runs, k=len(runs)),
                                      rng.choices(refs, k=len(refs)))
         medians.append(statistics.median(pooled))
-    medians.sort()
-    tail = (1.0 - level) / 2
-    return medians[int(tail * (resamples - 1))], medians[int((1 - tail) * (resamples - 1))]
+    return percentile_interval(medians, level)
