@@ -153,16 +153,13 @@ class JitterConfig:
         """
         scenarios = self.scenarios()
         ref = next((i for i, s in enumerate(scenarios) if s.name == "reference"), None)
-        if not (self.interleave and self.suite == "patterns") or ref is None:
-            order = list(range(len(scenarios)))
-            shift = rnd % len(order)
-            return order[shift:] + order[:shift]
-        others = [i for i in range(len(scenarios)) if i != ref]
-        shift = rnd % len(others) if others else 0
-        out = [ref]
-        for index in others[shift:] + others[:shift]:
-            out += [index, ref]
-        return out
+        interleaved = self.interleave and self.suite == "patterns" and ref is not None
+        order = [i for i in range(len(scenarios)) if not (interleaved and i == ref)]
+        shift = rnd % len(order) if order else 0
+        order = order[shift:] + order[:shift]
+        if not interleaved or ref is None:
+            return order
+        return [ref, *(i for index in order for i in (index, ref))]
 
 
 # -- statistics ---------------------------------------------------------------------------------

@@ -118,9 +118,11 @@ def _steal_table(results: list[ScenarioResult],
     rows = []
     for res in results:
         ref = ref_of(res)
-        if ref is None or res is ref or not measured(res.runs) or not measured(ref.runs):
+        if ref is None or res is ref:
             continue
         groups = [(measured(res.runs), measured(ref.runs))]
+        if not (groups[0][0] and groups[0][1]):
+            continue
         low, high = matched_ci(groups)
         d_steal = res.paired(ref, lambda mine, theirs: mine - theirs, "steal_ms")
         verdict = ("n/a (naive)" if "naive" in res.scenario.name
