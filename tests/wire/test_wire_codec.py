@@ -20,6 +20,7 @@ from rlbridge.wire import (
     AuthChallenge,
     AuthProof,
     Batch,
+    Bundle,
     ConnectAck,
     ConnectError,
     Disconnect,
@@ -99,6 +100,8 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
     AuthChallenge: st.builds(AuthChallenge, st.binary(min_size=16, max_size=16),
                              st.binary(min_size=32, max_size=32)),
     AuthProof: st.builds(AuthProof, st.binary(min_size=32, max_size=32)),
+    Bundle: st.builds(Bundle, st.lists(st.builds(Value, U32, U64, I64, values) | batches(),
+                                       max_size=5)),
 }
 PACKET_TYPES: tuple[type, ...] = Packet.__args__  # type: ignore[attr-defined]
 packets: st.SearchStrategy[Packet] = st.one_of(*packet_strategies.values())
@@ -127,6 +130,7 @@ SAMPLES: list[Packet] = [
     Stats({"server": {"sessions_opened": 3}}),
     AuthChallenge(b"n" * 16, b"p" * 32),
     AuthProof(b"q" * 32),
+    Bundle([Value(1, 44, -5, 1.5), Batch(2, 0, [1, 2], [None, "y"])]),
 ]
 
 

@@ -43,6 +43,7 @@ from rlbridge.wire import (
     TopicAck,
     TopicConnect,
 )
+from rlbridge.wire.codec import FLAG_BUNDLES
 from rlbridge.wire.link import LinkMonitor, LinkState
 
 if TYPE_CHECKING:
@@ -244,11 +245,11 @@ class Connection:
         if self.control == "tcp":
             self.send_tcp(self.codec.encode_frame(packet))
         else:
-            self.send_udp(self.codec.encode_datagram(packet, self.ack.token))
+            self.send_udp(self.codec.encode_datagram(packet, self.ack.token, FLAG_BUNDLES))
 
     def send_udp_packet(self, packet: Packet) -> None:
         assert self.ack is not None
-        self.send_udp(self.codec.encode_datagram(packet, self.ack.token))
+        self.send_udp(self.codec.encode_datagram(packet, self.ack.token, FLAG_BUNDLES))
 
     def request_topic(self, req: TopicConnect) -> TopicAck:
         """Send a topic-connect and wait for its answer; retransmit while the control is UDP.

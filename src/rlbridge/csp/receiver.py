@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 from rlbridge.wire import (
     Batch,
+    Bundle,
     ConnectError,
     Disconnect,
     Error,
@@ -175,6 +176,15 @@ class Receiver:
                 link.on_receive(now)
                 self._gather(packet.channel, packet.first_seq, list(packet.stamps),
                              list(packet.values))
+            case Bundle():
+                link.on_receive(now)
+                gather = self._gather
+                for part in packet.parts:  # each as if it had come alone
+                    if isinstance(part, Value):
+                        gather(part.channel, part.seq, [part.stamp_ns], [part.value])
+                    else:
+                        gather(part.channel, part.first_seq, list(part.stamps),
+                               list(part.values))
             case Heartbeat():
                 link.on_heartbeat(packet, now, time.time_ns())
             case TopicAck() | TopicError():

@@ -6,8 +6,10 @@ the I/O. It wakes for three reasons: an *immediate* channel was written (the cha
 wake event, one futex wake when this thread sleeps), ``Bridge.send()`` asked to flush the shared
 buffer (thesis: ``send through buffer``), or the SDK's own send loop ticks at its configured
 rate (thesis 4.3, figure 5.10). Every value waiting in a channel goes out in one packet per
-channel (a Batch when there are several), TCP frames of all channels coalesced into one
-``sendall``; so the packet rate follows the send loop, not the control loop.
+channel (a Batch when there are several); TCP frames of all channels are coalesced into one
+``sendall``, and the packets of all UDP channels into one datagram (a ``Bundle``, split only at
+``DATAGRAM_BUDGET`` bytes; :mod:`rlbridge.wire.bundle`). So the packet rate follows the send
+loop, not the control loop, and not the number of channels.
 
 While the link is down (:meth:`SendLoop.pause`, from the end of a session until its channels are
 bound again) the thread takes nothing: values wait in their channels' rings, which keep the
@@ -30,7 +32,9 @@ from typing import Protocol
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.connection import Connection
 from rlbridge.tcpstate import congested
-from rlbridge.wire import MAX_DATAGRAM, Batch, Packet, Value
+from rlbridge.wire import MAX_DATAGRAM, Batch, Value
+from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire.codec import FLAG_BUNDLES
 
 log = logging.getLogger("rlbridge.client")
 
@@ -89,6 +93,8 @@ class SendLoop:
         self.values_repeated = 0
         self.send_errors = 0
         self._holding = False
+        self._packer: DatagramPacker | None = None
+        self.datagrams_sent = 0
 
     def start(self) -> None:
         self._thread.start()
@@ -164,14 +170,16 @@ class SendLoop:
         conn = self._conn
         codec = conn.codec
         frames = bytearray()
-        token = conn.ack.token if conn.ack is not None else 0
+        packer = self._packer_for(conn)
         backed_up: bool | None = None  # asked of the kernel once per round, if needed
         holding = False
+        max_batch = self._max_batch
         for src in self._sources:
             if not (flush_all or src.immediate or src.holding):
                 continue
             busy = False
-            if src.latest and src.transport == "tcp":
+            tcp = src.transport == "tcp"
+            if tcp and src.latest:
                 if backed_up is None:
                     backed_up = conn.tcp is not None and congested(conn.tcp)
                 busy = backed_up
@@ -182,34 +190,50 @@ class SendLoop:
                 continue
             self.values_sent += n - repeated
             self.values_repeated += repeated
-            for packet in packets_for(src.channel_id, first_seq, stamps, values, self._max_batch):
+            if n == 1:  # the common case: one Value, no list of packets
                 self.packets_sent += 1
-                if src.transport == "tcp":
+                value = Value(src.channel_id, first_seq, stamps[0], values[0])
+                if tcp:
+                    codec.encode_frame_into(value, frames)
+                elif packer is not None:
+                    self._refused(packer.add(value), src.channel_id)
+                continue
+            for packet in packets_for(src.channel_id, first_seq, stamps, values, max_batch):
+                self.packets_sent += 1
+                if tcp:
                     codec.encode_frame_into(packet, frames)
-                else:
-                    self._send_datagram(packet, token)
+                elif packer is not None:
+                    self._refused(packer.add(packet), src.channel_id)
         self._holding = holding
+        if packer is not None:
+            packer.flush()  # every UDP channel of the round: one datagram (a bundle)
         if frames:
             conn.send_tcp(frames)
 
-    def _send_datagram(self, packet: Packet, token: int) -> None:
-        data = self._conn.codec.encode_datagram(packet, token)
-        n = len(packet.values) if isinstance(packet, Batch) else 1
-        if len(data) > DATAGRAM_BUDGET and n > 1:
-            # Chunk length estimated from the encoded size once (halving would re-encode the
-            # whole batch at every level); a chunk that still does not fit is split again.
-            assert isinstance(packet, Batch)
-            per = max(1, min(n // 2, n * (DATAGRAM_BUDGET - 64) // len(data)))
-            for i in range(0, n, per):
-                self._send_datagram(Batch(packet.channel, packet.first_seq + i,
-                                          packet.stamps[i : i + per],
-                                          packet.values[i : i + per]), token)
-            return
-        if len(data) > MAX_DATAGRAM:
-            log.warning("value on channel %d is too large for a datagram; dropped",
-                        getattr(packet, "channel", -1))
-            return
-        self._conn.send_udp(data)
+    def _packer_for(self, conn: Connection) -> DatagramPacker | None:
+        """The packer of the current session (codec and token change on a new session)."""
+        ack = conn.ack
+        if ack is None or conn.udp is None:
+            return None
+        packer = self._packer
+        if packer is None or packer.codec is not conn.codec or packer.token != ack.token:
+            if packer is not None:
+                self.datagrams_sent += packer.datagrams
+            packer = self._packer = DatagramPacker(
+                conn.codec, ack.token, DATAGRAM_BUDGET, conn.send_udp, limit=MAX_DATAGRAM,
+                flags=FLAG_BUNDLES)
+        return packer
+
+    @property
+    def datagrams(self) -> int:
+        """Value datagrams sent so far (a bundle of every UDP channel counts once)."""
+        return self.datagrams_sent + (self._packer.datagrams if self._packer else 0)
+
+    @staticmethod
+    def _refused(n: int, channel: int) -> None:
+        if n:
+            log.warning("%d value(s) on channel %d too large for a datagram; dropped",
+                        n, channel)
 
     def close(self) -> None:
         """Flush what is waiting, then stop and join the thread."""
@@ -222,7 +246,7 @@ class SendLoop:
 
 
 def packets_for(channel: int, first_seq: int, stamps: list[int], values: list[object],
-             max_batch: int) -> list[Packet]:
+             max_batch: int) -> list[Value | Batch]:
     if len(values) == 1:
         return [Value(channel, first_seq, stamps[0], values[0])]
     if max_batch == 1:  # one value per packet: a Value is what a batch of one means

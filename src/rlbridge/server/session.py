@@ -28,6 +28,7 @@ from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
     Batch,
+    Bundle,
     Disconnect,
     Error,
     ErrorCode,
@@ -42,6 +43,7 @@ from rlbridge.wire import (
     TopicError,
     Value,
 )
+from rlbridge.wire.codec import PartlyMalformed
 from rlbridge.wire.link import LinkMonitor
 
 __all__ = ["CHANNEL_TOTALS", "ServerContext", "Session"]
@@ -106,7 +108,8 @@ class Session:
             return
         if self.udp is None:
             cfg = self.ctx.config
-            self.udp = UdpSink(transport, self.codec, self.token, addr, cfg.udp_payload)
+            self.udp = UdpSink(transport, self.codec, self.token, addr, cfg.udp_payload,
+                               self.ctx.loop)
         elif self.udp.addr != addr:
             self.udp.addr = addr
 
@@ -140,6 +143,9 @@ class Session:
         if type(packet) is Value:  # nearly every packet: skip the match below
             self._data(packet.channel, packet, sink)
             return
+        if type(packet) is Bundle:
+            self._bundle(packet, sink)
+            return
         match packet:
             case Value(channel=ch):
                 self._data(ch, packet, sink)
@@ -160,7 +166,19 @@ class Session:
                            f"a client may not send {type(packet).__name__} here", via=sink)
 
     def malformed_packet(self, error: RemoteProtocolError, via: PacketSink | None) -> None:
-        """Answer a packet that did not decode; a broken topic-connect gets its TopicError."""
+        """Answer a packet that did not decode; a broken topic-connect gets its TopicError.
+
+        A bundle with invalid parts delivers its valid ones, and each invalid part is
+        answered as it would be alone.
+        """
+        if isinstance(error, PartlyMalformed):
+            if not self.closed:
+                self.packets_in += 1
+                self.link.on_receive(time.monotonic_ns())
+                self._bundle(error.bundle, via)
+            for part in error.errors:
+                self.malformed_packet(part, via)
+            return
         self.malformed += 1
         self.ctx.count("malformed")
         binding = self.inbound.get(error.channel) if error.channel is not None else None
@@ -172,7 +190,14 @@ class Session:
             return
         self.error(ErrorCode.MALFORMED, error.reason, error.channel, via=via)
 
+    def _bundle(self, bundle: Bundle, via: PacketSink | None) -> None:
+        """Each part of a bundle as if it had come alone: one bad part loses only itself."""
+        data = self._data
+        for part in bundle.parts:
+            data(part.channel, part, via)
+
     def _data(self, channel: int, packet: Value | Batch, via: PacketSink | None) -> None:
+        """One value packet (alone, or a bundle's part): publish it or say what is wrong."""
         binding = self.inbound.get(channel)
         if binding is None:
             n = 1 if isinstance(packet, Value) else len(packet.values)

@@ -25,7 +25,8 @@ from typing import Protocol
 import msgspec
 
 from rlbridge.tcpstate import congested
-from rlbridge.wire import PROTOCOL_VERSION, Batch, Packet, PacketCodec
+from rlbridge.wire import PROTOCOL_VERSION, Batch, Packet, PacketCodec, Value
+from rlbridge.wire.bundle import DatagramPacker
 from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC
 
 #: PacketCodec's encoder settings (msgspec defaults); tests/server check the bytes match.
@@ -109,7 +110,15 @@ class TcpSink:
 
 
 class UdpSink:
-    """Datagrams to one client address, tagged with its session token."""
+    """Datagrams to one client address, tagged with its session token.
+
+    Value packets go through a :class:`~rlbridge.wire.bundle.DatagramPacker`. Once the client
+    has said it reads bundles (``bundles``, set from its datagrams' flags) they are corked like
+    the TCP sink's frames: gathered while the loop handles one burst and sent at the end of the
+    iteration (``call_soon``) as bundles of every channel, one datagram and one ``sendto`` per
+    ``max_payload`` bytes instead of one per value. Control packets flush what is corked first,
+    so order is kept.
+    """
 
     def __init__(
         self,
@@ -118,23 +127,40 @@ class UdpSink:
         token: int,
         addr: tuple[str, int],
         max_payload: int,
+        loop: asyncio.AbstractEventLoop | None = None,
     ) -> None:
         self._transport = transport
         self._codec = codec
         self._token = token
+        self._loop = loop
         #: Without keys every datagram of this sink starts with the same header: packed once,
         #: and the body encoded by msgspec directly (what ``encode_datagram`` produces, one
         #: Python call less per datagram). A sealing codec keeps its own path.
         self._header = (DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, token)
                         if type(codec) is PacketCodec else None)
         self.addr = addr
-        self._max_payload = max_payload
+        self._packer = DatagramPacker(codec, token, max_payload, self._sendto, bundles=False)
         self._dropped = 0
         self.bytes_out = 0
 
     @property
     def dropped(self) -> int:
         return self._dropped
+
+    @property
+    def bundles(self) -> bool:
+        """The client reads bundles: values are corked per loop iteration and bundled."""
+        return self._packer.bundles
+
+    @bundles.setter
+    def bundles(self, on: bool) -> None:
+        self._packer.flush()
+        self._packer.bundles = on
+
+    @property
+    def datagrams(self) -> int:
+        """Value datagrams sent (a bundle counts once)."""
+        return self._packer.datagrams
 
     def congested(self) -> bool:
         return False
@@ -143,35 +169,31 @@ class UdpSink:
         if self._transport.is_closing():
             self._dropped += data
             return False
-        header = self._header
-        if header is not None:
-            datagram = header + _ENCODE(packet)
-        else:
-            datagram = self._codec.encode_datagram(packet, self._token)
-        if len(datagram) > self._max_payload and isinstance(packet, Batch):
-            return self._split(packet, len(datagram))
-        if len(datagram) > self._max_payload and data:
-            self._dropped += 1  # a single value larger than a datagram: refuse, counted
-            return False
+        packer = self._packer
+        if not data or not isinstance(packet, (Value, Batch)):
+            packer.flush()  # corked values first: the order of sends is the order on the wire
+            header = self._header
+            if header is not None:
+                self._sendto(header + _ENCODE(packet))
+            else:
+                self._sendto(self._codec.encode_datagram(packet, self._token))
+            return True
+        cork = packer.bundles and self._loop is not None
+        if cork and not packer.pending:
+            self._loop.call_soon(self.flush)  # type: ignore[union-attr]
+        refused = packer.add(packet)
+        if not cork:
+            packer.flush()
+        self._dropped += refused  # values larger than a datagram: refused, counted
+        return not refused
+
+    def flush(self) -> None:
+        """Send the corked values (the end of the loop iteration that gathered them)."""
+        if self._transport.is_closing():
+            self._dropped += self._packer.discard()
+            return
+        self._packer.flush()
+
+    def _sendto(self, datagram: bytes) -> None:
         self.bytes_out += len(datagram)
         self._transport.sendto(datagram, self.addr)
-        return True
-
-    def _split(self, batch: Batch, size: int) -> bool:
-        """Send ``batch`` (encoded: ``size`` bytes) as consecutive batches that fit.
-
-        The chunk length is estimated from the encoded size once, instead of halving and
-        re-encoding the whole batch at every level; a chunk that still does not fit (values of
-        very different sizes) is split again the same way.
-        """
-        n = len(batch.values)
-        if n <= 1:
-            self._dropped += n
-            return False
-        per = max(1, min(n // 2, n * (self._max_payload - 64) // size))
-        ok = True
-        for i in range(0, n, per):
-            part = Batch(batch.channel, batch.first_seq + i, batch.stamps[i : i + per],
-                         batch.values[i : i + per])
-            ok = self.send(part, data=True) and ok
-        return ok

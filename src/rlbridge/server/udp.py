@@ -23,7 +23,7 @@ from rlbridge.wire import (
     RemoteProtocolError,
 )
 from rlbridge.wire.auth import SEAL_OVERHEAD, DatagramRejected, ServerHandshake
-from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, peek_header
+from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_BUNDLES, FLAG_MAC, peek_header
 
 log = logging.getLogger("rlbridge.server")
 
@@ -96,7 +96,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             if plain:
                 packet = codec.decode_body(memoryview(data)[DATAGRAM_HEADER.size :])
             else:
-                _flags, token, packet = codec.decode_datagram(data)
+                flags, token, packet = codec.decode_datagram(data)
         except DatagramRejected as exc:
             ctx.count(f"udp_{exc.kind}")  # forged, replayed or unsealed: never answered
             log.debug("dropped datagram from %s: %s", addr, exc.reason)
@@ -129,6 +129,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         udp = session.udp
         if udp is None or udp.addr != addr:  # attach_udp's own test, without the call
             session.attach_udp(addr)
+            udp = session.udp
+        if flags & FLAG_BUNDLES and udp is not None and not udp.bundles:
+            udp.bundles = True  # the client reads bundles: cork and bundle its values
         session.handle(packet, "udp")
 
     def _hello(self, hello: Hello, addr: tuple[str, int]) -> None:

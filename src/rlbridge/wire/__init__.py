@@ -27,6 +27,7 @@ from rlbridge.wire.packets import (
     AuthChallenge,
     AuthProof,
     Batch,
+    Bundle,
     ConnectAck,
     ConnectError,
     Disconnect,
@@ -46,7 +47,7 @@ from rlbridge.wire.packets import (
 __all__ = [
     "DATAGRAM_HEADER", "DEFAULT_MAX_PACKET", "FRAME_HEADER", "MAGIC", "MAX_DATAGRAM",
     "PROTOCOL_VERSION", "AuthChallenge", "AuthProof",
-    "Batch", "ConnectAck", "ConnectError", "Disconnect", "Error",
+    "Batch", "Bundle", "ConnectAck", "ConnectError", "Disconnect", "Error",
     "ErrorCode", "FrameDecoder", "Heartbeat", "Hello", "Limits", "LocalProtocolError",
     "Malformed", "Packet", "PacketCodec", "RemoteError", "RemoteProtocolError",
     "RlbridgeError", "Stats", "TopicAck", "TopicClose", "TopicConnect", "TopicError", "Value",

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 import msgspec
 
 from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
-from rlbridge.wire.packets import PROTOCOL_VERSION, Packet
+from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Packet, Value
 
 MAGIC = b"RB"
 FRAME_HEADER = struct.Struct(">2sBBI")
@@ -30,6 +31,9 @@ DEFAULT_MAX_PACKET = 1 << 20
 #: A UDP datagram cannot be larger than this on IPv4.
 MAX_DATAGRAM = 65507
 FLAG_MAC = 0x01
+#: Set on every datagram of a peer that reads ``Bundle`` packets (docs/protocol.md 6.16): the
+#: other side bundles only to a peer that has said so, so an older client never meets one.
+FLAG_BUNDLES = 0x80
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,12 +43,34 @@ class Malformed:
     error: RemoteProtocolError
 
 
+class PartlyMalformed(RemoteProtocolError):
+    """A bundle some of whose parts are invalid: ``bundle`` holds the valid parts.
+
+    Raised (non-fatal) instead of losing the whole bundle; ``errors`` has one error per invalid
+    part, with that part's tag and channel salvaged, so each is answered as it would be alone.
+    A receiver that does not look inside treats it as any malformed packet.
+    """
+
+    def __init__(self, bundle: Bundle, errors: list[RemoteProtocolError]) -> None:
+        super().__init__(ErrorCode.MALFORMED, f"{len(errors)} of "
+                         f"{len(errors) + len(bundle.parts)} bundle parts are invalid: "
+                         + "; ".join(e.reason for e in errors))
+        self.tag = BUNDLE_TAG
+        self.bundle = bundle
+        self.errors = errors
+
+
+BUNDLE_TAG: int = Bundle.__struct_config__.tag  # type: ignore[assignment]
+
+
 class PacketCodec:
     """Reusable msgspec encoder/decoder pair (creating them per packet costs more than a packet)."""
 
     def __init__(self) -> None:
         self._encoder = msgspec.msgpack.Encoder()
         self._decoder: msgspec.msgpack.Decoder[Packet] = msgspec.msgpack.Decoder(Packet)
+        self._part_decoder: msgspec.msgpack.Decoder[Value | Batch] = msgspec.msgpack.Decoder(
+            Value | Batch)
 
     def encode_frame(self, packet: Packet) -> bytes:
         """One TCP frame: header + body."""
@@ -72,8 +98,33 @@ class PacketCodec:
         try:
             return self._decode(body)
         except RemoteProtocolError as exc:
-            exc.tag, exc.channel = _salvage(body)
+            raw = _raw(body)
+            exc.tag, exc.channel = _tag_and_channel(raw)
+            if isinstance(raw, list) and raw and raw[0] == BUNDLE_TAG and type(raw[0]) is int:
+                exc.tag = BUNDLE_TAG
+                self._salvage_bundle(raw)
             raise
+
+    def _salvage_bundle(self, raw: list[Any]) -> None:
+        """Raise the valid parts of an invalid bundle, each invalid part's error beside them.
+
+        Raised here, never held in a local of ``decode_body``: the exception would then sit in
+        its own traceback's frame, a cycle that keeps the body's memoryview (and the TCP
+        decoder's buffer) alive until the garbage collector runs.
+        """
+        if len(raw) < 2 or not isinstance(raw[1], list):
+            return
+        good: list[Value | Batch] = []
+        errors: list[RemoteProtocolError] = []
+        for i, part in enumerate(raw[1]):
+            try:
+                good.append(self._part_decoder.decode(msgspec.msgpack.encode(part)))
+            except (msgspec.ValidationError, msgspec.DecodeError, RecursionError) as exc:
+                error = RemoteProtocolError(ErrorCode.MALFORMED,
+                                            f"bundle part {i}: invalid packet: {exc}")
+                error.tag, error.channel = _tag_and_channel(part)
+                errors.append(error)
+        raise PartlyMalformed(Bundle(good), errors) from None
 
     def _decode(self, body: bytes | memoryview) -> Packet:
         try:
@@ -116,12 +167,16 @@ def peek_header(data: bytes) -> tuple[int, int]:
     return (flags, token) if magic == MAGIC and version == PROTOCOL_VERSION else (0, 0)
 
 
-def _salvage(body: bytes | memoryview) -> tuple[int | None, int | None]:
-    """Tag and channel of an invalid body, if it is at least ``[int, int, ...]``."""
+def _raw(body: bytes | memoryview) -> object:
+    """An invalid body decoded without a schema (``None`` if it is not even MessagePack)."""
     try:
-        raw = msgspec.msgpack.decode(body)
+        return msgspec.msgpack.decode(body)
     except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):
-        return None, None
+        return None
+
+
+def _tag_and_channel(raw: object) -> tuple[int | None, int | None]:
+    """Tag and channel of an invalid body, if it is at least ``[int, int, ...]``."""
     if (isinstance(raw, list) and len(raw) >= 2 and type(raw[0]) is int
             and type(raw[1]) is int and 0 <= raw[1] <= 0xFFFF_FFFF):
         return raw[0], raw[1]
@@ -199,7 +254,9 @@ class FrameDecoder:
                     # A fresh error: the caught one's traceback and context hold a view of
                     # ``buf``, which would make the ``del buf[:pos]`` below (and every later
                     # ``feed``) fail with BufferError.
-                    fresh = RemoteProtocolError(exc.code, exc.reason)
+                    fresh = (PartlyMalformed(exc.bundle, exc.errors)
+                             if isinstance(exc, PartlyMalformed)
+                             else RemoteProtocolError(exc.code, exc.reason))
                     fresh.tag, fresh.channel = exc.tag, exc.channel
                     out.append(Malformed(fresh))
                 pos = end

@@ -189,9 +189,21 @@ class AuthProof(_Packet, tag=15, frozen=True):
 # reuse a number (tags are the wire format): 16-19 security (TLS/AEAD/authorization),
 # 20-29 ROS 2 services/actions/parameters, 30-31 value rejection, 32-33 UDP bundles,
 # 34-37 loss feedback and flow control. Add new kinds at the end of the union below.
+class Bundle(_Packet, tag=32, frozen=True):
+    """Values of several channels in one datagram; each part is a whole ``Value`` or ``Batch``.
+
+    One datagram per send round instead of one per channel: the header, the system call and
+    the wake-up are paid once for every channel (docs/protocol.md 6.16). A receiver treats each
+    part exactly as if it had arrived alone.
+    """
+
+    parts: list[Value | Batch]
+
+
 Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
     | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
+    | Bundle
 )
 
 #: Packets a value path carries; everything else is control.

@@ -1,0 +1,160 @@
+"""Value packets into datagrams: several channels per datagram when the peer reads bundles.
+
+Theory of operation. A sender hands the packer every value packet of one send round (the
+client's send thread: every UDP channel's pending values; the server: every value one event-loop
+iteration produced for one session), then calls :meth:`DatagramPacker.flush`. The packer keeps
+the encoded parts until the next one would push the datagram past ``budget`` bytes, and then
+hands the finished datagram to ``send``: one datagram, one system call and one wake-up of the
+receiver for all the channels of a round (docs/protocol.md 6.16), where one per channel was
+sent before.
+
+A round with a single part goes out as that plain ``Value`` or ``Batch``, byte for byte what a
+sender without bundles writes; only two or more parts make a ``Bundle``. A peer that has not
+said it reads bundles (``bundles=False``) gets one datagram per part, as before.
+
+Without keys the bundle body is assembled from the parts' encodings (the prefix
+``92 20 dc <n16>``: a two-element array, tag 32, an array16 of ``n`` parts), so each part is
+encoded exactly once. A sealing codec seals the whole body, so it is given a ``Bundle`` packet
+to encode; its parts are encoded twice (once to measure them), the price of not knowing how the
+codec seals.
+
+A part larger than ``budget`` on its own is split when it is a batch (into consecutive batches
+that fit, the chunk length estimated once from the encoded size); a single value goes alone if
+it fits ``limit`` and is refused (counted by the caller) if not.
+
+Sans-IO: no sockets, no clocks; ``send`` is the caller's.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable
+
+import msgspec
+
+from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC, PacketCodec
+from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Value
+
+#: ``[32, parts]``: fixarray of 2, tag 32, then the parts as an array16 (``dc`` + u16 count).
+BUNDLE_PREFIX = b"\x92\x20\xdc"
+_COUNT = struct.Struct(">H")
+#: Bytes a bundle adds to its parts: the prefix and the u16 count.
+BUNDLE_OVERHEAD = len(BUNDLE_PREFIX) + _COUNT.size
+#: At most this many parts in one bundle (the array16 count).
+MAX_PARTS = 0xFFFF
+#: What a sealing codec may add to a datagram beyond the header (counter, MAC, AEAD tag).
+SEAL_MARGIN = 64
+
+ValuePacket = Value | Batch
+
+
+class DatagramPacker:
+    """Gathers value packets and hands ``send`` datagrams of at most ``budget`` bytes.
+
+    ``limit`` is the largest datagram a single value may make when it does not fit ``budget``
+    (the client: the IPv4 maximum; the server: its payload limit, so an oversized value is
+    refused). ``bundles`` may be switched on later (the server learns it from the peer).
+    """
+
+    def __init__(self, codec: PacketCodec, token: int, budget: int,
+                 send: Callable[[bytes], object], *, limit: int | None = None,
+                 bundles: bool = True, flags: int = 0) -> None:
+        self.codec = codec
+        self.token = token
+        self._flags = flags
+        self._send = send
+        self.budget = budget
+        self.limit = budget if limit is None else limit
+        self.bundles = bundles
+        self._plain = type(codec) is PacketCodec
+        self._header = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, flags, token)
+        self._overhead = DATAGRAM_HEADER.size + (0 if self._plain else SEAL_MARGIN)
+        self._encode = msgspec.msgpack.Encoder().encode
+        self._bodies: list[bytes] = []
+        self._packets: list[ValuePacket] = []
+        self._size = 0
+        self._values = 0
+        #: Datagrams handed to ``send``, and of those, bundles (two or more parts).
+        self.datagrams = 0
+        self.bundles_sent = 0
+
+    @property
+    def pending(self) -> int:
+        """Parts waiting for :meth:`flush`."""
+        return len(self._bodies)
+
+    def add(self, packet: ValuePacket) -> int:
+        """Take one value packet; return how many of its values were refused as too large."""
+        body = self._encode(packet)
+        size = len(body)
+        if self._overhead + size > self.budget:
+            return self._oversized(packet, body)
+        if not self.bundles:
+            self._emit(body, packet)
+            return 0
+        bodies = self._bodies
+        if bodies and (self._overhead + BUNDLE_OVERHEAD + self._size + size > self.budget
+                       or len(bodies) >= MAX_PARTS):
+            self.flush()
+        bodies.append(body)
+        self._size += size
+        self._values += 1 if isinstance(packet, Value) else len(packet.values)
+        if not self._plain:
+            self._packets.append(packet)
+        return 0
+
+    def flush(self) -> None:
+        """Send what is gathered: one part as itself, several as one bundle."""
+        bodies = self._bodies
+        if not bodies:
+            return
+        n = len(bodies)
+        if n == 1:
+            self._emit(bodies[0], self._packets[0] if self._packets else None)
+        elif self._plain:
+            self.bundles_sent += 1
+            self.datagrams += 1
+            self._send(b"".join((self._header, BUNDLE_PREFIX, _COUNT.pack(n), *bodies)))
+        else:
+            self.bundles_sent += 1
+            self.datagrams += 1
+            self._send(self.codec.encode_datagram(Bundle(self._packets), self.token,
+                                                   self._flags))
+        self.discard()
+
+    def discard(self) -> int:
+        """Forget what is gathered (the peer is gone); return how many values that was."""
+        values = self._values
+        self._bodies = []
+        self._packets = []
+        self._size = 0
+        self._values = 0
+        return values
+
+    def _emit(self, body: bytes, packet: ValuePacket | None) -> None:
+        """One packet alone in a datagram (``packet`` is needed only by a sealing codec)."""
+        self.datagrams += 1
+        if self._plain:
+            self._send(self._header + body)
+        else:
+            assert packet is not None
+            self._send(self.codec.encode_datagram(packet, self.token, self._flags))
+
+    def _oversized(self, packet: ValuePacket, body: bytes) -> int:
+        """A part that does not fit ``budget`` alone: split a batch, send or refuse a value."""
+        n = len(packet.values) if isinstance(packet, Batch) else 1
+        if n > 1:
+            assert isinstance(packet, Batch)
+            size = self._overhead + len(body)
+            per = max(1, min(n // 2, n * (self.budget - self._overhead - 64) // size))
+            refused = 0
+            for i in range(0, n, per):
+                refused += self.add(Batch(packet.channel, packet.first_seq + i,
+                                          packet.stamps[i : i + per],
+                                          packet.values[i : i + per]))
+            return refused
+        if self._overhead + len(body) > self.limit:
+            return n
+        self.flush()  # keep the order of parts
+        self._emit(body, packet)
+        return 0
