@@ -23,6 +23,7 @@ from rlbridge.wire import (
     AuthChallenge,
     AuthProof,
     Batch,
+    Bundle,
     ConnectAck,
     ConnectError,
     Disconnect,
@@ -61,6 +62,7 @@ EVERY_TYPE: list[Packet] = [
     Stats(),
     AuthChallenge(b"n" * 16, b"p" * 32),
     AuthProof(b"p" * 32),
+    Bundle([Value(1, 0, 0, 1.5), Batch(2, 0, [0, 0], [1.0, 2.0])]),
 ]
 
 #: A session's life as a client drives it: publish and subscribe on both transports.
@@ -71,6 +73,8 @@ SESSION: list[Packet] = [
     Value(1, 0, 0, 1.5),
     Batch(1, 1, [0, 0, 0], [1.0, 2.0, 3.0]),
     Value(3, 0, 0, {"linear": {"x": 1.0}}),
+    Bundle([Value(1, 4, 0, 4.0), Value(3, 1, 0, {"angular": {"z": 0.5}}),
+            Batch(1, 5, [0, 0], [5.0, 6.0])]),
     Heartbeat(5, 0),
     Stats(),
     TopicClose(2),
@@ -107,6 +111,13 @@ BAD: list[bytes] = [
     b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
     frame(body(15, b"x" * 31)),  # proof of the wrong size
     frame(body(13, {"k" * 10: [1] * 1000})),  # stats with a big body
+    # Bundles: bad parts (unknown channel, wrong value kind, a mismatched batch, not a
+    # packet, a nested bundle) next to good ones; parts that are not an array.
+    frame(body(32, [[8, 1, 10, 0, 1.0], [8, 77, 0, 0, 1.0], [8, 1, 11, 0, "x"],
+                    [9, 1, 12, [0], [1.0, 2.0]], "junk", [32, []], [8, 1, 13, 0, 2.0]])),
+    frame(body(32, "not a list")),
+    frame(body(32)),
+    frame(body(32, [[8] * 3] * 200)),
 ]
 
 

@@ -241,9 +241,13 @@ def frame(body: Sequence[Any], *, version: int = VERSION, magic: bytes = MAGIC) 
     return FRAME_HEADER.pack(magic, version, 0, len(raw)) + raw
 
 
-def datagram(body: Sequence[Any], token: int) -> bytes:
+#: Doc 3: datagram flag bit 7, "this sender reads Bundle packets".
+FLAG_BUNDLES = 0x80
+
+
+def datagram(body: Sequence[Any], token: int, flags: int = 0) -> bytes:
     """One UDP datagram: 12-byte header with the token and the MessagePack body."""
-    return DATAGRAM_HEADER.pack(MAGIC, VERSION, 0, token) + packb(body)
+    return DATAGRAM_HEADER.pack(MAGIC, VERSION, flags, token) + packb(body)
 
 
 def parse_datagram(data: bytes) -> tuple[int, int, Any]:
@@ -297,6 +301,7 @@ TAG_ERROR = 12
 TAG_STATS = 13
 TAG_AUTH_CHALLENGE = 14
 TAG_AUTH_PROOF = 15
+TAG_BUNDLE = 32
 
 TAG_NAMES = {
     TAG_HELLO: "Hello", TAG_CONNECT_ACK: "ConnectAck", TAG_CONNECT_ERROR: "ConnectError",
@@ -304,6 +309,7 @@ TAG_NAMES = {
     TAG_TOPIC_CLOSE: "TopicClose", TAG_VALUE: "Value", TAG_BATCH: "Batch",
     TAG_HEARTBEAT: "Heartbeat", TAG_DISCONNECT: "Disconnect", TAG_ERROR: "Error",
     TAG_STATS: "Stats", TAG_AUTH_CHALLENGE: "AuthChallenge", TAG_AUTH_PROOF: "AuthProof",
+    TAG_BUNDLE: "Bundle",
 }
 
 # Error codes (doc section 12.2).
@@ -355,6 +361,11 @@ def value(channel: int, seq: int, stamp_ns: int, val: Any) -> list[Any]:
 
 def batch(channel: int, first_seq: int, stamps: Sequence[int], values: Sequence[Any]) -> list[Any]:
     return [TAG_BATCH, channel, first_seq, list(stamps), list(values)]
+
+
+def bundle(*parts: Sequence[Any]) -> list[Any]:
+    """Doc 6.16: several Value/Batch bodies in one packet."""
+    return [TAG_BUNDLE, [list(p) for p in parts]]
 
 
 def heartbeat(sent_ns: int, echo_ns: int = 0) -> list[Any]:
@@ -482,6 +493,10 @@ class IndependentClient:
         self.heartbeats_received = {"tcp": 0, "udp": 0}
         self.tcp_eof = False
         self._reader = FrameReader()
+        #: Flags of our datagrams (``FLAG_BUNDLES``: the server may send us bundles).
+        self.udp_flags = 0
+        #: The tag of every datagram received, in order (bundles counted once).
+        self.udp_tags: list[int] = []
 
     # -- sockets ---------------------------------------------------------------------------
     def __enter__(self) -> IndependentClient:
@@ -522,7 +537,8 @@ class IndependentClient:
         assert self.udp is not None, "no UDP socket"
         # An ICMP "port unreachable" for an earlier datagram: UDP is lossy anyway.
         with contextlib.suppress(ConnectionRefusedError):
-            self.udp.send(datagram(body, self.token if token is None else token))
+            self.udp.send(datagram(body, self.token if token is None else token,
+                                   self.udp_flags))
 
     def send(self, body: Sequence[Any], via: str) -> None:
         if via == "tcp":
@@ -552,6 +568,7 @@ class IndependentClient:
                     continue
                 _flags, token, body = parse_datagram(data)
                 p = to_packet(body, "udp")
+                self.udp_tags.append(p.tag)
                 # Doc 3: our token, 0 on a ConnectError, a new token on a new session's ack.
                 expected = {0, self.ack.token if self.ack else 0}
                 if p.tag == TAG_CONNECT_ACK:
@@ -580,6 +597,10 @@ class IndependentClient:
         """Values go to their channel's filter; everything else waits in the backlog."""
         if p.tag == TAG_HEARTBEAT:
             self._on_heartbeat(p)
+            return
+        if p.tag == TAG_BUNDLE:  # doc 6.16: each part as if it had come alone
+            for part in p.field(1):
+                self._absorb(to_packet(part, p.via))
             return
         if p.tag in (TAG_VALUE, TAG_BATCH):
             ch = p.field(1)

@@ -648,3 +648,48 @@ def test_client_uses_only_the_standard_library() -> None:
     roots |= {node.module.split(".")[0] for node in ast.walk(tree)
               if isinstance(node, ast.ImportFrom) and node.module}
     assert roots <= set(sys.stdlib_module_names), roots - set(sys.stdlib_module_names)
+
+
+# -- bundles (doc 6.16) ----------------------------------------------------------------------
+
+
+def test_bundle_delivers_its_good_parts_and_answers_each_bad_one(
+        session: ic.IndependentClient) -> None:
+    """Doc 6.16: a bad part (unknown channel, wrong value, not a packet) loses only itself."""
+    topic = new_topic()
+    session.bind(1, "subscribe", topic, F64)
+    session.bind(2, "publish", topic, F64)
+    session.send_udp(ic.bundle(
+        ic.value(2, 0, 0, 1.0),
+        ic.value(9, 0, 0, 1.0),  # not bound: UNKNOWN_CHANNEL
+        ic.value(2, 1, 0, "x"),  # not a float: BAD_VALUE
+        ic.batch(2, 2, [0], [2.0, 3.0]),  # two values, one stamp
+        [ic.TAG_HEARTBEAT, 5],  # not a value packet
+        ic.batch(2, 4, [0, 0], [4.0, 5.0]),
+    ))
+    assert session.collect(1, 3) == [1.0, 4.0, 5.0]
+    errors = {(e.field(1), e.field(3)) for e in
+              (session.recv_tag(ic.TAG_ERROR, via="udp") for _ in range(4))}
+    assert errors == {(ic.UNKNOWN_CHANNEL, 9), (ic.BAD_VALUE, 2), (ic.MALFORMED, 2),
+                      (ic.MALFORMED, 5)}
+
+
+@pytest.mark.parametrize("flags", [0, ic.FLAG_BUNDLES])
+def test_server_bundles_only_for_a_client_that_reads_them(session: ic.IndependentClient,
+                                                          flags: int) -> None:
+    """Doc 3, 6.16: ten values out in one loop iteration: one bundle, or ten plain datagrams
+    to a client that has not set FLAG_BUNDLES (old single packets, both ways)."""
+    session.udp_flags = flags
+    topics = [new_topic() for _ in range(10)]
+    for i, topic in enumerate(topics):
+        session.bind(10 + i, "subscribe", topic, F64, "data", "udp")
+        session.bind(20 + i, "publish", topic, F64)
+    session.udp_tags.clear()
+    # One bundle in: the server handles its ten parts in one go, so their echoes leave
+    # together.
+    session.send_udp(ic.bundle(*(ic.value(20 + i, 0, 0, float(i)) for i in range(10))))
+    for i in range(10):
+        assert session.collect(10 + i, 1) == [float(i)]
+    value_tags = [t for t in session.udp_tags if t in (ic.TAG_VALUE, ic.TAG_BATCH,
+                                                       ic.TAG_BUNDLE)]
+    assert value_tags == ([ic.TAG_BUNDLE] if flags else [ic.TAG_VALUE] * 10)

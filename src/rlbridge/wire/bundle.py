@@ -12,11 +12,11 @@ A round with a single part goes out as that plain ``Value`` or ``Batch``, byte f
 sender without bundles writes; only two or more parts make a ``Bundle``. A peer that has not
 said it reads bundles (``bundles=False``) gets one datagram per part, as before.
 
-Without keys the bundle body is assembled from the parts' encodings (the prefix
-``92 20 dc <n16>``: a two-element array, tag 32, an array16 of ``n`` parts), so each part is
-encoded exactly once. A sealing codec seals the whole body, so it is given a ``Bundle`` packet
-to encode; its parts are encoded twice (once to measure them), the price of not knowing how the
-codec seals.
+Without keys the bundle body is assembled from the parts' encodings (the prefix ``92 20``: a
+two-element array and tag 32, then the parts' array header), so each part is encoded exactly
+once; the bytes are the same as encoding a ``Bundle`` packet. A sealing codec seals the whole
+body, so it is given a ``Bundle`` packet to encode; its parts are encoded twice (once to
+measure them), the price of not knowing how the codec seals.
 
 A part larger than ``budget`` on its own is split when it is a batch (into consecutive batches
 that fit, the chunk length estimated once from the encoded size); a single value goes alone if
@@ -35,10 +35,12 @@ import msgspec
 from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC, PacketCodec
 from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Value
 
-#: ``[32, parts]``: fixarray of 2, tag 32, then the parts as an array16 (``dc`` + u16 count).
+#: ``[32, parts]``: fixarray of 2, tag 32, then the parts' array: ``dc`` + u16 count (array16),
+#: or a fixarray ``0x90 | n`` when there are at most 15 parts.
 BUNDLE_PREFIX = b"\x92\x20\xdc"
 _COUNT = struct.Struct(">H")
-#: Bytes a bundle adds to its parts: the prefix and the u16 count.
+_FIXARRAYS = [b"\x92\x20" + bytes([0x90 | n]) for n in range(16)]
+#: Bytes a bundle adds to its parts, at most: the prefix and the u16 count.
 BUNDLE_OVERHEAD = len(BUNDLE_PREFIX) + _COUNT.size
 #: At most this many parts in one bundle (the array16 count).
 MAX_PARTS = 0xFFFF
@@ -96,6 +98,7 @@ class DatagramPacker:
         if bodies and (self._overhead + BUNDLE_OVERHEAD + self._size + size > self.budget
                        or len(bodies) >= MAX_PARTS):
             self.flush()
+            bodies = self._bodies  # a new list: flush handed the old one on
         bodies.append(body)
         self._size += size
         self._values += 1 if isinstance(packet, Value) else len(packet.values)
@@ -114,7 +117,10 @@ class DatagramPacker:
         elif self._plain:
             self.bundles_sent += 1
             self.datagrams += 1
-            self._send(b"".join((self._header, BUNDLE_PREFIX, _COUNT.pack(n), *bodies)))
+            # The smallest array header, as msgspec writes it (the same bytes as encoding a
+            # Bundle): a fixarray up to 15 parts, else an array16.
+            count = _FIXARRAYS[n] if n < 16 else BUNDLE_PREFIX + _COUNT.pack(n)
+            self._send(b"".join((self._header, count, *bodies)))
         else:
             self.bundles_sent += 1
             self.datagrams += 1

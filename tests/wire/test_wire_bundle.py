@@ -1,0 +1,157 @@
+"""Bundles, sans-IO: the packer's datagrams round-trip, fit their budget, keep every part's
+order, and a bundle with invalid parts gives back the valid ones. No sockets."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from rlbridge.wire import DATAGRAM_HEADER, Batch, Bundle, PacketCodec, Value
+from rlbridge.wire.auth import SealedCodec
+from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire.codec import FLAG_BUNDLES, PartlyMalformed, peek_header
+
+PROPS = settings(deadline=None, max_examples=150, suppress_health_check=[HealthCheck.too_slow])
+TOKEN = 0x0123456789ABCDEF
+KEY_A, KEY_B = bytes(range(32)), bytes(32)
+
+values = st.floats(allow_nan=False) | st.integers(-(2**63), 2**63 - 1) | st.text(max_size=60)
+
+
+@st.composite
+def parts(draw: st.DrawFn) -> Value | Batch:
+    channel = draw(st.integers(0, 20))
+    seq = draw(st.integers(0, 2**40))
+    if draw(st.booleans()):
+        return Value(channel, seq, draw(st.integers(0, 2**62)), draw(values))
+    vals = draw(st.lists(values, max_size=80))
+    return Batch(channel, seq, [draw(st.integers(0, 2**62))] * len(vals), vals)
+
+
+def flatten(packets: list[Any]) -> list[tuple[int, int, Any]]:
+    """(channel, seq, value) of every value, bundles opened, in order."""
+    out: list[tuple[int, int, Any]] = []
+    for p in packets:
+        if isinstance(p, Bundle):
+            out += flatten(list(p.parts))
+        elif isinstance(p, Value):
+            out.append((p.channel, p.seq, p.value))
+        else:
+            out += [(p.channel, p.first_seq + i, v) for i, v in enumerate(p.values)]
+    return out
+
+
+@PROPS
+@given(st.lists(parts(), max_size=30), st.integers(200, 1500), st.booleans(), st.booleans())
+def test_packed_datagrams_round_trip_within_budget(packets: list[Value | Batch], budget: int,
+                                                   bundles: bool, sealed: bool) -> None:
+    sender = SealedCodec(KEY_A, KEY_B) if sealed else PacketCodec()
+    receiver = SealedCodec(KEY_B, KEY_A) if sealed else PacketCodec()
+    out: list[bytes] = []
+    packer = DatagramPacker(sender, TOKEN, budget, out.append, limit=65507, bundles=bundles,
+                            flags=FLAG_BUNDLES)
+    for packet in packets:
+        assert packer.add(packet) == 0
+    packer.flush()
+    assert packer.pending == 0
+    decoded = []
+    for datagram in out:
+        flags, token, packet = receiver.decode_datagram(datagram)
+        assert token == TOKEN
+        assert flags & FLAG_BUNDLES
+        decoded.append(packet)
+        alone = isinstance(packet, Value) or len(getattr(packet, "values", ())) == 1
+        assert len(datagram) <= budget or alone  # only a single value may exceed it
+        if not bundles:
+            assert not isinstance(packet, Bundle)
+        if isinstance(packet, Bundle):
+            assert len(packet.parts) >= 2
+    assert flatten(decoded) == flatten(list(packets))
+    assert packer.datagrams == len(out)
+
+
+def test_one_round_of_small_parts_is_one_datagram_byte_for_byte_a_bundle() -> None:
+    """The assembled bytes are exactly what encoding a Bundle packet gives (fixarray, and
+    array16 past 15 parts); a round of one part is that part alone."""
+    codec = PacketCodec()
+    for n in (2, 15, 16, 40):
+        out: list[bytes] = []
+        packer = DatagramPacker(codec, TOKEN, 1400, out.append)
+        packets = [Value(i, 7, 1_700_000_000_000_000_000, float(i)) for i in range(n)]
+        for p in packets:
+            packer.add(p)
+        packer.flush()
+        assert out == [codec.encode_datagram(Bundle(packets), TOKEN)]
+    out = []
+    packer = DatagramPacker(codec, TOKEN, 1400, out.append)
+    packer.add(Value(3, 7, 1, 1.5))
+    packer.flush()
+    assert out == [codec.encode_datagram(Value(3, 7, 1, 1.5), TOKEN)]
+
+
+def test_a_value_too_large_is_refused_and_counted() -> None:
+    out: list[bytes] = []
+    packer = DatagramPacker(PacketCodec(), TOKEN, 200, out.append)  # limit = budget
+    assert packer.add(Value(1, 0, 0, "x" * 300)) == 1
+    assert packer.add(Batch(1, 1, [0, 0], ["x" * 300, "y"])) == 1  # the small one goes
+    packer.flush()
+    assert [PacketCodec().decode_datagram(d)[2] for d in out] == [Batch(1, 2, [0], ["y"])]
+
+
+def test_discard_counts_values_not_parts() -> None:
+    packer = DatagramPacker(PacketCodec(), TOKEN, 1400, lambda d: None)
+    packer.add(Value(1, 0, 0, 1.0))
+    packer.add(Batch(2, 0, [0, 0, 0], [1.0, 2.0, 3.0]))
+    assert (packer.pending, packer.discard(), packer.pending) == (2, 4, 0)
+
+
+def body(*fields: Any) -> bytes:
+    return msgspec.msgpack.encode(list(fields))
+
+
+def test_partly_malformed_bundle_keeps_its_valid_parts() -> None:
+    codec = PacketCodec()
+    raw = body(32, [[8, 1, 0, 0, 1.0], [8, -1, 0, 0, 1.0], "junk", [9, 4, 0, [0], [1, 2]],
+                    [32, []], [9, 2, 0, [5], [2.0]]])
+    with pytest.raises(PartlyMalformed) as exc:
+        codec.decode_body(raw)
+    assert exc.value.bundle == Bundle([Value(1, 0, 0, 1.0), Batch(2, 0, [5], [2.0])])
+    assert [(e.tag, e.channel) for e in exc.value.errors] == [
+        (None, None), (None, None), (9, 4), (None, None)]  # -1 is no channel; [32, []] no int
+    assert all("bundle part" in e.reason for e in exc.value.errors)
+    assert not exc.value.fatal
+
+
+@pytest.mark.parametrize("raw", [body(32, "not a list"), body(32), body(32, 5)])
+def test_bundle_without_a_parts_array_is_malformed_as_a_whole(raw: bytes) -> None:
+    from rlbridge.wire import RemoteProtocolError
+
+    with pytest.raises(RemoteProtocolError) as exc:
+        PacketCodec().decode_body(raw)
+    assert not isinstance(exc.value, PartlyMalformed)
+
+
+def test_partly_malformed_bundle_in_a_tcp_stream_keeps_the_stream() -> None:
+    """The decoder hands it on as Malformed and goes on with the next frame."""
+    from rlbridge.wire import FRAME_HEADER, MAGIC, PROTOCOL_VERSION, FrameDecoder, Malformed
+
+    bad = body(32, [[8, 1, 0, 0, 1.0], "junk"])
+    stream = (FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, len(bad)) + bad
+              + PacketCodec().encode_frame(Value(2, 0, 0, 2.0)))
+    decoder = FrameDecoder()
+    first, second = decoder.feed(stream)
+    assert isinstance(first, Malformed)
+    assert isinstance(first.error, PartlyMalformed)
+    assert first.error.bundle == Bundle([Value(1, 0, 0, 1.0)])
+    assert second == Value(2, 0, 0, 2.0)
+    assert decoder.buffered == 0
+
+
+def test_client_flag_survives_the_header() -> None:
+    data = PacketCodec().encode_datagram(Value(1, 0, 0, 1.0), TOKEN, FLAG_BUNDLES)
+    assert peek_header(data) == (FLAG_BUNDLES, TOKEN)
+    assert len(data) > DATAGRAM_HEADER.size
