@@ -116,14 +116,26 @@ def test_ten_udp_channels_one_datagram_per_round_each_way(
         for round_ in range(3):
             up, down = len(relay.up), len(relay.down)
             one_round(b, inboxes, outs, float(round_))
-            sent = value_packets(relay.up[up:])
-            received = value_packets(relay.down[down:])
-            for packets in (sent, received):
+            for packets in (value_packets(relay.up[up:]), value_packets(relay.down[down:])):
                 assert len(packets) == 1, packets
                 assert isinstance(packets[0], Bundle)
-                assert sorted(p.channel for p in packets[0].parts) == sorted(
-                    {p.channel for p in packets[0].parts})
-                assert len(packets[0].parts) == CHANNELS
+                assert len({p.channel for p in packets[0].parts}) == CHANNELS
+
+
+def test_without_bundles_one_datagram_per_channel_each_way(
+        make_server: Callable[..., ServerThread],
+        relay_to: Callable[[ServerThread], UdpRelay]) -> None:
+    """``bundles=False`` (a server older than bundles): the old single packets, both ways."""
+    srv = make_server(tcp=False)
+    relay = relay_to(srv)
+    with Bridge.connect("127.0.0.1", relay.port, control="udp", timeout=10,
+                        bundles=False) as b:
+        inboxes, outs = ten_channels(b, "single")
+        assert not any(peek_header(d)[0] & FLAG_BUNDLES for d in relay.up)
+        up, down = len(relay.up), len(relay.down)
+        one_round(b, inboxes, outs, 1.0)
+        for packets in (value_packets(relay.up[up:]), value_packets(relay.down[down:])):
+            assert [type(p) for p in packets] == [Value] * CHANNELS
 
 
 def test_sealed_session_bundles_too(make_server: Callable[..., ServerThread],

@@ -84,6 +84,7 @@ class Bridge:
         reconnect: bool | Backoff = True,
         psk: bytes | None = None,
         psk_file: str | Path | None = None,
+        bundles: bool = True,
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
 
@@ -103,12 +104,14 @@ class Bridge:
         ``None`` leaves the interpreter's setting alone. ``psk`` (raw bytes), else ``psk_file``
         (hex), else ``$RLBRIDGE_PSK`` (hex) is the pre-shared key for a server that requires
         one; a wrong key raises :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
+        ``bundles=False``: one datagram per UDP channel both ways, not one per send round
+        (for a server older than bundles, docs/protocol.md 6.16).
         """
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
             sys.setswitchinterval(switch_interval)
         key = resolve_key(psk, psk_file)  # before any socket exists: a bad key leaks nothing
         conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
-                          control=control, timeout=timeout)
+                          control=control, timeout=timeout, bundles=bundles)
         conn.psk = key
         ack = conn.open()
         try:
@@ -265,10 +268,7 @@ class Bridge:
     # -- link ------------------------------------------------------------------------------
     @property
     def link_state(self) -> LinkState:
-        """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks.
-
-        ``lost`` from the end of a session until its channels are bound again.
-        """
+        """``connected``, ``degraded`` or ``lost`` (until rebound); never blocks."""
         return LinkState.LOST if self._events.lost else self._conn.link_state
 
     @property

@@ -66,12 +66,15 @@ class Connection:
     """Sockets, handshake, receive thread and watchdog of one session. See module docstring."""
 
     def __init__(self, host: str, port: int, *, name: str, nodelay: bool, control: Control,
-                 timeout: float) -> None:
+                 timeout: float, bundles: bool = True) -> None:
         self.host, self.port, self.name = host, port, name
         self.nodelay = nodelay
         self.control: Control = control
         self.timeout = timeout
         self.codec = PacketCodec()
+        #: Flags of every datagram: ``FLAG_BUNDLES`` unless ``Bridge.connect(bundles=False)``
+        #: (the server then sends this client one datagram per channel, too).
+        self.udp_flags = FLAG_BUNDLES if bundles else 0
         #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.
         self.psk: bytes | None = None
         self.auth: ClientAuth | None = None
@@ -245,11 +248,11 @@ class Connection:
         if self.control == "tcp":
             self.send_tcp(self.codec.encode_frame(packet))
         else:
-            self.send_udp(self.codec.encode_datagram(packet, self.ack.token, FLAG_BUNDLES))
+            self.send_udp(self.codec.encode_datagram(packet, self.ack.token, self.udp_flags))
 
     def send_udp_packet(self, packet: Packet) -> None:
         assert self.ack is not None
-        self.send_udp(self.codec.encode_datagram(packet, self.ack.token, FLAG_BUNDLES))
+        self.send_udp(self.codec.encode_datagram(packet, self.ack.token, self.udp_flags))
 
     def request_topic(self, req: TopicConnect) -> TopicAck:
         """Send a topic-connect and wait for its answer; retransmit while the control is UDP.

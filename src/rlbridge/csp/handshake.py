@@ -30,7 +30,6 @@ from rlbridge.wire import (
     Packet,
     RemoteProtocolError,
 )
-from rlbridge.wire.codec import FLAG_BUNDLES
 
 if TYPE_CHECKING:
     from rlbridge.csp.connection import Connection
@@ -79,7 +78,7 @@ def open_tcp(conn: Connection, hello: Hello,
 def open_udp(conn: Connection, hello: Hello) -> tuple[ConnectAck, Leftover]:
     """Handshake over UDP only: the hello is repeated until an answer or the deadline."""
     conn.udp = sock = udp_socket(conn.host, conn.port)
-    datagram = conn.codec.encode_datagram(hello, 0, FLAG_BUNDLES)
+    datagram = conn.codec.encode_datagram(hello, 0, conn.udp_flags)
     deadline = time.monotonic() + conn.timeout
     while time.monotonic() < deadline and not conn.closed.is_set():
         sock.send(datagram)
@@ -93,7 +92,7 @@ def open_udp(conn: Connection, hello: Hello) -> tuple[ConnectAck, Leftover]:
                 continue  # not an answer to us (or forged): keep asking until the deadline
             if isinstance(packet, AuthChallenge) and conn.auth is not None:
                 datagram = conn.codec.encode_datagram(conn.auth.answer(packet, sock), 0,
-                                                   FLAG_BUNDLES)
+                                                   conn.udp_flags)
                 continue
             if isinstance(packet, Heartbeat):  # a live session whose ack was lost: ask again
                 continue

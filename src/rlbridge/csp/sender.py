@@ -221,7 +221,7 @@ class SendLoop:
                 self.datagrams_sent += packer.datagrams
             packer = self._packer = DatagramPacker(
                 conn.codec, ack.token, DATAGRAM_BUDGET, conn.send_udp, limit=MAX_DATAGRAM,
-                flags=FLAG_BUNDLES)
+                bundles=bool(conn.udp_flags & FLAG_BUNDLES), flags=conn.udp_flags)
         return packer
 
     @property
