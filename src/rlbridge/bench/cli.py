@@ -199,6 +199,23 @@ def latency(
                                        _command(ctx)), out)
 
 
+@bench_app.command("cpu")
+def cpu(
+    ctx: typer.Context,
+    channels: Annotated[int, typer.Option(help="UDP channels, published and read back.")] = 10,
+    rate: Annotated[float, typer.Option(help="Values/s per channel.")] = 1000.0,
+    seconds: Annotated[float, typer.Option(help="Length of each run.")] = 10.0,
+    repeats: Repeats = 3,
+    out: Out = Path("docs/benchmarks.md"),
+) -> None:
+    """CPU per value of one SDK client with many UDP channels: SDK and server, bundled or not."""
+    from rlbridge.bench import cpu as cp
+    from rlbridge.bench.common import progress
+
+    s = cp.Settings(channels=channels, rate_hz=rate, seconds=seconds, repeats=repeats)
+    _run("cpu", lambda: cp.report(cp.run(s, progress), s, _command(ctx)), out)
+
+
 # -- load and soak (rlbridge.bench.load, .soak) ------------------------------------------------
 Clients = Annotated[int, typer.Option(help="Concurrent client sessions.")]
 Channels = Annotated[int, typer.Option(help="Channels per session (published and subscribed).")]
@@ -207,6 +224,8 @@ Procs = Annotated[int, typer.Option(help="OS processes the client sessions are s
 Via = Annotated[str, typer.Option(help="Transport of SDK client channels: udp or tcp.")]
 Client = Annotated[str, typer.Option(help="raw: protocol-level UDP sessions, one thread per "
                                      "process; sdk: a Bridge per session.")]
+Bundles = Annotated[bool, typer.Option(help="Every channel of a session's tick in one datagram, "
+                                       "both ways; --no-bundles: one datagram per value.")]
 
 
 def _check_client(client: str, transport: str) -> None:
@@ -219,7 +238,7 @@ def _check_client(client: str, transport: str) -> None:
 @bench_app.command("load")
 def load(
     ctx: typer.Context, clients: Clients = 100, channels: Channels = 10, rate: RateHz = 100.0,
-    processes: Procs = 4, transport: Via = "udp", client: Client = "raw",
+    processes: Procs = 4, transport: Via = "udp", client: Client = "raw", bundles: Bundles = True,
     phase_s: Annotated[float, typer.Option(help="Seconds per phase (base, reader, slow, after).")]
     = 20.0,
     slow_topics: Annotated[int, typer.Option(help="Topics the slow consumer subscribes.")]
@@ -233,7 +252,7 @@ def load(
     _check_client(client, transport)
     s = ld.Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                     transport=transport, client=client, phase_s=phase_s, slow_topics=slow_topics,
-                    warmup_s=min(10.0, phase_s))
+                    warmup_s=min(10.0, phase_s), bundles=bundles)
     _run("load", lambda: ld.report(ld.run(s, ld.load_plan(s), progress), _command(ctx)), out)
 
 
@@ -242,7 +261,8 @@ def soak(
     ctx: typer.Context, minutes: Annotated[float, typer.Option(help="Length of the soak.")] = 5,
     interval_s: Annotated[float, typer.Option(help="Seconds per report row.")] = 30.0,
     clients: Clients = 50, channels: Channels = 10, rate: RateHz = 100.0, processes: Procs = 2,
-    transport: Via = "udp", client: Client = "raw", out: Out = Path("docs/load.md"),
+    transport: Via = "udp", client: Client = "raw", bundles: Bundles = True,
+    out: Out = Path("docs/load.md"),
 ) -> None:
     """Load held for MINUTES: server RSS and latency per interval (a leak shows as a trend)."""
     from rlbridge.bench import soak as sk
@@ -251,7 +271,8 @@ def soak(
 
     _check_client(client, transport)
     s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
-                 transport=transport, client=client, warmup_s=min(10.0, interval_s))
+                 transport=transport, client=client, warmup_s=min(10.0, interval_s),
+                 bundles=bundles)
     _run("soak", lambda: sk.report(sk.measure(s, minutes, interval_s, progress),
                                    _command(ctx)), out)
 

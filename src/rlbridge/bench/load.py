@@ -71,6 +71,8 @@ class Settings:
     transport: str = "udp"
     #: ``raw``: protocol-level sessions, one thread per process (``load_raw``); ``sdk``: Bridge.
     client: str = "raw"
+    #: Every channel of a session's tick in one datagram, both ways (``False``: one per value).
+    bundles: bool = True
     phase_s: float = 20.0
     warmup_s: float = 5.0
     slow_topics: int = 100
@@ -147,7 +149,8 @@ def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str],
     ids = list(range(s.clients))
     per = [ids[i :: s.processes] for i in range(s.processes)]
     common = {"host": host, "port": port, "channels": s.channels, "rate_hz": s.rate_hz,
-              "transport": s.transport, "max_s": total_s + 60, "drain_s": s.drain_s}
+              "transport": s.transport, "max_s": total_s + 60, "drain_s": s.drain_s,
+              "bundles": s.bundles}
     role = "raw" if s.client == "raw" else "clients"
     workers = [group.start(f"clients-{i}", "b", MODULE, role, {**common, "ids": chunk})
                for i, chunk in enumerate(per) if chunk]
@@ -278,9 +281,11 @@ def describe(s: Settings) -> str:
     """How the clients were run, for the report."""
     who = ("protocol-level UDP sessions (`--client raw`, one thread per process)"
            if s.client == "raw" else f"SDK sessions (`--client sdk`, Bridge over {s.transport})")
+    how = ("every channel of a session's tick in one datagram both ways (bundles)" if s.bundles
+           else "one datagram per value both ways (`--no-bundles`)")
     return (f"as {who} in {s.processes} client processes, one server process, loopback; "
             "each value goes client -> server -> client (the clients subscribe to their own "
-            "topics)")
+            f"topics), {how}")
 
 
 def report(r: Run, command: Sequence[str]) -> str:

@@ -4,9 +4,12 @@ The SDK spends a receive thread, a send thread and a ring per channel on every s
 control process should; a hundred of them in a few Python processes on a 2-core machine measure
 the clients' GIL, not the server (docs/load.md shows both). These sessions speak the same wire
 protocol through the same sans-IO codec (``PacketCodec``), over UDP only (the session, its
-channels and its data on one socket, thesis 4.1.1), with no threads: one ticker writes a
-``Value`` datagram per channel per tick and, between ticks, waits in ``select`` on every socket
-and takes the latency of each value the moment its datagram is read.
+channels and its data on one socket, thesis 4.1.1), with no threads: one ticker writes every
+channel of a session per tick and, between ticks, waits in ``select`` on every socket and takes
+the latency of each value the moment its datagram is read. As the SDK does, a session's tick
+leaves as one datagram (a ``Bundle`` of every channel) and the session reads bundles;
+``bundles=False`` in the parameters sends one ``Value`` datagram per channel and asks for the
+same back (the wire behaviour before bundles, for a baseline in the same run).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from rlbridge.bench.load_roles import F64, Book, topic
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     Batch,
+    Bundle,
     ConnectAck,
     Hello,
     PacketCodec,
@@ -30,6 +34,8 @@ from rlbridge.wire import (
     TopicError,
     Value,
 )
+from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire.codec import FLAG_BUNDLES
 from rlbridge.wire.sequence import SequenceTracker
 
 SUB_BASE = 1000  # subscription channel ids: SUB_BASE + c
@@ -50,8 +56,12 @@ class _RawSession(Book):
         self._received = 0
         self.send_errors = 0
         self.trackers = {SUB_BASE + c: SequenceTracker() for c in range(self.n)}
+        self.bundles = bool(params.get("bundles", True))
+        self.flags = FLAG_BUNDLES if self.bundles else 0
         self._handshake()
         self.sock.setblocking(False)
+        self.packer = DatagramPacker(codec, self.token, 1400, self._send, bundles=self.bundles,
+                                     flags=self.flags)
 
     def _exchange(self, packets: dict[int, TopicConnect | Hello], token: int) -> dict[int, object]:
         """Send ``packets`` (by key) until each has its answer; UDP may lose either way."""
@@ -62,7 +72,7 @@ class _RawSession(Book):
                 raise TimeoutError(f"load-{self.index}: no answer from the server")
             for key, packet in packets.items():
                 if key not in answers:
-                    self.sock.send(self.codec.encode_datagram(packet, token))
+                    self.sock.send(self.codec.encode_datagram(packet, token, self.flags))
             self.sock.settimeout(1.0)
             with contextlib.suppress(TimeoutError):
                 while len(answers) < len(packets):
@@ -94,13 +104,17 @@ class _RawSession(Book):
         return {"lost_seq": sum(t.lost for t in self.trackers.values()),
                 "overwritten": 0, "send_errors": self.send_errors}
 
+    def _send(self, datagram: bytes) -> None:
+        try:
+            self.sock.send(datagram)
+        except OSError:  # a full socket buffer (ENOBUFS/EAGAIN): not sent, counted
+            self.send_errors += 1
+
     def write_all(self, stamp: float) -> None:
-        encode, send, token, seq = self.codec.encode_datagram, self.sock.send, self.token, self.seq
+        add, seq = self.packer.add, self.seq
         for c in range(1, self.n + 1):
-            try:
-                send(encode(Value(c, seq, 0, stamp), token))
-            except OSError:  # a full socket buffer (ENOBUFS/EAGAIN): not sent, counted
-                self.send_errors += 1
+            add(Value(c, seq, 0, stamp))
+        self.packer.flush()
         self.seq = seq + 1
         self.sent += self.n
 
@@ -116,19 +130,24 @@ class _RawSession(Book):
                 _f, _t, packet = decode(data)
             except RemoteProtocolError:
                 continue
-            if isinstance(packet, Value):
-                values, first = [packet.value], packet.seq
-            elif isinstance(packet, Batch):
-                values, first = packet.values, packet.first_seq
-            else:
-                continue
-            tracker = self.trackers.get(packet.channel)
-            if tracker is None:
-                continue
-            start = tracker.accept_run(first, len(values))
-            for v in values[start:]:
-                self.record((t - v) * 1e6)
-            self._received += len(values) - start
+            if isinstance(packet, Bundle):
+                for part in packet.parts:
+                    self._take(part, t)
+            elif isinstance(packet, Value | Batch):
+                self._take(packet, t)
+
+    def _take(self, packet: Value | Batch, t: float) -> None:
+        if isinstance(packet, Value):
+            values, first = [packet.value], packet.seq
+        else:
+            values, first = packet.values, packet.first_seq
+        tracker = self.trackers.get(packet.channel)
+        if tracker is None:
+            return
+        start = tracker.accept_run(first, len(values))
+        for v in values[start:]:
+            self.record((t - v) * 1e6)
+        self._received += len(values) - start
 
     def close(self) -> None:
         self.sock.close()

@@ -93,7 +93,8 @@ class _SdkSession(Book):
         # switch_interval=None: a hundred SDK threads in one process hand the GIL over at
         # CPython's default pace; the shortened interval the SDK sets for HRT loops thrashes.
         self.bridge = Bridge.connect(params["host"], int(params["port"]), name=f"load-{index}",
-                                     timeout=30.0, switch_interval=None)
+                                     timeout=30.0, switch_interval=None,
+                                     bundles=bool(params.get("bundles", True)))
         n = int(params["channels"])
         self.subs = [self.bridge.subscribe(topic(index, c), F64, transport=transport,
                                            blocking=c == 0, buffer_size=64 if c == 0 else 1)

@@ -27,14 +27,15 @@ def report(r: Run, command: Sequence[str]) -> str:
     s = r.settings
     headers = ["t (min)", "delivered values/s", "latency p50 µs (median session)",
                "p99 µs (median session)", "p99 µs (worst session)", "server dropped",
-               "server CPU %", "server waited for a CPU %", "server RSS MiB (end of interval)"]
+               "server CPU %", "server CPU µs per value (in + out)", "server waited for a CPU %",
+               "server RSS MiB (end of interval)"]
     rows, rss = [], []
     for ph in r.phases:
         x = phase_row(ph)
         rss.append(x["rss1"])
         rows.append([ph.name, fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
                      fmt(x["p99_worst"]), fmt(x["dropped"]), fmt(x["cpu_pct"]),
-                     fmt(x["wait_pct"]), f"{x['rss1']:.1f}"])
+                     fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]), f"{x['rss1']:.1f}"])
     growth = (f"Server RSS from the end of the first interval to the end of the last: "
               f"{rss[0]:.1f} -> {rss[-1]:.1f} MiB ({rss[-1] - rss[0]:+.1f} MiB)." if rss else "")
     return "\n".join([

@@ -1,0 +1,192 @@
+"""``rlbridge bench cpu``: CPU per value of one control client with many UDP channels.
+
+The shape of a control loop on a small board: one SDK client publishes ``--channels`` UDP
+channels at ``--rate`` Hz each (every tick: one ``write`` per channel into a buffered channel,
+then one ``Bridge.send()``) and subscribes to the same topics over UDP, reading what came back
+without blocking at every tick. Every value goes client -> server -> in-process bus -> server
+-> client, so each value costs the client a send and a receive and the server an input and an
+output.
+
+Two rows in the same run, interleaved: ``bundled`` (the default: every channel of a send round
+in one datagram, and the server bundles its replies) and ``single`` (``bundles=False``: one
+datagram per channel and value, both ways; the wire behaviour before bundles).
+
+Figures per value (one value written, carried through the server and read back):
+
+* **SDK**: CPU of the SDK's own threads (``rlbridge-send``, ``rlbridge-recv``, from
+  ``/proc/<pid>/task``) plus the thread CPU time the control loop spent inside SDK calls
+  (``write``, ``send``, ``read_many``; ``time.thread_time`` around them);
+* **client process**: everything, including the loop's own timer wake-ups;
+* **server**: the whole server process.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from rlbridge.bench.common import (
+    CLK_TCK,
+    STARTUP_S,
+    Control,
+    LoopbackLink,
+    Params,
+    ProcessGroup,
+    emit,
+    fmt,
+    hold,
+    markdown_table,
+    median,
+    ratio,
+    report_header,
+    start_server,
+    wait_for_go,
+)
+
+MODULE = "rlbridge.bench.cpu"
+F64 = "std_msgs/msg/Float64"
+ROWS = (("bundled", True), ("single", False))
+
+
+@dataclass(frozen=True)
+class Settings:
+    channels: int = 10
+    rate_hz: float = 1000.0
+    seconds: float = 10.0
+    repeats: int = 3
+
+
+def _threads_cpu_s(tids: Sequence[int | None]) -> float:
+    """CPU seconds of these threads of this process (``/proc/self/task/<tid>/stat``)."""
+    total = 0.0
+    for tid in tids:
+        if tid is None:
+            continue
+        try:
+            with open(f"/proc/self/task/{tid}/stat", "rb") as f:
+                data = f.read()
+        except OSError:  # the thread ended meanwhile
+            continue
+        fields = data[data.rindex(b")") + 2 :].split()
+        total += (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return total
+
+
+def client_role(params: Params) -> None:
+    """One SDK client: ``channels`` UDP channels published at ``rate_hz`` and read back."""
+    from rlbridge.csp.bridge import Bridge
+
+    control = Control()
+    n, rate, seconds = int(params["channels"]), float(params["rate_hz"]), float(params["seconds"])
+    b = Bridge.connect(params["host"], int(params["port"]), name="bench-cpu", timeout=30,
+                       bundles=bool(params["bundles"]))
+    topics = [f"/bench/cpu/c{i}" for i in range(n)]
+    inboxes = [b.subscribe(t, F64, transport="udp", buffer_size=256) for t in topics]
+    outs = [b.publish(t, F64, transport="udp", through_buffer=True) for t in topics]
+    emit("ready")
+    wait_for_go(control)
+    thread_time, monotonic, sleep = time.thread_time, time.monotonic, time.sleep
+    ticks = int(seconds * rate)
+    in_calls = 0.0
+    received = 0
+    sdk_threads = b._io_thread_ids()  # receive, send (and reconnect) threads
+    threads0 = _threads_cpu_s(sdk_threads)
+    process0, start = time.process_time(), monotonic()
+    for i in range(ticks):
+        delay = start + i / rate - monotonic()
+        if delay > 0:
+            sleep(delay)
+        t0 = thread_time()
+        value = float(i)
+        for out in outs:
+            out.write(value)
+        b.send()
+        for inbox in inboxes:
+            received += len(inbox.read_many())
+        in_calls += thread_time() - t0
+    end = monotonic() + 1.0  # the last values' way back
+    while received < ticks * n and monotonic() < end:
+        sleep(0.001)
+        t0 = thread_time()
+        for inbox in inboxes:
+            received += len(inbox.read_many())
+        in_calls += thread_time() - t0
+    emit("result", sent=ticks * n, received=received, seconds=monotonic() - start,
+         sdk_s=_threads_cpu_s(sdk_threads) - threads0 + in_calls,
+         sdk_calls_s=in_calls,
+         process_s=time.process_time() - process0,
+         lost=sum(inbox.lost for inbox in inboxes))
+    hold(control)
+
+
+ROLES = {"client": client_role}
+
+
+def run(settings: Settings, progress: Callable[[str], None]) -> dict[str, list[Params]]:
+    """Every row ``repeats`` times, interleaved; fresh server and client per run."""
+    results: dict[str, list[Params]] = {key: [] for key, _ in ROWS}
+    for repeat in range(settings.repeats):
+        for key, bundles in ROWS:
+            with ProcessGroup(LoopbackLink(), lifetime_s=settings.seconds + 120) as group:
+                server, host, port = start_server(group)
+                client, _ = group.spawn("client", "b", MODULE, "client", {
+                    "host": host, "port": port, "channels": settings.channels,
+                    "rate_hz": settings.rate_hz, "seconds": settings.seconds,
+                    "bundles": bundles})
+                server.mark_cpu()
+                client.send("go")
+                result = client.expect("result", settings.seconds + STARTUP_S + 30)
+                result["server_s"] = server.cpu_since_mark()
+            results[key].append(result)
+            progress(f"cpu {key} repeat {repeat + 1}: "
+                     f"{_per_value(result, 'sdk_s'):.2f} us/value SDK, "
+                     f"{_per_value(result, 'server_s'):.2f} server")
+    return results
+
+
+def _per_value(result: Params, key: str) -> float:
+    """CPU µs of ``key`` per value read back."""
+    got = int(result["received"])
+    return float(result[key]) / got * 1e6 if got else float("nan")
+
+
+def report(results: dict[str, list[Params]], settings: Settings, command: Sequence[str]) -> str:
+    s = settings
+    medians = {key: {k: median([_per_value(r, k) for r in runs])
+                     for k in ("sdk_s", "process_s", "server_s")}
+               for key, runs in results.items()}
+    rows = []
+    for key, runs in results.items():
+        m = medians[key]
+        sent = median([float(r["sent"]) for r in runs])
+        got = median([float(r["received"]) for r in runs])
+        rows.append([key, fmt(sent), fmt(got), f"{(1 - got / sent) * 100:.2f} %" if sent else "-",
+                     fmt(m["sdk_s"], 2), fmt(m["process_s"], 2), fmt(m["server_s"], 2),
+                     fmt(ratio(m["sdk_s"], medians["single"]["sdk_s"]), 2),
+                     fmt(ratio(m["server_s"], medians["single"]["server_s"]), 2)])
+    b = medians["bundled"]
+    return "\n".join([
+        report_header("CPU per value: one client, many UDP channels", command),
+        f"{s.repeats} repeats per row, interleaved; {s.seconds:g} s per run. One SDK client "
+        f"publishes {s.channels} UDP channels at {s.rate_hz:g} Hz each (buffered writes, one "
+        "`send()` per tick) and reads them back over UDP (non-blocking `read_many` per tick); "
+        "every value goes client -> server -> bus -> server -> client. CPU per value read back "
+        "(medians): SDK = its send and receive threads plus the loop's time inside SDK calls; "
+        "client process = all of it, the loop's timer wake-ups included; server = the whole "
+        "server process. `single` is `Bridge.connect(bundles=False)`: one datagram per "
+        "channel and value, both ways.",
+        "",
+        markdown_table(["row", "values sent", "read back", "lost", "SDK us/value",
+                        "client process us/value", "server us/value", "SDK x single",
+                        "server x single"], rows),
+        "",
+        "Targets (bundled):",
+        "",
+        f"- SDK: {b['sdk_s']:.2f} us per value; target <= 3: {_verdict(b['sdk_s'])}",
+        f"- server: {b['server_s']:.2f} us per value; target <= 3: {_verdict(b['server_s'])}",
+    ]) + "\n"
+
+
+def _verdict(us: float) -> str:
+    return "**met**" if us <= 3.0 else "**not met**"
