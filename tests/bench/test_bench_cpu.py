@@ -21,7 +21,7 @@ def test_cpu_bench_reports_both_rows(tmp_path: Path) -> None:
         "--out", str(out)])
     assert result.exit_code == 0, result.output
     rows = {line.split("|")[1].strip(): line for line in result.output.splitlines()
-            if line.startswith("| bundled") or line.startswith("| single")}
+            if line.startswith(("| bundled", "| single"))}
     assert set(rows) == {"bundled", "single"}
     assert rows["bundled"].split("|")[2].strip() == "150"  # 3 channels x 100 Hz x 0.5 s
     assert "<!-- bench:cpu begin -->" in out.read_text()
