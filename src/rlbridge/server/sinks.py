@@ -140,6 +140,8 @@ class UdpSink:
                         if type(codec) is PacketCodec else None)
         self.addr = addr
         self._packer = DatagramPacker(codec, token, max_payload, self._sendto, bundles=False)
+        #: A flush is scheduled for the end of this loop iteration.
+        self._corked = False
         self._dropped = 0
         self.bytes_out = 0
 
@@ -178,17 +180,20 @@ class UdpSink:
             else:
                 self._sendto(self._codec.encode_datagram(packet, self._token))
             return True
-        cork = packer.bundles and self._loop is not None
-        if cork and not packer.pending:
-            self._loop.call_soon(self.flush)  # type: ignore[union-attr]
-        refused = packer.add(packet)
-        if not cork:
+        if packer.bundles and self._loop is not None:
+            if not self._corked:
+                self._corked = True
+                self._loop.call_soon(self.flush)
+            refused = packer.add(packet)
+        else:
+            refused = packer.add(packet)
             packer.flush()
         self._dropped += refused  # values larger than a datagram: refused, counted
         return not refused
 
     def flush(self) -> None:
         """Send the corked values (the end of the loop iteration that gathered them)."""
+        self._corked = False
         if self._transport.is_closing():
             self._dropped += self._packer.discard()
             return
