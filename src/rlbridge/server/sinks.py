@@ -3,8 +3,9 @@
 A channel does not care whether it rides TCP or UDP; it hands packets to a sink. The TCP sink
 appends frames to the transport's buffer and refuses (counts) data once a slow client lets
 ``max_write_buffer`` bytes pile up, so one stalled reader cannot grow the server's memory. The
-UDP sink sends one datagram per packet to the client's last seen address, splitting batches that
-would exceed the datagram budget.
+UDP sink sends datagrams to the client's last seen address, splitting batches that would exceed
+the datagram budget; to a client that reads bundles it sends every channel's values of one loop
+iteration together (a ``Bundle`` per datagram budget), to any other one datagram per packet.
 
 The TCP sink corks value frames: those written while the loop handles one burst of input are
 gathered in one buffer and handed to the transport once, at the end of the loop iteration
