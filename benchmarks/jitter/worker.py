@@ -1,4 +1,4 @@
-"""A ``rlbridge bench jitter`` worker: one scenario in this process, lateness to JSON.
+"""A ``python -m benchmarks.jitter run`` worker: one scenario in this process, lateness to JSON.
 
 Also the GIL study's extra threads (pure-Python work, a ``sendto`` loop), the set-point
 publisher process, and :func:`prepare_process`, the conditions every loop process gets.
@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from rlbridge.bench.jitter_config import (
+from benchmarks.jitter.config import (
     F64,
     PROCESS_SUFFIX,
     TOPIC_IN,
@@ -163,7 +163,7 @@ def worker_main(args: argparse.Namespace) -> None:
         sys.setswitchinterval(args.switch_interval)
     name: str = args.scenario
     if name.startswith("shm-"):
-        from rlbridge.bench.jitter_shm import shm_parent
+        from benchmarks.jitter.shm import shm_parent
 
         Path(args.result).write_text(json.dumps(shm_parent(args)))
         return
