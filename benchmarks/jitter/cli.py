@@ -119,9 +119,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the helper processes."""
     args = _parser().parse_args(argv)
     if args.role == "worker":
-        from benchmarks.jitter.worker import worker_main
+        if args.switch_interval is not None:
+            sys.setswitchinterval(args.switch_interval)
+        if args.scenario.startswith("shm-"):  # the loop in its own process, fed through shm
+            from benchmarks.jitter.shm import shm_parent
 
-        worker_main(args)
+            Path(args.result).write_text(json.dumps(shm_parent(args)))
+        else:
+            from benchmarks.jitter.worker import worker_main
+
+            worker_main(args)
     elif args.role == "publisher":
         from benchmarks.jitter.worker import publisher_main
 
@@ -175,10 +182,11 @@ def run_command(
     = Path("docs/jitter.md"),
     plot: Annotated[Path, typer.Option(help="PNG of the jitter per cycle.")]
     = Path("docs/figures/jitter.png"),
+    results: Annotated[Path, typer.Option(help="Directory of the raw runs' JSON.")] = RESULTS,
 ) -> None:
     """HRT loop jitter per coupling pattern, next to a reference loop from the same run.
 
-    Writes OUT's section, PLOT, and the raw runs to benchmarks/results/<out>.<suite>.json.
+    Writes OUT's section, PLOT, and the raw runs to RESULTS/<out stem>.<suite>.json.
     """
     if suite not in ("patterns", "gil"):
         raise typer.BadParameter("--suite must be 'patterns' or 'gil'")
@@ -188,7 +196,7 @@ def run_command(
                      repeats=repeats, stress=stress, publish_hz=publish_hz,
                      only=tuple(s for s in only.split(",") if s), priority=priority,
                      cpu=None if cpu < 0 else cpu, isolate=isolate, mlock=mlock,
-                     interleave=interleave, out=out, plot=plot, results=RESULTS,
+                     interleave=interleave, out=out, plot=plot, results=results,
                      command=command_line(sys.argv[1:])), typer.echo)
 
 

@@ -158,15 +158,12 @@ def _extra_threads(name: str, stop: threading.Event) -> list[threading.Thread]:
 
 
 def worker_main(args: argparse.Namespace) -> None:
-    """Run one scenario in this process and write its lateness samples as JSON."""
-    if args.switch_interval is not None:
-        sys.setswitchinterval(args.switch_interval)
-    name: str = args.scenario
-    if name.startswith("shm-"):
-        from benchmarks.jitter.shm import shm_parent
+    """Run one scenario in this process and write its lateness samples as JSON.
 
-        Path(args.result).write_text(json.dumps(shm_parent(args)))
-        return
+    The ``shm-*`` scenarios are not run here but by :func:`benchmarks.jitter.shm.shm_parent`
+    (the worker's entry in :mod:`.cli` picks); this module knows nothing of them.
+    """
+    name: str = args.scenario
     info = prepare_process(args.mlock)
     stop = threading.Event()
     extra = _extra_threads(name, stop)
