@@ -345,6 +345,10 @@ def targets(results: Sequence[CaseResult]) -> list[str]:
         x = ratio(by["rlb-udp-1"].rate, by["udp"].rate)
         lines.append(f"- rlbridge UDP, 1 value/datagram: {fmt(x, 2)} x the raw UDP loop; "
                      f"target >= 0.40: **{'met' if x >= 0.4 else 'not met'}**")
+    if "rlb-tcp-1" in by and "zenoh" in by:
+        x = ratio(by["rlb-tcp-1"].rate, by["zenoh"].rate)
+        lines.append(f"- rlbridge TCP, 1 value/frame: {fmt(x, 2)} x Zenoh's per-message rate "
+                     f"(#18); target >= 1: **{'met' if x >= 1 else 'not met'}**")
     return lines
 
 
