@@ -75,8 +75,9 @@ def throughput(
     batch: Annotated[int, typer.Option(help="write_many size of the batched rows.")] = 4096,
     rate: Annotated[float, typer.Option(help="Offered values/s of rlbridge rows (0: flood).")]
     = 0.0,
-    only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, zenoh, rlb-udp-1, rlb-tcp-1, "
-                                      "rlb-udp-batch, rlb-tcp-batch.")] = "",
+    only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, zenoh, rlb-udp-1, "
+                                      "rlb-udp-1-single, rlb-tcp-1, rlb-udp-batch, "
+                                      "rlb-tcp-batch.")] = "",
     out: Out = Path("docs/benchmarks.md"),
 ) -> None:
     """Values/s publisher -> server -> subscriber (TCP, UDP), next to UDP/ZeroMQ/Zenoh."""

@@ -90,8 +90,8 @@ def client_role(params: Params) -> None:
     ticks = int(seconds * rate)
     in_calls = 0.0
     received = 0
-    sdk_threads = b._io_thread_ids()  # receive, send (and reconnect) threads
-    threads0 = _threads_cpu_s(sdk_threads)
+    recv_tid, send_tid, other_tid = b._io_thread_ids()  # receive, send, reconnect threads
+    recv0, send0, other0 = (_threads_cpu_s([t]) for t in (recv_tid, send_tid, other_tid))
     process0, start = time.process_time(), monotonic()
     for i in range(ticks):
         delay = start + i / rate - monotonic()
@@ -112,9 +112,10 @@ def client_role(params: Params) -> None:
         for inbox in inboxes:
             received += len(inbox.read_many())
         in_calls += thread_time() - t0
+    recv_s, send_s = _threads_cpu_s([recv_tid]) - recv0, _threads_cpu_s([send_tid]) - send0
     emit("result", sent=ticks * n, received=received, seconds=monotonic() - start,
-         sdk_s=_threads_cpu_s(sdk_threads) - threads0 + in_calls,
-         sdk_calls_s=in_calls,
+         sdk_s=recv_s + send_s + _threads_cpu_s([other_tid]) - other0 + in_calls,
+         recv_s=recv_s, send_s=send_s, calls_s=in_calls,
          process_s=time.process_time() - process0,
          lost=sum(inbox.lost for inbox in inboxes))
     hold(control)
@@ -154,7 +155,7 @@ def _per_value(result: Params, key: str) -> float:
 def report(results: dict[str, list[Params]], settings: Settings, command: Sequence[str]) -> str:
     s = settings
     medians = {key: {k: median([_per_value(r, k) for r in runs])
-                     for k in ("sdk_s", "process_s", "server_s")}
+                     for k in ("sdk_s", "calls_s", "send_s", "recv_s", "process_s", "server_s")}
                for key, runs in results.items()}
     rows = []
     for key, runs in results.items():
@@ -162,7 +163,8 @@ def report(results: dict[str, list[Params]], settings: Settings, command: Sequen
         sent = median([float(r["sent"]) for r in runs])
         got = median([float(r["received"]) for r in runs])
         rows.append([key, fmt(sent), fmt(got), f"{(1 - got / sent) * 100:.2f} %" if sent else "-",
-                     fmt(m["sdk_s"], 2), fmt(m["process_s"], 2), fmt(m["server_s"], 2),
+                     fmt(m["sdk_s"], 2), fmt(m["calls_s"], 2), fmt(m["send_s"], 2),
+                     fmt(m["recv_s"], 2), fmt(m["process_s"], 2), fmt(m["server_s"], 2),
                      fmt(ratio(m["sdk_s"], medians["single"]["sdk_s"]), 2),
                      fmt(ratio(m["server_s"], medians["single"]["server_s"]), 2)])
     b = medians["bundled"]
@@ -178,6 +180,7 @@ def report(results: dict[str, list[Params]], settings: Settings, command: Sequen
         "channel and value, both ways.",
         "",
         markdown_table(["row", "values sent", "read back", "lost", "SDK us/value",
+                        "of which: loop's SDK calls", "send thread", "receive thread",
                         "client process us/value", "server us/value", "SDK x single",
                         "server x single"], rows),
         "",
