@@ -94,7 +94,9 @@ def main(
                  bundles=bundles)
     command = ["python", "-m", "benchmarks.soak"]
     for name, value in ctx.params.items():
-        command += [f"--{name.replace('_', '-')}", str(value)]
+        flag = f"--{name.replace('_', '-')}"
+        command += ([flag if value else f"--no-{flag[2:]}"] if isinstance(value, bool)
+                    else [flag, str(value)])
     try:
         text = report(measure(s, minutes, interval_s, progress), command)
     except BenchError as exc:

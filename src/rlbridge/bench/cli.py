@@ -44,8 +44,11 @@ def _command(ctx: typer.Context) -> list[str]:
     """The command line with every option spelled out, so the report can be re-run exactly."""
     args = ["rlbridge", "bench", ctx.info_name or ""]
     for name, value in ctx.params.items():
-        if value is not None and value != "":
-            args += [f"--{name.replace('_', '-')}", str(value)]
+        flag = f"--{name.replace('_', '-')}"
+        if isinstance(value, bool):  # an on/off flag: --x or --no-x
+            args.append(flag if value else f"--no-{flag[2:]}")
+        elif value is not None and value != "":
+            args += [flag, str(value)]
     return args
 
 
