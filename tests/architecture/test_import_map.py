@@ -78,7 +78,9 @@ def test_the_map_is_in_the_design_doc_and_runs_down() -> None:
 
 def test_every_module_is_on_the_map() -> None:
     lost = [m for m in MODULES if row_of(m) is None]
-    assert not lost, f"add these to the map in docs/design.md: {lost}"
+    assert not lost, (f"not on the map: {lost}. Add a row (part | owns | imports of rlbridge | "
+                      "never imports) to the import map in docs/design.md, below every part "
+                      "that imports it, or put the module in a folder that has a row.")
 
 
 @pytest.mark.parametrize("module", sorted(MODULES))
@@ -92,7 +94,9 @@ def test_imports_run_the_documented_way(module: str) -> None:
         if not any(covers(part, target) for part in row.allowed):
             against.append(target)
     assert not against, (f"{module} imports {against}: its row in docs/design.md "
-                         f"({', '.join(row.parts)}) allows only {list(row.allowed)}")
+                         f"({', '.join(row.parts)}) allows only {list(row.allowed)}. Move the "
+                         "code, or, if the direction is right, list the part in that row "
+                         "(it must be a row below).")
     names = {n.split(".")[0] for n in imported_names(module, MODULES[module])}
     assert "benchmarks" not in names, f"{module} imports the research suites (benchmarks/)"
     forbidden = sorted(names & set(row.never))
