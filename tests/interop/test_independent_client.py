@@ -653,23 +653,24 @@ def test_client_uses_only_the_standard_library() -> None:
 # -- bundles (doc 6.16) ----------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("via", ["udp", "tcp"])
 def test_bundle_delivers_its_good_parts_and_answers_each_bad_one(
-        session: ic.IndependentClient) -> None:
+        session: ic.IndependentClient, via: str) -> None:
     """Doc 6.16: a bad part (unknown channel, wrong value, not a packet) loses only itself."""
     topic = new_topic()
     session.bind(1, "subscribe", topic, F64)
     session.bind(2, "publish", topic, F64)
-    session.send_udp(ic.bundle(
+    session.send(ic.bundle(
         ic.value(2, 0, 0, 1.0),
         ic.value(9, 0, 0, 1.0),  # not bound: UNKNOWN_CHANNEL
         ic.value(2, 1, 0, "x"),  # not a float: BAD_VALUE
         ic.batch(2, 2, [0], [2.0, 3.0]),  # two values, one stamp
         [ic.TAG_HEARTBEAT, 5],  # not a value packet
         ic.batch(2, 4, [0, 0], [4.0, 5.0]),
-    ))
+    ), via)
     assert session.collect(1, 3) == [1.0, 4.0, 5.0]
     errors = {(e.field(1), e.field(3)) for e in
-              (session.recv_tag(ic.TAG_ERROR, via="udp") for _ in range(4))}
+              (session.recv_tag(ic.TAG_ERROR, via=via) for _ in range(4))}
     assert errors == {(ic.UNKNOWN_CHANNEL, 9), (ic.BAD_VALUE, 2), (ic.MALFORMED, 2),
                       (ic.MALFORMED, 5)}
 
