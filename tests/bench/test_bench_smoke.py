@@ -40,16 +40,18 @@ def test_throughput_runs_every_kind_of_row(tmp_path: Path) -> None:
     before = children()
     result = CliRunner().invoke(bench_app, [
         "throughput", "--count", "3000", "--seconds", "1", "--repeats", "1", "--batch", "256",
-        "--only", "udp,zmq,zenoh,rlb-udp-1,rlb-tcp-batch", "--out", str(out)])
+        "--only", "udp,zmq,zenoh,rlb-udp-1,rlb-udp-1-single,rlb-tcp-batch", "--out", str(out)])
     assert result.exit_code == 0, result.output
     rows = _rows(result.output)
-    for label in ("raw UDP socket, 1 hop", "rlbridge UDP, 1 value/datagram",
+    for label in ("raw UDP socket, 1 hop", "rlbridge UDP, write per value, bundles",
+                  "rlbridge UDP, 1 value/datagram (bundles=False)",
                   "rlbridge TCP, write_many(256)"):
         assert float(rows[label][1].replace(",", "")) > 0, rows[label]
     for label in ("ZeroMQ PUB/SUB tcp, 1 hop", "Zenoh peer tcp, 1 hop"):
         assert rows[label][1].startswith("skipped: ") or float(rows[label][1].replace(",", ""))
     assert "Targets:" in result.output
-    assert re.search(r"rlbridge UDP, 1 value/datagram: .* x the raw UDP loop", result.output)
+    assert re.search(r"rlbridge UDP, write per value, bundles: .* x the raw UDP loop",
+                     result.output)
     text = out.read_text()
     assert text.startswith("# Benchmarks\n\nhand-written text\n")
     assert text.count("<!-- bench:throughput begin -->") == 1
