@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from conftest import env_for
 from rlbridge.csp.bridge import Bridge
 from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
 
@@ -47,12 +48,15 @@ POSE = {"position": {"x": 1.0, "y": 2.0, "z": 3.0},
 
 
 class CliServer:
-    """``rlbridge serve --adapter ros2 --port 0`` in a subprocess; its stderr kept in a list."""
+    """``rlbridge serve --adapter ros2 --port 0`` in a subprocess; its stderr kept in a list.
 
-    def __init__(self, node_name: str) -> None:
-        script = shutil.which("rlbridge", path=str(Path(sys.executable).parent))
-        command = [script] if script else [sys.executable, "-m", "rlbridge.cli"]
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    ``python`` picks the interpreter (and so the rclpy) the server runs on.
+    """
+
+    def __init__(self, node_name: str, python: str = sys.executable) -> None:
+        script = shutil.which("rlbridge", path=str(Path(python).parent))
+        command = [script] if script else [python, "-m", "rlbridge.cli"]
+        env = {**env_for(python), "PYTHONUNBUFFERED": "1"}
         env.pop("PYTHONWARNINGS", None)
         self.proc = subprocess.Popen(
             [*command, "--log-level", "info", "serve", "--port", "0", "--adapter", "ros2",
