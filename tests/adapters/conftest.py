@@ -8,7 +8,9 @@ Every ROS 2 test depends on :func:`ros_env`, which (for the whole session) sets
   or CI next to a developer) do not see each other's topics; ``RLBRIDGE_TEST_ROS_DOMAIN_ID``
   picks it instead (scripts/test.sh gives each of its ROS runs its own);
 
-and clears ``ROS_STATIC_PEERS`` so no configured peer is contacted. ``ROS_LOG_DIR`` points into
+and clears ``ROS_STATIC_PEERS`` so no configured peer is contacted. With
+``RLBRIDGE_TEST_REQUIRE_ROS2=1`` (scripts/test.sh) a missing rclpy stops the run instead of
+skipping the ROS 2 tests. ``ROS_LOG_DIR`` points into
 pytest's temporary directory: rcl opens a log file per context start, which would otherwise pile
 up in ``~/.ros/log``. rclpy reads these when a
 context is initialised, so they must be set before any adapter or peer process starts; peer
@@ -18,6 +20,7 @@ between two runs cannot mix their results.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -32,6 +35,11 @@ from typing import Any
 import pytest
 
 PEER_SCRIPT = Path(__file__).with_name("ros2_peer.py")
+
+REQUIRE_ROS2 = os.environ.get("RLBRIDGE_TEST_REQUIRE_ROS2") == "1"
+if REQUIRE_ROS2 and importlib.util.find_spec("rclpy") is None:
+    # scripts/test.sh installed rclpy: without it the ROS 2 tests would skip, and pass unseen.
+    raise pytest.UsageError("RLBRIDGE_TEST_REQUIRE_ROS2=1 but this Python has no rclpy")
 
 
 def env_for(python: str) -> dict[str, str]:
