@@ -16,19 +16,18 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
 
 from conftest import env_for
+from localhost import rlbridge_command
 from rlbridge.csp.bridge import Bridge
 from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
 
@@ -54,8 +53,7 @@ class CliServer:
     """
 
     def __init__(self, node_name: str, python: str = sys.executable) -> None:
-        script = shutil.which("rlbridge", path=str(Path(python).parent))
-        command = [script] if script else [python, "-m", "rlbridge.cli"]
+        command = rlbridge_command(python)
         env = {**env_for(python), "PYTHONUNBUFFERED": "1"}
         env.pop("PYTHONWARNINGS", None)
         self.proc = subprocess.Popen(
