@@ -100,24 +100,21 @@ for version in "${VERSIONS[@]}"; do
 done
 
 jobs_max=${RLBRIDGE_MATRIX_JOBS:-2}
-domain=${RLBRIDGE_TEST_ROS_DOMAIN_BASE:-}
+# ROS 2 legs running at once get distinct domain ids: base, base+1, ... (at most 8 legs).
+domain=${RLBRIDGE_TEST_ROS_DOMAIN_BASE:-$((1 + $$ % 90))}
 start=$SECONDS
 echo "matrix: ${#legs[@]} legs, $jobs_max at a time, logs in $LOGS/"
 for leg in "${legs[@]}"; do
   read -r name kind version <<<"$leg"
   while [ "$(jobs -rp | wc -l)" -ge "$jobs_max" ]; do wait -n || true; done
-  leg_env=()
-  if [ -n "$domain" ]; then  # ROS 2 runs at once get distinct domains (a developer's choice)
-    leg_env=(RLBRIDGE_TEST_ROS_DOMAIN_ID="$domain")
-    domain=$((domain + 1))
-  fi
   {
     set +e
     t0=$SECONDS
-    env "${leg_env[@]}" bash "$0" --leg "$kind" "$version" "${python_of[$version]}" \
-      >"$LOGS/$name.log" 2>&1 </dev/null
+    RLBRIDGE_TEST_ROS_DOMAIN_ID=$domain bash "$0" --leg "$kind" "$version" \
+      "${python_of[$version]}" >"$LOGS/$name.log" 2>&1 </dev/null
     echo "$? $((SECONDS - t0))" >"$LOGS/$name.rc"
   } &
+  domain=$((domain + 1))
 done
 wait
 
