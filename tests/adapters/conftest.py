@@ -36,7 +36,7 @@ PEER_SCRIPT = Path(__file__).with_name("ros2_peer.py")
 @pytest.fixture(scope="session")
 def ros_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
     """Scope ROS 2 discovery to this machine and this run; yields the domain id."""
-    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge[ros2]')")
+    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')")
     domain_id = 1 + os.getpid() % 100
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("ROS_LOG_DIR", str(tmp_path_factory.mktemp("ros_log")))

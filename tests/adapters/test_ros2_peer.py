@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 
 ros2 = pytest.importorskip(
     "rlbridge.adapters.ros2",
-    reason="rclpy is not installed (pip install 'rlbridge[ros2]')",
+    reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')",
     exc_type=ImportError,
 )
 

@@ -2,7 +2,7 @@
 
 matplotlib is imported here, lazily, with the non-interactive Agg backend selected on the figure
 itself (no ``matplotlib.use``, no pyplot state machine), so writing a plot needs no display and
-changes nothing global. matplotlib is an optional dependency (``pip install 'rlbridge[plot]'``);
+changes nothing global. matplotlib is an optional dependency (``pip install 'rlbridge-sdk[plot]'``);
 without it :func:`write_plot` raises :class:`PlotUnavailable` with that advice.
 """
 
@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from rlbridge._version import pip_install
 from rlbridge.demo.metrics import MAX_FRAME_GAP, TrackingMetrics, errors
 from rlbridge.demo.monitor import TraceSnapshot
 from rlbridge.demo.topics import AXES, Diagnostics
@@ -44,7 +45,7 @@ def write_plot(snap: TraceSnapshot, metrics: TrackingMetrics, path: Path,
         from matplotlib.patches import Patch
     except ImportError as exc:
         raise PlotUnavailable(
-            f"the plot needs matplotlib ({exc}): pip install 'rlbridge[plot]'") from None
+            f"the plot needs matplotlib ({exc}): {pip_install('plot')}") from None
     target = resolve_path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
 
