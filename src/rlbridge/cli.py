@@ -5,10 +5,8 @@ from __future__ import annotations
 import functools
 import itertools
 import json
-import logging
 import math
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from typing import Annotated, Any, TypeVar
@@ -16,6 +14,13 @@ from typing import Annotated, Any, TypeVar
 import typer
 
 from rlbridge._version import __version__
+from rlbridge.cli_options import (
+    LOG_LEVEL_HELP,
+    check_log_level,
+    configure_logging,
+    fail,
+    option,
+)
 
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
@@ -29,17 +34,13 @@ app.add_typer(topic_app, name="topic")
 
 F = TypeVar("F", bound=Callable[..., Any])
 
-Host = Annotated[str, typer.Option("--host", "-H", help="Bridge server address.")]
-Port = Annotated[int, typer.Option("--port", "-p", help="Bridge server port.")]
-Field = Annotated[str, typer.Option("--field", "-f",
-                                    help="Field path ('data', 'linear.x'); '' = whole message.")]
-TransportOpt = Annotated[str, typer.Option("--transport", "-t", help="udp or tcp.")]
-
-
-def fail(message: str, code: int = 1) -> typer.Exit:
-    """Print one line on stderr and exit non-zero: the CLI's only way to report an error."""
-    typer.echo(f"rlbridge: error: {message}", err=True)
-    return typer.Exit(code)
+Host = Annotated[str, option("--host", "Bridge server address.")]
+Port = Annotated[int, option("--port", "Bridge server port.")]
+Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
+TransportOpt = Annotated[str, option("--transport", "udp or tcp.")]
+LogLevel = Annotated[str | None, typer.Option(
+    "--log-level", callback=check_log_level, show_default=False,
+    help=f"{LOG_LEVEL_HELP} [default: warning; serve: info]")]
 
 
 def one_line_errors(fn: F) -> F:
@@ -47,11 +48,14 @@ def one_line_errors(fn: F) -> F:
     from rlbridge.adapters import AdapterUnavailable, BindingError
     from rlbridge.server import ServerError
     from rlbridge.wire import RlbridgeError
+    from rlbridge.wire.errors import RemoteError
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
+        except RemoteError as exc:  # the server's reason, without the protocol's code name
+            raise fail(exc.reason) from None
         except (RlbridgeError, ServerError, AdapterUnavailable) as exc:
             raise fail(str(exc)) from None
         except BindingError as exc:
@@ -80,22 +84,23 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def main_options(
+    ctx: typer.Context,
     version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                           help="Print the version and exit.")] = False,
-    log_level: Annotated[str, typer.Option("--log-level", help="debug, info, warning, error.")]
-    = "warning",
+    log_level: LogLevel = None,
 ) -> None:
     """rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP."""
-    logging.basicConfig(level=log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    ctx.obj = {"log_level": log_level}
+    configure_logging(log_level or "warning")
 
 
 @app.command()
 @one_line_errors
 def serve(
-    host: Annotated[str, typer.Option(help="Address to bind (0.0.0.0 for all interfaces).")]
+    ctx: typer.Context,
+    host: Annotated[str, option("--host", "Address to bind (0.0.0.0 for all interfaces).")]
     = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="TCP and UDP port (0: any free port).")] = 7411,
+    port: Annotated[int, option("--port", "TCP and UDP port (0: any free port).")] = 7411,
     tcp: Annotated[bool, typer.Option("--tcp/--no-tcp", help="Accept TCP clients.")] = True,
     udp: Annotated[bool, typer.Option("--udp/--no-udp", help="Accept UDP clients.")] = True,
     nodelay: Annotated[bool, typer.Option(help="Disable Nagle's algorithm (TCP_NODELAY).")]
@@ -122,10 +127,19 @@ def serve(
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
     metrics_port: Annotated[int | None, typer.Option(
         help="Serve Prometheus metrics at http://HOST:PORT/metrics (default: off).")] = None,
+    log_level: LogLevel = None,
 ) -> None:
-    """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md)."""
+    """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md).
+
+    It logs one line when it listens (address, ports, adapter, authentication) and one when
+    it stops, and, at most once per 10 s per kind, what clients got wrong (a wrong key, a
+    malformed packet, a refused channel). Exit status 0 after a clean stop, 1 if it cannot
+    start.
+    """
+    configure_logging(log_level or (ctx.obj or {}).get("log_level") or "info")
     from pydantic import ValidationError
 
+    from rlbridge.cli_options import config_error
     from rlbridge.server import Server, ServerConfig
 
     try:
@@ -137,9 +151,7 @@ def serve(
                               max_packet=max_packet,
                               metrics_port=metrics_port)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "config"
-        raise fail(f"{where}: {first['msg']}", 2) from None
+        raise fail(config_error(exc), 2) from None
     Server(config).run()
 
 
@@ -164,7 +176,13 @@ def topic_pub(
     host: Host = "127.0.0.1",
     port: Port = 7411,
 ) -> None:
-    """Publish VALUE on TOPIC through the bridge."""
+    """Publish VALUE on TOPIC through the bridge.
+
+    Exits 0 only once the server has counted every value; a value it refuses (not the
+    channel's type, over its --max-rate) or a datagram that never arrives makes it exit 1,
+    saying how many of how many the server took.
+    """
+    from rlbridge.cli_delivery import confirm_delivery
     from rlbridge.csp.bridge import Bridge
 
     parsed = _parse_value(value)
@@ -174,10 +192,14 @@ def topic_pub(
         period = 1.0 / rate if rate > 0 else 0.0
         start = time.monotonic()
         for i in range(n):
-            out.write(parsed)
+            try:
+                out.write(parsed)
+            except TypeError as exc:  # the SDK checks the value against the field's type
+                raise fail(str(exc), 2) from None
             if i + 1 < n:
                 time.sleep(max(0.0, start + (i + 1) * period - time.monotonic()))
         bridge.send(wait=True)
+        confirm_delivery(bridge, out, n)
     typer.echo(f"published {n} message(s) on {topic}")
 
 
@@ -246,7 +268,10 @@ def topic_hz(
     host: Host = "127.0.0.1",
     port: Port = 7411,
 ) -> None:
-    """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second)."""
+    """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
+
+    With --duration, exits 1 if no value arrived in that time (like echo's --timeout).
+    """
     from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.errors import ChannelClosed
 
@@ -272,6 +297,8 @@ def topic_hz(
                 next_report += 1.0
                 typer.echo(format_rate(arrivals))
         typer.echo(format_rate(arrivals))
+        if not arrivals:
+            raise fail(f"no value on {topic} within {duration:g} s")
 
 
 def format_rate(arrivals: list[float]) -> str:
@@ -291,7 +318,7 @@ def format_rate(arrivals: list[float]) -> str:
 def topic_list(
     host: Host = "127.0.0.1",
     port: Port = 7411,
-    show_types: Annotated[bool, typer.Option("--show-types", "-t", help="Print types too.")]
+    show_types: Annotated[bool, option("--show-types", "Print types too.")]
     = False,
 ) -> None:
     """List the topics the server's middleware knows."""

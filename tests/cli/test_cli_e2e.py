@@ -169,7 +169,17 @@ def test_port_in_use(cli: Any, free_port: Callable[[], int]) -> None:
         holder.listen()
         port = holder.getsockname()[1]
         result = cli.run("serve", "--port", str(port))
-    assert_one_line_error(result, f"cannot listen on 127.0.0.1:{port}", "in use")
+    assert_one_line_error(result, f"cannot listen on 127.0.0.1 TCP port {port}: address "
+                          "already in use", "choose another --port")
+
+
+def test_udp_port_in_use_says_udp(cli: Any) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as holder:
+        holder.bind(("127.0.0.1", 0))
+        port = holder.getsockname()[1]
+        result = cli.run("serve", "--port", str(port), "--no-tcp")
+    assert_one_line_error(result, f"cannot listen on 127.0.0.1 UDP port {port}: address "
+                          "already in use", "choose another --port")
 
 
 def test_pub_to_an_unreachable_server(cli: Any, free_port: Callable[[], int]) -> None:
@@ -211,4 +221,4 @@ def test_serve_without_any_transport(cli: Any, free_port: Callable[[], int]) -> 
 def test_serve_with_a_bad_watchdog(cli: Any, free_port: Callable[[], int]) -> None:
     result = cli.run("serve", "--heartbeat-ms", "500", "--timeout-ms", "400",
                      "--port", str(free_port()))
-    assert_one_line_error(result, "timeout_ms must be longer than heartbeat_ms")
+    assert_one_line_error(result, "--timeout-ms must be longer than --heartbeat-ms")

@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 
 import typer
 
+from rlbridge.cli_options import fail, option
 from rlbridge.demo.plot import DEFAULT_NAME
 
 ROLES = ("all", "bridge", "controller")
@@ -20,7 +21,7 @@ DEFAULT_PORT = 7411
 
 def register_demo(app: typer.Typer) -> None:
     """Add the ``demo`` command to the main app."""
-    from rlbridge.cli import fail, one_line_errors
+    from rlbridge.cli import one_line_errors
 
     @app.command()
     @one_line_errors
@@ -31,11 +32,11 @@ def register_demo(app: typer.Typer) -> None:
         role: Annotated[str, typer.Option(
             help="all: both sides in one process; bridge: server + vision node (middleware "
                  "side); controller: the embedded loop controller.")] = "all",
-        host: Annotated[str, typer.Option(
-            "--host", "-H", help="bridge/all: address to bind; controller: server to reach.")]
+        host: Annotated[str, option(
+            "--host", "bridge/all: address to bind; controller: server to reach.")]
         = "127.0.0.1",
-        port: Annotated[int | None, typer.Option(
-            "--port", "-p", help=f"Server port (all: any free port; else {DEFAULT_PORT}).")]
+        port: Annotated[int | None, option(
+            "--port", f"Server port (all: any free port; else {DEFAULT_PORT}).")]
         = None,
         adapter: Annotated[str, typer.Option(
             help="Middleware of the bridge side: inproc or ros2.")] = "inproc",

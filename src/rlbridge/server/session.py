@@ -126,8 +126,16 @@ class Session:
         """Tell the client what was wrong with what it sent; the session goes on."""
         self.errors_sent += 1
         self.ctx.count("errors_sent")
-        log.debug("session %d (%s): %s: %s", self.id, self.name, code.name, reason)
+        self.ctx.notices.warn(code.name.lower().replace("_", " "),
+                              f"session {self.id} ({self.name}): {reason}")
         self.send_control(Error(int(code), reason, channel), via)
+
+    def _refuse_channel(self, channel: int, code: ErrorCode, reason: str,
+                        via: PacketSink | None) -> None:
+        """Answer a topic-connect with its refusal; the operator hears of it (rate-limited)."""
+        self.ctx.notices.warn("refused channel", f"session {self.id} ({self.name}): channel "
+                              f"{channel} refused: {reason}")
+        self.send_control(TopicError(channel, int(code), reason), via)
 
     # -- packets ---------------------------------------------------------------------------
     def handle(self, packet: Packet, via: str) -> None:
@@ -167,8 +175,7 @@ class Session:
         if binding is not None:
             binding.malformed += 1
         if error.tag == TOPIC_CONNECT_TAG and error.channel is not None:
-            self.send_control(TopicError(error.channel, int(ErrorCode.MALFORMED), error.reason),
-                              via)
+            self._refuse_channel(error.channel, ErrorCode.MALFORMED, error.reason, via)
             return
         self.error(ErrorCode.MALFORMED, error.reason, error.channel, via=via)
 
@@ -224,13 +231,13 @@ class Session:
             return
         refuse = refusal(self, req)
         if refuse is not None:
-            self.send_control(TopicError(ch, int(refuse[0]), refuse[1]), via)
+            self._refuse_channel(ch, refuse[0], refuse[1], via)
             return
         try:
             binding = bind(self, req)
         except BindingError as exc:
             code = ErrorCode.__members__.get(exc.code, ErrorCode.INTERNAL)
-            self.send_control(TopicError(ch, int(code), exc.reason), via)
+            self._refuse_channel(ch, code, exc.reason, via)
             return
         if isinstance(binding, Inbound):
             self.inbound[ch] = binding

@@ -153,7 +153,8 @@ class TcpConnection(asyncio.Protocol):
         Before a session exists the answer is a ConnectError ("no session"); inside a session
         it is an Error with the code, then a Disconnect, so the client's SDK reports the reason.
         """
-        log.warning("closing TCP connection from %s: %s", self._peer, reason)
+        self._registry.ctx.notices.warn("malformed",
+                                        f"closing TCP connection from {self._peer}: {reason}")
         if self._sink is None or self._transport is None:
             return
         if self._session is None:

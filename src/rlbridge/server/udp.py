@@ -99,13 +99,14 @@ class UdpEndpoint(asyncio.DatagramProtocol):
                 _flags, token, packet = codec.decode_datagram(data)
         except DatagramRejected as exc:
             ctx.count(f"udp_{exc.kind}")  # forged, replayed or unsealed: never answered
-            log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            ctx.notices.warn("rejected datagram", f"dropped a UDP datagram from {addr}: "
+                             f"{exc.reason}")
             return
         except RemoteProtocolError as exc:
             if plain:
                 exc.token = token  # as decode_datagram sets it
             ctx.count("udp_malformed")
-            log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            ctx.notices.warn("malformed", f"malformed UDP datagram from {addr}: {exc.reason}")
             # A live token (verified, if the session has keys) proves the sender is the
             # client: tell it what was wrong.
             if session is not None and session.udp is not None:
