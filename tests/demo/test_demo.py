@@ -205,7 +205,7 @@ def scenarios(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Processes]:
     tmp = procs.tmp
     try:
         procs.start("demo", [*_cli(), "demo", "--seconds", str(DEMO_SECONDS), "--no-dashboard",
-                             "--plot", str(tmp / "plot.png"), "--report",
+                             "--plot", f"{tmp / 'plots'}/", "--report",
                              str(tmp / "report.json")], _env())
         if HAS_RCLPY:
             port = str(_free_port())
@@ -253,8 +253,10 @@ def test_demo_command_tracks_reports_states_and_writes_the_plot(scenarios: Proce
         assert tracking["median_mrad"] < MEDIAN_BOUND * 1e3, result["tracking"]
         assert tracking["rms_mrad"] < RMS_BOUND * 1e3, result["tracking"]
 
-    plot = tmp / "plot.png"
+    # "--plot DIR/" for a DIR that did not exist: created, the default name inside it.
+    plot = tmp / "plots" / "pan_tilt.png"
     assert result["plot"] == str(plot)
+    assert not (tmp / "plots.png").exists()
     data = plot.read_bytes()
     assert data.startswith(b"\x89PNG\r\n\x1a\n")
     assert len(data) > 20_000

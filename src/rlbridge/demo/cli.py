@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 import typer
 
 from rlbridge.cli_options import fail, option
-from rlbridge.demo.plot import DEFAULT_NAME
+from rlbridge.demo.plot import DEFAULT_NAME, resolve_path
 
 ROLES = ("all", "bridge", "controller")
 DEFAULT_PORT = 7411
@@ -43,9 +43,10 @@ def register_demo(app: typer.Typer) -> None:
         dashboard: Annotated[bool, typer.Option(
             "--dashboard/--no-dashboard",
             help="Live terminal view (only on a terminal; else one line a second).")] = True,
-        plot: Annotated[Path | None, typer.Option(
-            help="PNG of set-points, angles and tracking error; a directory gets "
-                 f"DIR/{DEFAULT_NAME} [default: ./{DEFAULT_NAME}].", show_default=False)]
+        plot: Annotated[str | None, typer.Option(
+            help="PNG of set-points, angles and tracking error; a directory (out/, or a name "
+                 f"without an extension) gets DIR/{DEFAULT_NAME}, created if missing "
+                 f"[default: ./{DEFAULT_NAME}].", show_default=False)]
         = None,
         no_plot: Annotated[bool, typer.Option("--no-plot", help="Do not write the plot.")]
         = False,
@@ -92,7 +93,7 @@ def register_demo(app: typer.Typer) -> None:
             namespace=namespace,
             dropout=Dropout(dropout_at, dropout_for),
             dashboard=dashboard and sys.stdout.isatty(),
-            plot=None if no_plot or role == "controller" else (plot or Path(DEFAULT_NAME)),
+            plot=None if no_plot or role == "controller" else resolve_path(plot or DEFAULT_NAME),
             plot_required=plot is not None,
             report=report,
             connect_timeout=connect_timeout,

@@ -29,11 +29,18 @@ class PlotUnavailable(RuntimeError):
     """matplotlib is not installed."""
 
 
-def resolve_path(path: Path) -> Path:
-    """A directory (existing, or written with a trailing slash) gets ``pan_tilt.png`` inside."""
-    if path.is_dir() or str(path).endswith(("/", "\\")):
-        return path / DEFAULT_NAME
-    return path
+def resolve_path(path: str | Path) -> Path:
+    """Where ``--plot PATH`` writes: a directory gets ``pan_tilt.png`` inside.
+
+    A directory is one that exists, a name written with a trailing slash (``out/``: give the
+    string as typed, ``Path`` drops the slash), or a name without an extension (``out``);
+    :func:`write_plot` creates it. Anything else is the file itself.
+    """
+    text = str(path)
+    target = Path(text)
+    if target.is_dir() or text.endswith(("/", "\\")) or not target.suffix:
+        return target / DEFAULT_NAME
+    return target
 
 
 def write_plot(snap: TraceSnapshot, metrics: TrackingMetrics, path: Path,
