@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import multiprocessing
 import platform
+import signal
 from collections.abc import Callable, Sequence
 from multiprocessing import resource_tracker, shared_memory
 from types import TracebackType
@@ -261,6 +262,10 @@ class ShmLink:
 
 
 def _hrt_main(name: str, target: Callable[..., object], args: tuple[Any, ...]) -> None:
+    # Ctrl-C reaches every process of the terminal's group, this one too. Its owner stops it
+    # (``link.request_stop``, then terminate): a KeyboardInterrupt here would only cut the
+    # loop short and print a second traceback, the owner's being the one that matters.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     with ShmLink.attach(name) as link:
         target(link, *args)
 
