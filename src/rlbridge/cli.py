@@ -8,19 +8,13 @@ import json
 import math
 import statistics
 import time
-from collections.abc import Callable
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 import typer
 
 from rlbridge._version import __version__
-from rlbridge.cli_options import (
-    LOG_LEVEL_HELP,
-    check_log_level,
-    configure_logging,
-    fail,
-    option,
-)
+from rlbridge.cli_errors import fail, one_line_errors
+from rlbridge.cli_options import LOG_LEVEL_HELP, check_log_level, configure_logging, option
 
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
@@ -32,8 +26,6 @@ topic_app = typer.Typer(help="Publish, echo, measure and list topics through a r
                         no_args_is_help=True)
 app.add_typer(topic_app, name="topic")
 
-F = TypeVar("F", bound=Callable[..., Any])
-
 Host = Annotated[str, option("--host", "Bridge server address.")]
 Port = Annotated[int, option("--port", "Bridge server port.")]
 Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
@@ -41,33 +33,6 @@ TransportOpt = Annotated[str, option("--transport", "udp or tcp.")]
 LogLevel = Annotated[str | None, typer.Option(
     "--log-level", callback=check_log_level, show_default=False,
     help=f"{LOG_LEVEL_HELP} [default: warning; serve: info]")]
-
-
-def one_line_errors(fn: F) -> F:
-    """Known failures become one line on stderr; only real bugs keep their traceback."""
-    from rlbridge.adapters import AdapterUnavailable, BindingError
-    from rlbridge.server import ServerError
-    from rlbridge.wire import RlbridgeError
-    from rlbridge.wire.errors import RemoteError
-
-    @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        try:
-            return fn(*args, **kwargs)
-        except RemoteError as exc:  # the server's reason, without the protocol's code name
-            raise fail(exc.reason) from None
-        except (RlbridgeError, ServerError, AdapterUnavailable) as exc:
-            raise fail(str(exc)) from None
-        except BindingError as exc:
-            raise fail(exc.reason) from None
-        except OSError as exc:
-            raise fail(exc.strerror or str(exc)) from None
-        except ValueError as exc:
-            raise fail(str(exc)) from None
-        except KeyboardInterrupt:
-            raise typer.Exit(130) from None
-
-    return wrapper  # type: ignore[return-value]
 
 
 def _transport(value: str) -> str:

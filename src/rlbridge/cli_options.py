@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import typer
 
+from rlbridge.cli_errors import fail
+
 if TYPE_CHECKING:
     from pydantic import ValidationError
 
@@ -35,15 +37,6 @@ def option(long: str, help: str, **kwargs: Any) -> Any:
     """``typer.Option(long, SHORT_OPTIONS[long], help=...)``; the short one only if it has one."""
     short = SHORT_OPTIONS.get(long)
     return typer.Option(long, *([short] if short else []), help=help, **kwargs)
-
-
-def fail(message: str, code: int = 1) -> typer.Exit:
-    """Print one line on stderr and exit non-zero: the CLI's only way to report an error.
-
-    Code 1: the command could not do what was asked; 2: the command line itself is wrong.
-    """
-    typer.echo(f"rlbridge: error: {message}", err=True)
-    return typer.Exit(code)
 
 
 def check_log_level(value: str | None) -> str | None:

@@ -48,14 +48,17 @@ def test_readme_pattern_example_runs_as_a_script(tmp_path: Path) -> None:
 
 def _group_alive(pgid: int) -> list[str]:
     """Processes of group ``pgid`` that still run (zombies wait for init: they do not run)."""
-    ps = subprocess.run(["ps", "-ww", "-o", "pid=,stat=,args=", "-g", str(pgid)], capture_output=True,
-                        text=True, check=False, timeout=30)
+    ps = subprocess.run(["ps", "-ww", "-o", "pid=,stat=,args=", "-g", str(pgid)],
+                        capture_output=True, text=True, check=False, timeout=30)
     return [line for line in ps.stdout.splitlines() if line.split()[1][0] != "Z"]
 
 
 @pytest.mark.skipif(not ShmLink.supported(), reason="the default layout needs x86")
-def test_ctrl_c_on_the_readme_pattern_example_stops_quietly_with_130(tmp_path: Path) -> None:
-    """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it."""
+@pytest.mark.parametrize("after", [0.0, 1.0])
+def test_ctrl_c_on_the_readme_pattern_example_stops_quietly_with_130(
+        tmp_path: Path, after: float) -> None:
+    """A real SIGINT to the whole process group, as a terminal's Ctrl-C sends it: while the
+    loop process starts (``after`` 0) and while it runs."""
     code = _pattern_example()
     script = tmp_path / "tracker.py"
     with ServerThread(ServerConfig(port=0)) as srv:
@@ -73,6 +76,7 @@ def test_ctrl_c_on_the_readme_pattern_example_stops_quietly_with_130(tmp_path: P
             deadline = time.monotonic() + 60
             while not loop_is_running(proc.pid) and time.monotonic() < deadline:
                 time.sleep(0.1)
+            time.sleep(after)
             os.killpg(proc.pid, signal.SIGINT)
             out, err = proc.communicate(timeout=60)
         finally:

@@ -12,7 +12,8 @@ from typing import Annotated, Literal
 
 import typer
 
-from rlbridge.cli_options import fail, option
+from rlbridge.cli_errors import fail, one_line_errors
+from rlbridge.cli_options import option
 from rlbridge.demo.plot import DEFAULT_NAME, resolve_path
 
 ROLES = ("all", "bridge", "controller")
@@ -21,7 +22,6 @@ DEFAULT_PORT = 7411
 
 def register_demo(app: typer.Typer) -> None:
     """Add the ``demo`` command to the main app."""
-    from rlbridge.cli import one_line_errors
 
     @app.command()
     @one_line_errors
