@@ -31,6 +31,7 @@ import pytest
 import yaml
 
 from localhost import rlbridge_command
+from rlbridge.demo.vision import Lissajous
 
 REPO = Path(__file__).resolve().parents[2]
 COMPOSE = REPO / "docker-compose.yml"
@@ -194,7 +195,8 @@ def test_compose_services_run_locally_track_and_stop_in_order(
     assert report["diagnostics"]["link"] == "connected"
     assert sum(report["angles_received"].values()) > 100
     assert report["tracking"]["pan"]["samples"] >= 20
-    assert report["tracking"]["pan"]["median_mrad"] < 20
+    # It tracks: well under the error of a camera that does not move (test_demo.py says why).
+    assert report["tracking"]["pan"]["rms_mrad"] < 0.5 * Lissajous().pan_amplitude / 2**0.5 * 1e3
     assert (tmp_path / "pan_tilt.png").read_bytes().startswith(b"\x89PNG")
 
     # `docker compose start bridge`: the controller, never restarted, reconnects and tracks.
