@@ -311,6 +311,26 @@ def stats(
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 
 
+@app.command()
+@one_line_errors
+def ping(
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+    transport: TransportOpt = "tcp",
+    timeout: Annotated[float, typer.Option(help="Seconds to wait for the answer.")] = 2.0,
+) -> None:
+    """Exit 0 if a bridge server answers at HOST:PORT, 1 if not: a health probe.
+
+    Any answer counts (a session, a key challenge, a refusal): the server is up. No key is
+    needed and no session stays open.
+    """
+    from rlbridge.ping import ping as probe
+
+    answer = probe(host, port, _transport(transport), timeout)
+    typer.echo(f"rlbridge server at {host}:{port} ({answer.transport.upper()}) "
+               f"{answer.said} in {answer.seconds * 1e3:.1f} ms")
+
+
 @functools.cache
 def build_app() -> typer.Typer:
     """The complete ``rlbridge`` app: :data:`app` with the ``bench``, ``demo`` and ``netem``

@@ -13,6 +13,7 @@ import logging
 import os
 from collections.abc import Callable
 
+from rlbridge.server.notices import PROBE_NAME
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.wire import (
@@ -83,6 +84,8 @@ class Gate:
 
     def _refuse(self, reason: str, hello: Hello) -> ConnectError:
         self._registry.ctx.count("auth_failed")
+        if hello.name == PROBE_NAME and not hello.auth:
+            return ConnectError(int(ErrorCode.AUTH_FAILED), reason)  # a health probe
         self._registry.ctx.notices.warn(
             "authentication", f"authentication failed for client {hello.name!r}: {reason}")
         return ConnectError(int(ErrorCode.AUTH_FAILED), reason)

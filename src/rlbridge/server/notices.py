@@ -18,6 +18,9 @@ from collections.abc import Callable
 
 #: Seconds between two warnings of the same kind.
 NOTICE_INTERVAL_S = 10.0
+#: The client name of ``rlbridge ping``: a health probe without a key, refused by a server
+#: that requires one, is not worth a warning every few seconds.
+PROBE_NAME = "rlbridge-ping"
 
 
 class Notices:
@@ -45,6 +48,11 @@ class Notices:
                 if held else "")
         self._log.warning("%s%s", message, more)
         return True
+
+
+def session_level(name: str) -> int:
+    """INFO for a session's opening and closing; DEBUG for a health probe's (every few s)."""
+    return logging.DEBUG if name == PROBE_NAME else logging.INFO
 
 
 def listening_line(host: str, port: int, tcp: bool, udp: bool, adapter: str,

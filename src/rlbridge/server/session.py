@@ -23,6 +23,7 @@ from rlbridge.adapters.base import BindingError
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import bind, refusal
 from rlbridge.server.context import ServerContext
+from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
@@ -277,7 +278,8 @@ class Session:
         self.outbound.clear()
         if self._close_tcp is not None:
             self._close_tcp()
-        log.info("session %d (%s) closed: %s", self.id, self.name, reason)
+        log.log(session_level(self.name), "session %d (%s) closed: %s", self.id, self.name,
+                reason)
         self._on_closed(self)
 
     # -- counters --------------------------------------------------------------------------

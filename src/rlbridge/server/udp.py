@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import cast
 
 from rlbridge.server.gate import Gate
+from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
@@ -188,7 +189,8 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             self._send(result, addr)
             return
         self._hello_sessions[(addr, hello.name)] = (result.id, hello)
-        log.info("session %d (%s) opened over UDP from %s", result.id, hello.name, addr)
+        log.log(session_level(hello.name), "session %d (%s) opened over UDP from %s", result.id,
+                hello.name, addr)
         self._acknowledge(result, addr)
 
     def _acknowledge(self, session: Session, addr: tuple[str, int]) -> None:
