@@ -14,7 +14,13 @@ import typer
 
 from rlbridge._version import __version__
 from rlbridge.cli_errors import fail, one_line_errors
-from rlbridge.cli_options import LOG_LEVEL_HELP, check_log_level, configure_logging, option
+from rlbridge.cli_options import (
+    LOG_LEVEL_HELP,
+    check_log_level,
+    check_transport,
+    configure_logging,
+    option,
+)
 
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
@@ -29,7 +35,7 @@ app.add_typer(topic_app, name="topic")
 Host = Annotated[str, option("--host", "Bridge server address.")]
 Port = Annotated[int, option("--port", "Bridge server port.")]
 Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
-TransportOpt = Annotated[str, option("--transport", "udp or tcp.")]
+TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=check_transport)]
 LogLevel = Annotated[str | None, typer.Option(
     "--log-level", callback=check_log_level, show_default=False,
     help=f"{LOG_LEVEL_HELP} [default: warning; serve: info]")]

@@ -45,8 +45,9 @@ def one_line_errors(fn: F) -> F:
             raise fail(str(exc)) from None
         except BindingError as exc:
             raise fail(exc.reason) from None
-        except OSError as exc:
-            raise fail(exc.strerror or str(exc)) from None
+        except OSError as exc:  # a file the user named: say which
+            reason = exc.strerror or str(exc)
+            raise fail(f"{exc.filename}: {reason}" if exc.filename else reason) from None
         except ValueError as exc:
             raise fail(str(exc)) from None
         except KeyboardInterrupt:

@@ -48,6 +48,13 @@ def check_log_level(value: str | None) -> str | None:
     return value.lower()
 
 
+def check_transport(value: str) -> str:
+    """A typer callback: ``udp`` or ``tcp``, checked before the command connects anywhere."""
+    if value not in ("udp", "tcp"):
+        raise fail(f"--transport must be 'udp' or 'tcp', not '{value}'", 2)
+    return value
+
+
 def configure_logging(level: str) -> None:
     """Log to stderr at ``level``; called again by ``serve`` with its own level (force)."""
     logging.basicConfig(level=level.upper(), stream=sys.stderr, format=LOG_FORMAT, force=True)
