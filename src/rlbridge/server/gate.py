@@ -87,5 +87,6 @@ class Gate:
         if hello.name == PROBE_NAME and not hello.auth:
             return ConnectError(int(ErrorCode.AUTH_FAILED), reason)  # a health probe
         self._registry.ctx.notices.warn(
-            "authentication", f"authentication failed for client {hello.name!r}: {reason}")
+            "authentication", f"authentication failed for client {hello.name!r}: "
+            f"{reason.removeprefix('authentication failed: ')}")
         return ConnectError(int(ErrorCode.AUTH_FAILED), reason)
