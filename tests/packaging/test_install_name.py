@@ -40,7 +40,7 @@ def test_no_text_tells_users_to_install_the_wrong_project() -> None:
                and p.name != "test_install_name.py")]
     offenders = [f"{p.relative_to(ROOT)}:{n}: {line.strip()}"
                  for p in files for n, line in enumerate(p.read_text().splitlines(), 1)
-                 if WRONG_NAME.search(line)]
+                 if WRONG_NAME.search(line) and "rlbridge-sdk" not in line]  # else: a warning
     assert offenders == []
 
 
