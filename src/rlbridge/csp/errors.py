@@ -43,7 +43,8 @@ class NoValueYet(ChannelError, LookupError):
         super().__init__(
             channel,
             f"non-blocking channel {channel!r} has never received a value and has no "
-            "initial value; pass initial=... to Channel() or write before reading",
+            "initial value: give it one where it is made, bridge.subscribe(..., initial=0.0) "
+            "(or Channel(..., initial=...)), or catch NoValueYet until the first value",
         )
 
 

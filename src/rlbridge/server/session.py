@@ -23,6 +23,7 @@ from rlbridge.adapters.base import BindingError
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import bind, refusal
 from rlbridge.server.context import ServerContext
+from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
@@ -126,8 +127,16 @@ class Session:
         """Tell the client what was wrong with what it sent; the session goes on."""
         self.errors_sent += 1
         self.ctx.count("errors_sent")
-        log.debug("session %d (%s): %s: %s", self.id, self.name, code.name, reason)
+        self.ctx.notices.warn(code.name.lower().replace("_", " "),
+                              f"session {self.id} ({self.name}): {reason}")
         self.send_control(Error(int(code), reason, channel), via)
+
+    def _refuse_channel(self, channel: int, code: ErrorCode, reason: str,
+                        via: PacketSink | None) -> None:
+        """Answer a topic-connect with its refusal; the operator hears of it (rate-limited)."""
+        self.ctx.notices.warn("refused channel", f"session {self.id} ({self.name}): channel "
+                              f"{channel} refused: {reason}")
+        self.send_control(TopicError(channel, int(code), reason), via)
 
     # -- packets ---------------------------------------------------------------------------
     def handle(self, packet: Packet, via: str) -> None:
@@ -167,8 +176,7 @@ class Session:
         if binding is not None:
             binding.malformed += 1
         if error.tag == TOPIC_CONNECT_TAG and error.channel is not None:
-            self.send_control(TopicError(error.channel, int(ErrorCode.MALFORMED), error.reason),
-                              via)
+            self._refuse_channel(error.channel, ErrorCode.MALFORMED, error.reason, via)
             return
         self.error(ErrorCode.MALFORMED, error.reason, error.channel, via=via)
 
@@ -224,13 +232,13 @@ class Session:
             return
         refuse = refusal(self, req)
         if refuse is not None:
-            self.send_control(TopicError(ch, int(refuse[0]), refuse[1]), via)
+            self._refuse_channel(ch, refuse[0], refuse[1], via)
             return
         try:
             binding = bind(self, req)
         except BindingError as exc:
             code = ErrorCode.__members__.get(exc.code, ErrorCode.INTERNAL)
-            self.send_control(TopicError(ch, int(code), exc.reason), via)
+            self._refuse_channel(ch, code, exc.reason, via)
             return
         if isinstance(binding, Inbound):
             self.inbound[ch] = binding
@@ -270,7 +278,8 @@ class Session:
         self.outbound.clear()
         if self._close_tcp is not None:
             self._close_tcp()
-        log.info("session %d (%s) closed: %s", self.id, self.name, reason)
+        log.log(session_level(self.name), "session %d (%s) closed: %s", self.id, self.name,
+                reason)
         self._on_closed(self)
 
     # -- counters --------------------------------------------------------------------------

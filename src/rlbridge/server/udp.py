@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import cast
 
 from rlbridge.server.gate import Gate
+from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
@@ -99,13 +100,14 @@ class UdpEndpoint(asyncio.DatagramProtocol):
                 _flags, token, packet = codec.decode_datagram(data)
         except DatagramRejected as exc:
             ctx.count(f"udp_{exc.kind}")  # forged, replayed or unsealed: never answered
-            log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            ctx.notices.warn("rejected datagram", f"dropped a UDP datagram from {addr}: "
+                             f"{exc.reason}")
             return
         except RemoteProtocolError as exc:
             if plain:
                 exc.token = token  # as decode_datagram sets it
             ctx.count("udp_malformed")
-            log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            ctx.notices.warn("malformed", f"malformed UDP datagram from {addr}: {exc.reason}")
             # A live token (verified, if the session has keys) proves the sender is the
             # client: tell it what was wrong.
             if session is not None and session.udp is not None:
@@ -187,7 +189,8 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             self._send(result, addr)
             return
         self._hello_sessions[(addr, hello.name)] = (result.id, hello)
-        log.info("session %d (%s) opened over UDP from %s", result.id, hello.name, addr)
+        log.log(session_level(hello.name), "session %d (%s) opened over UDP from %s", result.id,
+                hello.name, addr)
         self._acknowledge(result, addr)
 
     def _acknowledge(self, session: Session, addr: tuple[str, int]) -> None:
