@@ -33,7 +33,7 @@ from typing import Any
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 ADDRESS = '"192.168.1.10", 7411'
-SERVING = re.compile(r"rlbridge serving on [^ ]+:(\d+) ")
+SERVING = re.compile(r"rlbridge listening on [^ ]+ port (\d+) ")
 TIMEOUT = 30.0
 SETPOINT = 1.0
 
