@@ -17,9 +17,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import msgspec
-
 from rlbridge.adapters.base import BindingError
+from rlbridge.server.admission import ValuesRefused
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import bind, refusal
 from rlbridge.server.context import ServerContext
@@ -122,12 +121,12 @@ class Session:
             sink.send(packet)
 
     def error(self, code: ErrorCode, reason: str, channel: int | None = None,
-              via: PacketSink | None = None) -> None:
+              via: PacketSink | None = None, values: int = 0) -> None:
         """Tell the client what was wrong with what it sent; the session goes on."""
         self.errors_sent += 1
         self.ctx.count("errors_sent")
         log.debug("session %d (%s): %s: %s", self.id, self.name, code.name, reason)
-        self.send_control(Error(int(code), reason, channel), via)
+        self.send_control(Error(int(code), reason, channel, values), via)
 
     # -- packets ---------------------------------------------------------------------------
     def handle(self, packet: Packet, via: str) -> None:
@@ -192,10 +191,11 @@ class Session:
                 binding.on_value(packet)
             else:
                 binding.on_batch(packet)
-        except msgspec.ValidationError as exc:
+        except ValuesRefused as exc:
             self.error(ErrorCode.BAD_VALUE,
                        f"channel {channel} ({binding.spec.msg_type} field "
-                       f"{binding.spec.field or '<whole message>'}): {exc}", channel, via)
+                       f"{binding.spec.field or '<whole message>'}): {exc.reason}", channel, via,
+                       values=exc.count)
 
     def _limit(self, packet: Value | Batch, via: PacketSink | None) -> Value | Batch | None:
         """The values ``--max-rate`` lets through (a batch's first ones); the rest counted."""
@@ -220,7 +220,7 @@ class Session:
         existing = self.inbound.get(ch) or self.outbound.get(ch)
         if existing is not None and existing.request == req:
             # A retransmitted request (its ack was lost on UDP): answer it again.
-            self.send_control(TopicAck(ch, existing.spec.msg_type, existing.spec.default), via)
+            self.send_control(_ack(existing), via)
             return
         refuse = refusal(self, req)
         if refuse is not None:
@@ -239,7 +239,7 @@ class Session:
         spec = binding.spec
         log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
-        self.send_control(TopicAck(ch, spec.msg_type, spec.default), via)
+        self.send_control(_ack(binding), via)
 
     def _close_channel(self, ch: int) -> None:
         binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
@@ -323,3 +323,9 @@ class Session:
             "channels": channels,
         }
 
+
+def _ack(binding: Inbound | Outbound) -> TopicAck:
+    """A binding's TopicAck: a publish channel's carries the schema its values must match."""
+    spec = binding.spec
+    schema = binding.schema if isinstance(binding, Inbound) else None
+    return TopicAck(binding.channel, spec.msg_type, spec.default, schema)

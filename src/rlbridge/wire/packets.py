@@ -91,6 +91,9 @@ class TopicAck(_Packet, tag=5, frozen=True):
     channel: U32
     msg_type: TypeName
     initial: Any = None
+    #: The JSON Schema (draft 2020-12, as a map) of the values the channel accepts, so a
+    #: client can refuse a wrong value where it is written (``None``: not given).
+    schema: dict[str, Any] | None = None
 
 
 class TopicError(_Packet, tag=6, frozen=True):
@@ -157,6 +160,9 @@ class Error(_Packet, tag=12, frozen=True):
     code: U16
     reason: Reason
     channel: U32 | None = None
+    #: ``BAD_VALUE``: how many values of the refused packet were refused (the others were
+    #: published); 0 for every other error. The client counts them in ``health().rejected``.
+    values: U32 = 0
 
 
 class Stats(_Packet, tag=13, frozen=True):
@@ -185,6 +191,10 @@ class AuthProof(_Packet, tag=15, frozen=True):
     proof: Mac
 
 
+# Tags of new packet kinds are allocated per line of work, so that parallel branches never
+# reuse a number (tags are the wire format): 16-19 security (TLS/AEAD/authorization),
+# 20-29 ROS 2 services/actions/parameters, 30-31 value rejection, 32-33 UDP bundles,
+# 34-37 loss feedback and flow control. Add new kinds at the end of the union below.
 Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
     | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
