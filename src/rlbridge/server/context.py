@@ -15,6 +15,7 @@ from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.ledger import Ledger
 from rlbridge.wire import PacketCodec
 
 
@@ -35,6 +36,8 @@ class ServerContext:
     allow: AllowList = field(default_factory=lambda: AllowList(()))
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
+    #: Counters of closed sessions and channels by client and topic (the metrics' labels).
+    ledger: Ledger = field(default_factory=Ledger)
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""

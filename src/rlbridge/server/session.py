@@ -247,7 +247,7 @@ class Session:
         if binding is None:
             self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
-        self._retire(binding.stats())
+        self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
         binding.close()
 
     # -- lifetime --------------------------------------------------------------------------
@@ -261,7 +261,7 @@ class Session:
             self.send_control(Disconnect(code, reason))
         bindings: list[Inbound | Outbound] = [*self.inbound.values(), *self.outbound.values()]
         for binding in bindings:
-            self._retire(binding.stats())
+            self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
             try:
                 binding.close()
             except Exception:  # a middleware failing to release must not stop the others
@@ -292,6 +292,7 @@ class Session:
     def _retire(self, channel: dict[str, Any]) -> None:
         for key in CHANNEL_TOTALS:
             self._retired[key] += channel.get(key, 0)
+        self.ctx.ledger.retire_channel(self.name, channel)
 
     def channel_stats(self) -> dict[str, dict[str, Any]]:
         """One dict per channel id (as a string: JSON keys); other counters go into these."""
