@@ -241,8 +241,7 @@ class OutgoingChannel:
         self._expired = 0
         self._discarded = 0
         self._accept, self._check = UNCHECKED.accept, UNCHECKED.coerce
-        # Refused at ``write`` (WrongValueType); by the server (Error BAD_VALUE, receive thread).
-        self._rejected = self._refused = 0
+        self._rejected = self._refused = 0  # refused at ``write``; by the server
 
     def bound(self, ack: TopicAck) -> None:
         """The server's answer: the type's normalised name, and the schema values must match."""
@@ -250,7 +249,8 @@ class OutgoingChannel:
         check = compile_check(ack.schema)
         self._accept, self._check = check.accept, check.coerce
 
-    def refused(self, count: int) -> None:
+    def refused(self, count: int) -> None:  # receive thread: counted in health().rejected
+        """The server refused ``count`` values of this channel (``Error`` BAD_VALUE)."""
         self._refused += count
 
     def _wrong(self, exc: Mismatch) -> WrongValueType:

@@ -109,6 +109,11 @@ class Session:
         elif self.udp.addr != addr:
             self.udp.addr = addr
 
+    def acknowledged(self) -> None:
+        """The ConnectAck is out: the first heartbeat follows it at once (protocol.md 8.1)."""
+        if not self.closed:
+            self._watchdog.beat()
+
     @property
     def control(self) -> PacketSink | None:
         """Control replies go over TCP when the session has it, else over UDP."""

@@ -195,6 +195,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         sink = session.udp
         assert isinstance(sink, UdpSink)
         sink.send(self._registry.ack(session))
+        session.acknowledged()  # the first heartbeat; none for a retransmitted hello's ack
 
     def _send(self, packet: Packet, addr: tuple[str, int]) -> None:
         assert self._transport is not None
