@@ -116,7 +116,7 @@ def test_a_reconnecting_client_is_one_series_whose_counters_never_go_back(
         client.send(TopicConnect(1, "publish", "/m/r", F64, transport="udp"))
         client.expect(TopicAck)
         client.send(Batch(1, 0, [0] * 3, [1.0, 2.0, 3.0]))
-        wait_until(lambda: client.stats()["session"]["values_in"] == 3, what="3 values in")
+        wait_until(lambda c=client: c.stats()["session"]["values_in"] == 3, what="3 values in")
         got = samples(scrape(mport)[2])
         series.append(len(got))
         values.append(got[key])
