@@ -1,12 +1,13 @@
 """Cost of the write-time type check on ``OutgoingChannel.write``, next to an unchecked write.
 
-    .venv/bin/python benchmarks/write_check.py [--repeats 15] [--writes 200000]
+    .venv/bin/python benchmarks/write_check.py [--repeats 41] [--writes 50000]
 
 The baseline is ``OutgoingChannel.write`` without the check (the method as it was before the
 check, in a subclass below), run in the same interleaved rounds as the checked cases, so load
-changes hit every row alike. Prints the median ns per write of each case and its difference to
-the baseline. Channels are built as ``Bridge.publish`` builds them, bound with the schema the
-server sends (``TopicAck.schema``), without a server: only the write is timed.
+changes hit every row alike. Prints the median ns per write of each case and the median of
+its differences to the baseline of the same round. Channels are built as ``Bridge.publish``
+builds them, bound with the schema the server sends (``TopicAck.schema``), without a server:
+only the write is timed.
 """
 
 from __future__ import annotations
@@ -56,8 +57,8 @@ def channel(msg_type: str, field: str | None, cls: type[OutgoingChannel] = Outgo
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("--writes", type=int, default=200_000)
+    parser.add_argument("--repeats", type=int, default=41)
+    parser.add_argument("--writes", type=int, default=50_000)
     args = parser.parse_args()
     f64 = "std_msgs/msg/Float64"
     twist = {"linear": {"x": 0.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 1.0}}
@@ -72,18 +73,23 @@ def main() -> None:
         "checked, Twist dict (6 fields)": (channel("geometry_msgs/msg/Twist", None), twist),
     }
     results: dict[str, list[float]] = {name: [] for name in cases}
-    for _ in range(args.repeats):
-        for name, (ch, value) in cases.items():
+    names = list(cases)
+    for round_ in range(args.repeats):
+        # Every round runs every case once, in alternating order: a load change hits all.
+        for name in names if round_ % 2 == 0 else reversed(names):
+            ch, value = cases[name]
             write = ch.write
             elapsed = timeit.timeit(lambda w=write, v=value: w(v), number=args.writes)
             results[name].append(elapsed / args.writes * 1e9)
-    scalar = statistics.median(results["unchecked write (baseline), float"])
-    whole = statistics.median(results["unchecked write (baseline), Twist dict"])
-    print(f"{'case':42} {'median ns':>10} {'vs baseline':>12}")
+    print(f"{args.repeats} rounds of {args.writes} writes per case; ns per write")
+    print(f"{'case':42} {'median':>7} {'paired diff':>12}")
     for name, samples in results.items():
-        base = whole if "Twist" in name else scalar
-        median = statistics.median(samples)
-        print(f"{name:42} {median:10.0f} {median - base:+11.0f}")
+        base = results["unchecked write (baseline), " + (
+            "Twist dict" if "Twist" in name else "float")]
+        # The difference to the baseline of the same round, then its median: drift between
+        # rounds (other jobs on the machine) cancels out.
+        diff = statistics.median(s - b for s, b in zip(samples, base, strict=True))
+        print(f"{name:42} {statistics.median(samples):7.0f} {diff:+12.0f}")
 
 
 if __name__ == "__main__":
