@@ -204,8 +204,8 @@ class OutgoingChannel:
 
     __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
                  "_held", "_history", "_link", "_max_age_ns", "_next_seq", "_overtaken", "_refused",
-                 "_rejected", "_ring", "_writer", "channel_id", "field", "immediate", "latest",
-                 "msg_type", "redundancy", "topic", "transport")  # fmt: skip
+                 "_rejected", "_ring", "_within", "_writer", "channel_id", "field", "immediate",
+                 "latest", "msg_type", "redundancy", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
@@ -240,14 +240,13 @@ class OutgoingChannel:
         self._overtaken = 0
         self._expired = 0
         self._discarded = 0
-        self._accept, self._check = UNCHECKED.accept, UNCHECKED.coerce
+        self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
         self._rejected = self._refused = 0  # refused at ``write``; by the server
 
     def bound(self, ack: TopicAck) -> None:
         """The server's answer: the type's normalised name, and the schema values must match."""
-        self.msg_type = ack.msg_type
-        check = compile_check(ack.schema)
-        self._accept, self._check = check.accept, check.coerce
+        self.msg_type, check = ack.msg_type, compile_check(ack.schema)
+        self._accept, self._check, self._within = check.accept, check.coerce, check.within
 
     def refused(self, count: int) -> None:  # receive thread: counted in health().rejected
         """The server refused ``count`` values of this channel (``Error`` BAD_VALUE)."""
@@ -272,7 +271,8 @@ class OutgoingChannel:
             raise ChannelClosed(self.topic)
         if _get_ident() != self._writer:
             self._check_writer()
-        if type(value) not in self._accept:
+        if type(value) not in self._accept or (self._within is not None
+                                               and value not in self._within):
             try:
                 value = self._check(value)
             except Mismatch as exc:
@@ -289,7 +289,7 @@ class OutgoingChannel:
             raise ChannelClosed(self.topic)
         if _get_ident() != self._writer:
             self._check_writer()
-        accept = self._accept
+        accept = self._accept if self._within is None else ()
         if not all(type(v) in accept for v in values):
             try:
                 values = [v if type(v) in accept else self._check(v) for v in values]

@@ -66,11 +66,13 @@ class WrongValueType(TypeError):
 
 
 class ValueCheck(NamedTuple):
-    """``accept``: types written unchanged without a further test; ``coerce``: all others."""
+    """``accept``: types written unchanged without a further test (but ``within``, if given:
+    the integers a value of an accepted type must be among); ``coerce``: all others."""
 
     accept: frozenset[type]
     coerce: Coerce
     expected: str
+    within: range | None = None
 
 
 def _anything(value: Any) -> Any:
@@ -172,7 +174,8 @@ def _integer(schema: Mapping[str, Any]) -> ValueCheck:
             raise Mismatch(expected, value)
         return number
 
-    return ValueCheck(frozenset(), coerce, expected)
+    # ``value in range(...)`` is one C-level comparison for an int: the fast path stays fast.
+    return ValueCheck(frozenset({int}), coerce, expected, range(lo, hi + 1))
 
 
 def _string(schema: Mapping[str, Any]) -> ValueCheck:
@@ -197,7 +200,7 @@ def _array(schema: Mapping[str, Any], defs: Mapping[str, Any]) -> ValueCheck:
     size = "" if hi is None and not lo else f" of {lo}..{hi if hi is not None else ''}" \
         if lo != hi else f" of {lo}"
     expected = f"a list{size} of {item.expected}"
-    accept, coerce_item = item.accept, item.coerce
+    accept, coerce_item = (item.accept if item.within is None else frozenset()), item.coerce
 
     def coerce(value: Any) -> Any:
         if isinstance(value, str | bytes | Mapping) or not hasattr(value, "__iter__"):
@@ -237,7 +240,7 @@ def _object(schema: Mapping[str, Any], defs: Mapping[str, Any]) -> ValueCheck:
                 if closed:
                     raise Mismatch(f"a field name it has ({', '.join(fields)})", key, str(key))
                 continue
-            if type(v) in check.accept:
+            if type(v) in check.accept and (check.within is None or v in check.within):
                 continue
             try:
                 new = check.coerce(v)
