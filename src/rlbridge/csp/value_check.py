@@ -229,10 +229,11 @@ def _object(schema: Mapping[str, Any], defs: Mapping[str, Any]) -> ValueCheck:
     expected = "a dict of " + (", ".join(fields) if fields else "no fields")
 
     def coerce(value: Any) -> Any:
-        if isinstance(value, msgspec.Struct):
-            value = msgspec.to_builtins(value)
-        if not isinstance(value, Mapping):
-            raise Mismatch(expected, value)
+        if type(value) is not dict:  # the common case skips two (slow) isinstance tests
+            if isinstance(value, msgspec.Struct):
+                value = msgspec.to_builtins(value)
+            if not isinstance(value, Mapping):
+                raise Mismatch(expected, value)
         out: dict[str, Any] | None = None
         for key, v in value.items():
             check = fields.get(key)
@@ -250,7 +251,7 @@ def _object(schema: Mapping[str, Any], defs: Mapping[str, Any]) -> ValueCheck:
                 if out is None:
                     out = dict(value)
                 out[key] = new
-        for key in required:
+        for key in required:  # ROS messages have none: every field has a default
             if key not in value:
                 raise Mismatch(f"field {key!r} (it has no default)", value)
         return out if out is not None else value if type(value) is dict else dict(value)
