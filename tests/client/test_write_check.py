@@ -139,6 +139,16 @@ def test_no_schema_checks_nothing() -> None:
     assert odd.coerce(None) is None  # an unknown construct: the server decides
 
 
+@pytest.mark.parametrize("schema", [
+    {"$ref": "#/$defs/A", "$defs": {"A": {"$ref": "#/$defs/A"}}},  # a cycle
+    {"type": "integer", "minimum": "0"},
+    {"type": "array", "items": {"type": "number"}, "maxItems": 1.5},
+    {"type": "object", "properties": {"x": "not a schema"}},
+])
+def test_a_schema_that_cannot_be_read_checks_nothing(schema: dict[str, Any]) -> None:
+    assert compile_check(schema).coerce("x") == "x"
+
+
 def test_numpy_scalars_are_plain_numbers() -> None:
     np = pytest.importorskip("numpy")
     check = compile_check({"type": "number"})

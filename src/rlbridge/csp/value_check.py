@@ -89,7 +89,10 @@ def compile_check(schema: Mapping[str, Any] | None) -> ValueCheck:
     if not schema:
         return UNCHECKED
     defs = schema.get("$defs", {})
-    return _compile(schema, defs if isinstance(defs, Mapping) else {})
+    try:
+        return _compile(schema, defs if isinstance(defs, Mapping) else {})
+    except (RecursionError, TypeError, ValueError, AttributeError):
+        return UNCHECKED  # a schema this module cannot read (cyclic, odd types): no check
 
 
 def _compile(schema: Mapping[str, Any], defs: Mapping[str, Any]) -> ValueCheck:
@@ -138,6 +141,8 @@ def _real(value: Any) -> float | None:
 
 def _number(schema: Mapping[str, Any]) -> ValueCheck:
     lo, hi = schema.get("minimum"), schema.get("maximum")
+    if not all(b is None or type(b) in (int, float) for b in (lo, hi)):
+        raise TypeError("schema bounds of a number must be numbers")
     expected = "a float (an int is fine)" if lo is None and hi is None else \
         f"a float in {lo}..{hi}"
 
@@ -155,8 +160,8 @@ def _number(schema: Mapping[str, Any]) -> ValueCheck:
 def _integer(schema: Mapping[str, Any]) -> ValueCheck:
     # MessagePack carries integers from -2**63 to 2**64 - 1 (a uint64's top is beyond what the
     # schema can say): nothing outside would even encode.
-    lo = max(schema.get("minimum", _INT_MIN), _INT_MIN)
-    hi = min(schema.get("maximum", _UINT_MAX), _UINT_MAX)
+    lo = max(_bound(schema.get("minimum"), _INT_MIN), _INT_MIN)
+    hi = min(_bound(schema.get("maximum"), _UINT_MAX), _UINT_MAX)
     expected = f"an int in {lo}..{hi}"
 
     def coerce(value: Any) -> Any:
@@ -178,8 +183,17 @@ def _integer(schema: Mapping[str, Any]) -> ValueCheck:
     return ValueCheck(frozenset({int}), coerce, expected, range(lo, hi + 1))
 
 
+def _bound(value: Any, default: int) -> int:
+    if type(value) is not int:
+        if value is None:
+            return default
+        raise TypeError(f"schema bound {value!r} is not an integer")
+    return value
+
+
 def _string(schema: Mapping[str, Any]) -> ValueCheck:
-    lo, hi = schema.get("minLength", 0), schema.get("maxLength")
+    lo, hi = _bound(schema.get("minLength"), 0), schema.get("maxLength")
+    hi = None if hi is None else _bound(hi, 0)
     expected = "a str" if hi is None else f"a str of at most {hi} characters"
     if lo:
         expected = f"a str of {lo}..{hi if hi is not None else ''} characters"
@@ -196,7 +210,8 @@ def _string(schema: Mapping[str, Any]) -> ValueCheck:
 def _array(schema: Mapping[str, Any], defs: Mapping[str, Any]) -> ValueCheck:
     items = schema.get("items")
     item = _compile(items, defs) if isinstance(items, Mapping) else UNCHECKED
-    lo, hi = schema.get("minItems", 0), schema.get("maxItems")
+    lo, hi = _bound(schema.get("minItems"), 0), schema.get("maxItems")
+    hi = None if hi is None else _bound(hi, 0)
     size = "" if hi is None and not lo else f" of {lo}..{hi if hi is not None else ''}" \
         if lo != hi else f" of {lo}"
     expected = f"a list{size} of {item.expected}"
