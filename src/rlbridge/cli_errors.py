@@ -27,7 +27,6 @@ def fail(message: str, code: int = 1) -> typer.Exit:
 def one_line_errors(fn: F) -> F:
     """Known failures become one line on stderr; only real bugs keep their traceback."""
     from rlbridge.adapters import AdapterUnavailable, BindingError
-    from rlbridge.csp.value_check import WrongValueType
     from rlbridge.server import ServerError
     from rlbridge.wire import RlbridgeError
 
@@ -35,7 +34,7 @@ def one_line_errors(fn: F) -> F:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
-        except (RlbridgeError, ServerError, AdapterUnavailable, WrongValueType) as exc:
+        except (RlbridgeError, ServerError, AdapterUnavailable) as exc:
             raise fail(str(exc)) from None
         except BindingError as exc:
             raise fail(exc.reason) from None

@@ -24,6 +24,8 @@ from typing import Any, NamedTuple
 
 import msgspec
 
+from rlbridge.wire.errors import LocalProtocolError
+
 Coerce = Callable[[Any], Any]
 
 _INT_MIN = -(2**63)
@@ -40,8 +42,11 @@ class Mismatch(Exception):
         self.path = path
 
 
-class WrongValueType(TypeError):
+class WrongValueType(LocalProtocolError, TypeError):
     """``write`` was given a value that cannot be the bound field's type.
+
+    A ``TypeError``, and a :class:`~rlbridge.wire.errors.LocalProtocolError` (this program's
+    mistake, not the server's), so code catching either sees it.
 
     ``topic``, ``msg_type`` and ``field`` name the channel (``field`` ``None``: whole
     messages), ``path`` the part of a whole message that is wrong (``"linear.x"``),
