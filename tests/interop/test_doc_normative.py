@@ -103,12 +103,12 @@ def test_udp_checks_in_their_documented_order(session: ic.IndependentClient) -> 
     udp.send(ic.datagram([ic.TAG_STATS, {"p": big}], unknown))  # size before token
     udp.send(ic.DATAGRAM_HEADER.pack(b"RB", 1, 0, unknown) + b"\xc1")  # token before body
     udp.send(ic.DATAGRAM_HEADER.pack(b"RB", 1, 0, 0) + b"\xc1")  # token 0, bad body: silent
-    before = session.stats()["server"]
+    before = session.stats(via="udp")["server"]  # after those: same socket, in order
     udp.send(ic.DATAGRAM_HEADER.pack(b"RB", 1, 0, session.token) + b"\xc1")  # live: answered
     err = session.recv_tag(ic.TAG_ERROR, via="udp")
     assert err.field(1) == ic.MALFORMED
     assert_carried(err, ic.MALFORMED)
-    after = session.stats()["server"]
+    after = session.stats(via="udp")["server"]
     assert after["udp_malformed"] == before["udp_malformed"] + 1
     assert (before["udp_malformed"], before["udp_too_large"], before["udp_bad_token"]) == (
         2, 1, 1)
