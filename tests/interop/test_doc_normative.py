@@ -236,3 +236,20 @@ def test_wrong_frame_after_auth_challenge(make_server: Callable[..., ServerThrea
         assert refused.field(1) == ic.UNEXPECTED
         assert_carried(refused, ic.UNEXPECTED)
         assert c.wait_eof()
+
+
+def test_section_14_dumps_are_what_the_server_encodes() -> None:
+    """Doc 14: "generated with the reference codec" stays true for the packets that grew
+    fields (TopicAck.schema, Error.values). The one place this file uses ``rlbridge.wire``."""
+    from rlbridge.wire import Error, PacketCodec, TopicAck
+
+    text = DOC.read_text()
+    section = text[text.index("### 14.4") : text.index("### 14.5")]
+    dump = re.search(r"```\n((?:[0-9a-f]{4}  .*\n)+)```", section)
+    assert dump is not None
+    raw = bytes.fromhex("".join(line[6:] for line in dump[1].splitlines()))
+    codec = PacketCodec()
+    assert bytes(codec.encode_frame(TopicAck(1, F64, 0.0))) == raw
+    line = re.search(r'^Error\(13, "bad", 2, 0\): ([0-9a-f ]+)$', text, re.M)
+    assert line is not None
+    assert bytes(codec.encode_frame(Error(13, "bad", 2))) == bytes.fromhex(line[1])
