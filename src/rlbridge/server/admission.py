@@ -111,7 +111,9 @@ def publish_valid(convert: Convert, publish: Publish, values: list[Any]) -> int:
     """Publish every value of ``values`` that is of the channel's type; return how many.
 
     Raises :class:`ValuesRefused` after publishing when some were not (the caller answers
-    with one error packet); never drops a good value for a bad neighbour.
+    with one error packet); never drops a good value for a bad neighbour. A middleware that
+    refuses a value raises ``BindingError("BAD_VALUE")`` before publishing any of the call's
+    values (the adapters' contract), so retrying value by value publishes none twice.
     """
     try:
         converted = convert(values)
@@ -154,7 +156,7 @@ def _one_by_one(convert: Convert, publish: Publish, values: list[Any]) -> int:
             good = published
     if problems:
         n = len(values)
-        head = problems[0] if n == 1 else f"{len(problems)} of {n} values refused; first: " \
-            f"{problems[0]}"
+        head = (problems[0] if n == 1
+                else f"{len(problems)} of {n} values refused; first: {problems[0]}")
         raise ValuesRefused(len(problems), len(good), head) from None
     return len(good)
