@@ -112,8 +112,7 @@ class Server:
             tcp_server, udp_transport, port = await self._bind(loop, registry)
             if cfg.metrics_port is not None:
                 try:
-                    metrics = await MetricsEndpoint(registry.stats).start(cfg.host,
-                                                                          cfg.metrics_port)
+                    metrics = await MetricsEndpoint(registry).start(cfg.host, cfg.metrics_port)
                 except OSError as exc:
                     raise ServerError(f"cannot serve metrics on {cfg.host}:{cfg.metrics_port}: "
                                       f"{exc}") from None
