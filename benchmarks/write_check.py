@@ -13,6 +13,7 @@ only the write is timed.
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import threading
 import time
@@ -79,7 +80,7 @@ def main() -> None:
         for name in names if round_ % 2 == 0 else reversed(names):
             ch, value = cases[name]
             write = ch.write
-            elapsed = timeit.timeit(lambda w=write, v=value: w(v), number=args.writes)
+            elapsed = timeit.timeit(functools.partial(write, value), number=args.writes)
             results[name].append(elapsed / args.writes * 1e9)
     print(f"{args.repeats} rounds of {args.writes} writes per case; ns per write")
     print(f"{'case':42} {'median':>7} {'paired diff':>12}")
