@@ -65,7 +65,8 @@ class MetricsEndpoint:
         try:
             try:
                 head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), REQUEST_TIMEOUT_S)
-            except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError):
+            except (asyncio.IncompleteReadError, asyncio.LimitOverrunError,
+                    asyncio.TimeoutError):
                 self._respond(writer, 400, "Bad Request", "bad or incomplete request\n")
                 return
             parts = head.split(b"\r\n", 1)[0].split()
@@ -108,6 +109,6 @@ class MetricsEndpoint:
     async def close(self) -> None:
         if self._server is not None:
             self._server.close()
-            with contextlib.suppress(TimeoutError):
+            with contextlib.suppress(asyncio.TimeoutError):  # not the builtin on 3.10
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
             self._server = None
