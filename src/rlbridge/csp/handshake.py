@@ -79,7 +79,7 @@ def open_tcp(conn: SessionOwner, hello: Hello,
 def open_udp(conn: SessionOwner, hello: Hello) -> tuple[ConnectAck, Leftover]:
     """Handshake over UDP only: the hello is repeated until an answer or the deadline."""
     conn.udp = sock = udp_socket(conn.host, conn.port)
-    datagram = conn.codec.encode_datagram(hello, 0, conn.udp_flags)
+    datagram = conn.codec.encode_datagram(hello, 0)
     deadline = time.monotonic() + conn.timeout
     while time.monotonic() < deadline and not conn.closed.is_set():
         sock.send(datagram)
@@ -92,8 +92,7 @@ def open_udp(conn: SessionOwner, hello: Hello) -> tuple[ConnectAck, Leftover]:
             except RemoteProtocolError:
                 continue  # not an answer to us (or forged): keep asking until the deadline
             if isinstance(packet, AuthChallenge) and conn.auth is not None:
-                datagram = conn.codec.encode_datagram(conn.auth.answer(packet, sock), 0,
-                                                   conn.udp_flags)
+                datagram = conn.codec.encode_datagram(conn.auth.answer(packet, sock), 0)
                 continue
             if isinstance(packet, Heartbeat):  # a live session whose ack was lost: ask again
                 continue
