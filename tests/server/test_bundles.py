@@ -112,7 +112,9 @@ def test_ten_udp_channels_one_datagram_per_round_each_way(
     relay = relay_to(srv)
     with Bridge.connect("127.0.0.1", relay.port, control="udp", timeout=10) as b:
         inboxes, outs = ten_channels(b, "plain")
-        assert all(peek_header(d)[0] & FLAG_BUNDLES for d in relay.up)  # says it reads them
+        # Every datagram with the session's token says it reads bundles (the token-0
+        # handshake carries flags 0x00, protocol.md 3).
+        assert all(peek_header(d)[0] & FLAG_BUNDLES for d in relay.up if peek_header(d)[1])
         for round_ in range(3):
             up, down = len(relay.up), len(relay.down)
             one_round(b, inboxes, outs, float(round_))
