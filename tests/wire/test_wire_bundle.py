@@ -155,3 +155,21 @@ def test_client_flag_survives_the_header() -> None:
     data = PacketCodec().encode_datagram(Value(1, 0, 0, 1.0), TOKEN, FLAG_BUNDLES)
     assert peek_header(data) == (FLAG_BUNDLES, TOKEN)
     assert len(data) > DATAGRAM_HEADER.size
+
+
+def test_a_failed_send_is_not_repeated_with_the_next_round() -> None:
+    sent: list[bytes] = []
+
+    def send(datagram: bytes) -> None:
+        if not sent:
+            sent.append(b"")  # the first datagram fails, as a full socket buffer would
+            raise BlockingIOError
+        sent.append(datagram)
+
+    packer = DatagramPacker(PacketCodec(), TOKEN, 1400, send)
+    packer.add(Value(1, 0, 0, 1.0))
+    with pytest.raises(BlockingIOError):
+        packer.flush()
+    packer.add(Value(1, 1, 0, 2.0))
+    packer.flush()
+    assert [PacketCodec().decode_datagram(d)[2] for d in sent[1:]] == [Value(1, 1, 0, 2.0)]

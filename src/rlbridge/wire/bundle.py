@@ -107,13 +107,19 @@ class DatagramPacker:
         return 0
 
     def flush(self) -> None:
-        """Send what is gathered: one part as itself, several as one bundle."""
+        """Send what is gathered: one part as itself, several as one bundle.
+
+        What was gathered is forgotten even if ``send`` raises: a failed datagram is not sent
+        again with the next round's.
+        """
         bodies = self._bodies
         if not bodies:
             return
+        packets = self._packets
+        self.discard()
         n = len(bodies)
         if n == 1:
-            self._emit(bodies[0], self._packets[0] if self._packets else None)
+            self._emit(bodies[0], packets[0] if packets else None)
         elif self._plain:
             self.bundles_sent += 1
             self.datagrams += 1
@@ -124,9 +130,7 @@ class DatagramPacker:
         else:
             self.bundles_sent += 1
             self.datagrams += 1
-            self._send(self.codec.encode_datagram(Bundle(self._packets), self.token,
-                                                   self._flags))
-        self.discard()
+            self._send(self.codec.encode_datagram(Bundle(packets), self.token, self._flags))
 
     def discard(self) -> int:
         """Forget what is gathered (the peer is gone); return how many values that was."""
