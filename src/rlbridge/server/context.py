@@ -14,6 +14,7 @@ from typing import Any
 from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
+from rlbridge.server.flow import FlowTable
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.wire import PacketCodec
 
@@ -35,6 +36,8 @@ class ServerContext:
     allow: AllowList = field(default_factory=lambda: AllowList(()))
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
+    #: Flow-controlled bindings by topic (server/flow.py): credit crosses sessions here.
+    flows: FlowTable = field(default_factory=FlowTable)
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""
