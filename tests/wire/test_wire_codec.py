@@ -89,7 +89,7 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
         TopicConnect, U32, st.sampled_from(["subscribe", "publish"]), text(1, 40),
         text(1, 40), st.none() | text(1, 30), st.sampled_from(["tcp", "udp"]), U32,
         st.sampled_from([None, "reliable", "best_effort"]), U16, U32, st.integers(0, 16),
-        st.booleans(), st.booleans(),
+        st.booleans(), st.booleans(), st.booleans(),
     ),
     TopicAck: st.builds(TopicAck, U32, text(1, 40), values, st.none() | U64),
     TopicError: st.builds(TopicError, U32, U16, text(max_size=200)),

@@ -342,7 +342,7 @@ class Outbound:
             history.extend((stamp, v) for v in fresh)
         self._send_run(seq, stamps, values)
 
-    def _send_run(self, seq: int, stamps: list[int], values: Sequence[Any]) -> None:
+    def _send_run(self, seq: int, stamps: list[int], values: list[Any]) -> None:
         """Values numbered from ``seq`` as Value or Batch packets; refused ones counted."""
         if len(values) == 1:
             if not self.sink.send(Value(self.channel, seq, stamps[0], values[0]), data=True):

@@ -275,6 +275,8 @@ class Session:
         changed = []
         reported = self._reported
         for ch, binding in self.inbound.items():
+            if not binding.request.loss_report:
+                continue
             loss = binding.loss()
             if reported.get(ch) != loss:
                 reported[ch] = loss

@@ -87,6 +87,8 @@ class TopicConnect(_Packet, tag=4, frozen=True):
     #: sends at most ``buffer_size`` values beyond what the client has consumed. Publish:
     #: the client honours the credit the server grants (``TopicAck.credit``, ``Credit``).
     flow: bool = False
+    #: Publish: the client wants ``LossReport`` packets for this channel (first-hop counts).
+    loss_report: bool = False
 
 
 class TopicAck(_Packet, tag=5, frozen=True):
