@@ -180,6 +180,11 @@ def latency(
     csv: Annotated[Path | None, typer.Option(
         "--csv", help="Per-sample CSV: seq,sent_ns,recv_ns,latency_ms (empty when lost).")]
     = None,
+    idle: Annotated[str, typer.Option(
+        help="SDK idle strategies (park, spin, busy, comma-separated; send/receive for one "
+             "per thread, e.g. park/spin): the rlbridge rows once per strategy, with CPU % "
+             "per process and the publisher loop's lateness.")]
+    = "",
 ) -> None:
     """One-way latency p50/p99/max of 1 kHz and 100 Hz streams, next to raw UDP and ZeroMQ.
 
@@ -193,10 +198,21 @@ def latency(
     if transport is not None or delay or loss or csv is not None:
         _latency_link(transport or "all", delay, loss, rate, count or 1000, direction, csv)
         return
+    from rlbridge.csp.idle import STRATEGIES
+
+    strategies = _keys(idle)
+    unknown = [k for s in strategies for k in s.split("/") if k not in STRATEGIES]
+    if unknown:
+        typer.echo(f"rlbridge bench latency: error: unknown idle strategy {unknown[0]!r}; "
+                   f"choose from {', '.join(STRATEGIES)}", err=True)
+        raise typer.Exit(2)
     settings = lat.Settings(seconds=seconds, count=count, repeats=repeats,
-                            rates=tuple(float(r) for r in _keys(rates)), only=_keys(only))
-    _run("latency", lambda: lat.report(lat.run(LoopbackLink(), settings, progress), settings,
-                                       _command(ctx)), out)
+                            rates=tuple(float(r) for r in _keys(rates)), only=_keys(only),
+                            idle=strategies)
+    # The idle study has its own section: the plain run's figures stay where they are.
+    _run("latency-idle" if strategies else "latency",
+         lambda: lat.report(lat.run(LoopbackLink(), settings, progress), settings,
+                            _command(ctx)), out)
 
 
 # -- load and soak (rlbridge.bench.load, .soak) ------------------------------------------------
