@@ -76,6 +76,36 @@ def test_latency_runs_every_kind_of_row(tmp_path: Path,
     assert "<!-- bench:latency begin -->" in out.read_text()
 
 
+def test_throughput_flow_rows_add_up_and_lose_nothing(tmp_path: Path) -> None:
+    result = CliRunner().invoke(bench_app, [
+        "throughput", "--count", "20000", "--seconds", "1", "--repeats", "1",
+        "--only", "rlb-tcp-slow-flow,rlb-udp-batch", "--out", str(tmp_path / "b.md")])
+    assert result.exit_code == 0, result.output
+    assert re.search(r"flow control: 0 values lost over 1 runs", result.output), result.output
+    for line in result.output.splitlines():
+        stages = re.search(r"\| ([^|]*end to end: ([\d,]+)) \|", line)
+        if stages:  # every stage's count adds up to the end-to-end loss, none below zero
+            counts = {k: int(v.replace(",", "")) for k, v in
+                      re.findall(r"([^,:]+(?:\([^)]*\))?): ([\d,]+)", stages.group(1))}
+            end = counts.pop(" end to end", counts.pop("end to end", 0))
+            assert sum(counts.values()) == end, line
+            assert all(v >= 0 for v in counts.values()), line
+
+
+def test_latency_idle_rows_report_cpu(tmp_path: Path) -> None:
+    out = tmp_path / "bench.md"
+    result = CliRunner().invoke(bench_app, [
+        "latency", "--count", "30", "--repeats", "1", "--rates", "1000", "--idle", "park,spin",
+        "--only", "rlb-udp,rlb-udp-spin", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = _rows(result.output)
+    assert float(rows["rlbridge UDP, idle=spin"][-4]) >= 0  # CPU % of the publisher
+    assert "<!-- bench:latency-idle begin -->" in out.read_text()
+    bad = CliRunner().invoke(bench_app, ["latency", "--idle", "nap", "--out", str(out)])
+    assert bad.exit_code == 2
+    assert "unknown idle strategy 'nap'" in bad.output
+
+
 def test_write_section_replaces_only_its_own_section(tmp_path: Path) -> None:
     path = tmp_path / "b.md"
     write_section(path, "a", "first")

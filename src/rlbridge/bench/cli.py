@@ -142,17 +142,19 @@ def throughput(
     rate: Annotated[float, typer.Option(help="Offered values/s of rlbridge rows (0: flood).")]
     = 0.0,
     only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, zenoh, rlb-udp-1, rlb-tcp-1, "
-                                      "rlb-udp-batch, rlb-tcp-batch.")] = "",
+                                      "rlb-udp-batch, rlb-tcp-batch, rlb-tcp-slow-flow, "
+                                      "rlb-tcp-slow-noflow.")] = "",
     out: Out = Path("docs/benchmarks.md"),
 ) -> None:
     """Values/s publisher -> server -> subscriber (TCP, UDP), next to UDP/ZeroMQ/Zenoh."""
     from rlbridge.bench import throughput as tp
     from rlbridge.bench.common import LoopbackLink, progress
+    from rlbridge.bench.throughput_report import report
 
     settings = tp.Settings(count=count, seconds=seconds, repeats=repeats, batch=batch,
                            rate=rate, only=_keys(only))
-    _run("throughput", lambda: tp.report(tp.run(LoopbackLink(), settings, progress), settings,
-                                         _command(ctx)), out)
+    _run("throughput", lambda: report(tp.run(LoopbackLink(), settings, progress), settings,
+                                      _command(ctx)), out)
 
 
 @bench_app.command("latency")
