@@ -106,6 +106,16 @@ def test_latency_idle_rows_report_cpu(tmp_path: Path) -> None:
     assert "unknown idle strategy 'nap'" in bad.output
 
 
+def test_feedback_runs(tmp_path: Path) -> None:
+    out = tmp_path / "bench.md"
+    result = CliRunner().invoke(bench_app, [
+        "feedback", "--repeats", "1", "--seconds", "0.5", "--only", "flood", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    row = _rows(result.output)["UDP flood, no limit"]
+    assert row[5] == "1/1", row  # the publisher's reported counts equal the server's
+    assert "<!-- bench:feedback begin -->" in out.read_text()
+
+
 def test_write_section_replaces_only_its_own_section(tmp_path: Path) -> None:
     path = tmp_path / "b.md"
     write_section(path, "a", "first")

@@ -157,6 +157,23 @@ def throughput(
                                       _command(ctx)), out)
 
 
+@bench_app.command("feedback")
+def feedback(
+    ctx: typer.Context,
+    seconds: Annotated[float, typer.Option(help="Flood length per run.")] = 2.0,
+    repeats: Repeats = 5,
+    only: Annotated[str, typer.Option(help=_ONLY + "flood, flood-adapt.")] = "",
+    out: Out = Path("docs/benchmarks.md"),
+) -> None:
+    """How soon a UDP flood's first-hop loss shows in the publisher's health() (target 1 s)."""
+    from rlbridge.bench import feedback as fb
+    from rlbridge.bench.common import LoopbackLink, progress
+
+    _run("feedback", lambda: fb.report(
+        fb.run(LoopbackLink(), repeats, seconds, _keys(only), progress), repeats, seconds,
+        _command(ctx)), out)
+
+
 @bench_app.command("latency")
 def latency(
     ctx: typer.Context,

@@ -12,9 +12,10 @@ Two limits, either or both:
   ``Credit`` packets as the subscribers consume); ``None`` means no flow control.
 * **Rate** (``publish(..., max_rate_hz=...)``): a token bucket refilled at ``rate_hz`` that
   holds at most :data:`BURST_S` seconds' worth. With ``adapt=True`` the rate follows the
-  server's loss reports, AIMD as in TCP congestion control: halved when a report shows more
-  than :data:`LOSS_TOLERANCE` of the values lost at the first hop, raised by a twentieth of
-  the maximum after a report without loss, never above ``max_rate_hz``.
+  server's loss reports: halved when a report shows more than :data:`LOSS_TOLERANCE` of the
+  values lost at the first hop, raised by :data:`GROWTH` (5 %) after a report without loss,
+  never above ``max_rate_hz``. A constant step (TCP's additive increase) would have to be
+  sized to the path; a relative one finds the path's rate from any start, in a few reports.
 
 Pure bookkeeping: time is a parameter (``now_ns``), no thread, lock or clock here.
 """
@@ -25,6 +26,8 @@ from __future__ import annotations
 BURST_S = 0.005
 #: A report losing more than this fraction of its values halves an adaptive rate.
 LOSS_TOLERANCE = 0.01
+#: How much an adaptive rate grows after a report without loss.
+GROWTH = 0.05
 #: An adaptive rate never goes below this fraction of its maximum.
 MIN_RATE_FRACTION = 1 / 256
 #: Stands for "no limit" in :meth:`Admission.allowance`.
@@ -103,5 +106,5 @@ class Admission:
         if lost > LOSS_TOLERANCE * total:
             self.rate_hz = max(top * MIN_RATE_FRACTION, self.rate_hz / 2)
         else:
-            self.rate_hz = min(top, self.rate_hz + top / 20)
+            self.rate_hz = min(top, self.rate_hz * (1 + GROWTH) + 1)
         self._tokens = min(self._tokens, self._burst())
