@@ -143,7 +143,8 @@ def throughput(
     = 0.0,
     only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, zenoh, rlb-udp-1, rlb-tcp-1, "
                                       "rlb-udp-batch, rlb-tcp-batch, rlb-tcp-slow-flow, "
-                                      "rlb-tcp-slow-noflow.")] = "",
+                                      "rlb-tcp-slow-noflow, rlb-tcp-send, rlb-tcp-send-spin, "
+                                      "rlb-tcp-send-wait, rlb-tcp-send-wait-spin.")] = "",
     out: Out = Path("docs/benchmarks.md"),
 ) -> None:
     """Values/s publisher -> server -> subscriber (TCP, UDP), next to UDP/ZeroMQ/Zenoh."""

@@ -51,6 +51,7 @@ from rlbridge.bench.common import (
 )
 
 if TYPE_CHECKING:
+    from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.bridge_channels import OutgoingChannel
 
 MODULE = "rlbridge.bench.throughput"
@@ -72,6 +73,11 @@ class Case:
     sub_rate: float = 0.0
     #: Credit flow control on the TCP channel (None: the SDK's default).
     flow: bool | None = None
+    #: ``send`` / ``send-wait``: a loop of ``write_many`` + ``Bridge.send()`` (``wait=True``)
+    #: that never yields, through a buffered channel (the GIL-starvation case).
+    send_form: str = ""
+    #: The publisher's SDK idle strategy (csp/idle.py).
+    idle: str = "park"
 
 
 #: The slow subscriber of the flow-control rows: values/s it reads, and its ring.
@@ -93,6 +99,11 @@ def cases(batch: int = 4096) -> tuple[Case, ...]:
              f"{SLOW_RATE:,.0f}/s, flow control", "rlbridge", "tcp", 1024, SLOW_RATE, True),
         Case("rlb-tcp-slow-noflow", f"rlbridge TCP, write_many(1024), reader at "
              f"{SLOW_RATE:,.0f}/s, flow=False", "rlbridge", "tcp", 1024, SLOW_RATE, False),
+        *(Case(f"rlb-tcp-{form}{'' if idle == 'park' else '-' + idle}",
+               f"rlbridge TCP, loop of write_many(1024) + "
+               f"{'send()' if form == 'send' else 'send(wait=True)'}, idle={idle}",
+               "rlbridge", "tcp", 1024, 0.0, False, form, idle)
+          for form in ("send", "send-wait") for idle in ("park", "spin")),
     )
 
 
@@ -127,6 +138,21 @@ def _write_loop(out: OutgoingChannel, batch: int, high: int, count: int, seconds
     return sent, start
 
 
+def _send_loop(bridge: Bridge, out: OutgoingChannel, batch: int, count: int, seconds: float,
+               *, wait: bool) -> tuple[int, float]:
+    """``write_many`` + ``send()`` as fast as the loop goes, never sleeping: what a control
+    loop that never yields does to the send thread (it needs the GIL too)."""
+    values = [float(i) for i in range(batch)]
+    sent = 0
+    start = time.monotonic()
+    end = start + seconds
+    while sent < count and time.monotonic() < end:
+        out.write_many(values)
+        bridge.send(wait=wait)
+        sent += batch
+    return sent, start
+
+
 def publisher(params: Params) -> None:
     """SDK publisher: ``write`` per value (batch 1) or ``write_many`` of ``batch`` values."""
     from rlbridge.csp.bridge import Bridge
@@ -134,15 +160,22 @@ def publisher(params: Params) -> None:
     control = Control()
     batch = int(params["batch"])
     buffer = max(4 * batch, 1 << 16)
-    bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub")
+    form = str(params.get("send_form", ""))
+    bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub",
+                            idle=str(params.get("idle", "park")))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
-                         buffer_size=buffer, flow=params.get("flow"))
+                         buffer_size=buffer, flow=params.get("flow"), through_buffer=bool(form))
     emit("ready")
     wait_for_go(control)
-    sent, start = _write_loop(out, batch, buffer // 2, int(params["count"]),
-                              float(params["seconds"]), float(params.get("rate", 0.0)))
+    if form:
+        sent, start = _send_loop(bridge, out, batch, int(params["count"]),
+                                 float(params["seconds"]), wait=form == "send-wait")
+    else:
+        sent, start = _write_loop(out, batch, buffer // 2, int(params["count"]),
+                                  float(params["seconds"]), float(params.get("rate", 0.0)))
     drained = time.monotonic() + 120.0  # flow control: what waits leaves at the reader's pace
     while out.pending() and time.monotonic() < drained:
+        bridge.send()  # a buffered channel's values leave only on send()
         time.sleep(0.001)
     bridge.send(wait=True)
     stats = out.statistics()
@@ -213,7 +246,8 @@ def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
                    idle_s: float, timeout: float, rate: float) -> Measurement:
     server, host, port = start_server(group, max_batch=case.batch)
     common: Params = {"host": host, "port": port, "transport": case.transport,
-                      "sub_rate": case.sub_rate, "flow": case.flow}
+                      "sub_rate": case.sub_rate, "flow": case.flow,
+                      "send_form": case.send_form, "idle": case.idle}
     sub = group.start("subscriber", "b", MODULE, "subscriber", {**common, "idle_s": idle_s})
     pub = group.start("publisher", "b", MODULE, "publisher",
                       {**common, "batch": case.batch, "count": count, "seconds": seconds,

@@ -19,6 +19,7 @@ make room.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -287,14 +288,26 @@ class Outbound:
             self._pump()
 
     def _pump(self) -> None:
-        """Send the backlog's oldest values, as many as the client's credit allows."""
-        assert self.credit is not None
-        stamps, values = self.credit.take(self._seq)
-        if values:
+        """Send the backlog's oldest values, as many as the client's credit allows, a batch
+        at a time while the socket takes them; a full socket is tried again shortly."""
+        credit = self.credit
+        assert credit is not None
+        while True:
+            stamps, values = credit.take(self._seq, self._max_batch)
+            if not values:
+                break
             seq = self._seq
             self._seq = seq + len(values)
             self.values_out += len(values)
             self._send_run(seq, stamps, values)
+        if credit.socket_full and credit.backlog and self._timer is None:
+            with contextlib.suppress(RuntimeError):  # no loop (a test driving it by hand)
+                self._timer = asyncio.get_running_loop().call_later(HOLD_POLL_S,
+                                                                    self._on_flow_timer)
+
+    def _on_flow_timer(self) -> None:
+        self._timer = None
+        self._pump()
 
     def _release(self) -> None:
         """Write the held latest value, or, while the connection is backed up, poll again."""

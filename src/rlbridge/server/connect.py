@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 from rlbridge.adapters.base import QoS, Reliability
 from rlbridge.server.bindings import Inbound, Outbound
-from rlbridge.server.flow import InboundCredit, OutboundCredit, wants_flow
+from rlbridge.server.flow import SOCKET_SHARE, InboundCredit, OutboundCredit, wants_flow
 from rlbridge.wire import ErrorCode, Packet, TopicConnect
 
 if TYPE_CHECKING:
@@ -62,7 +62,9 @@ def bind(session: Session, req: TopicConnect) -> Inbound | Outbound:
     out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
                                          ctx.handoff.wrap(out.on_values))
     if flow is not None:
-        out.credit = OutboundCredit(req.buffer_size, flow)
+        out.credit = OutboundCredit(req.buffer_size, flow,
+                                    lambda: getattr(session.tcp, "queued", 0),
+                                    ctx.config.max_write_buffer // SOCKET_SHARE)
         flow.outbound.add(out.credit)
     return out
 

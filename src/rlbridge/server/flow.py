@@ -32,6 +32,11 @@ from typing import Any
 
 from rlbridge.wire import Credit, TopicConnect
 
+#: Bytes queued for the client (transport buffer and corked frames) past which a
+#: flow-controlled channel stops sending and keeps values in its backlog, as a fraction of
+#: the server's ``max_write_buffer`` (where other channels start dropping).
+SOCKET_SHARE = 2
+
 #: Most credit a publisher is granted ahead of what arrived (values).
 CREDIT_CHUNK = 4096
 #: A subscriber's backlog that stops new credit to the topic's publishers (values).
@@ -46,13 +51,23 @@ def wants_flow(req: TopicConnect) -> bool:
 
 
 class OutboundCredit:
-    """Server -> subscriber half: sends within the subscriber's credit, backlogs the rest."""
+    """Server -> subscriber half: sends within the subscriber's credit, backlogs the rest.
 
-    def __init__(self, window: int, flow: TopicFlow) -> None:
+    It also keeps values back while the client's TCP connection has ``max_queued`` bytes
+    waiting (``queued()``): a channel that promises every value waits for the socket too,
+    where other channels would have their values dropped at ``max_write_buffer``.
+    """
+
+    def __init__(self, window: int, flow: TopicFlow, queued: Callable[[], int] = lambda: 0,
+                 max_queued: int = 1 << 62) -> None:
         #: Values numbered below this may be sent (initially the client's ring size).
         self.limit = max(1, window)
         self.backlog: deque[tuple[int, Any]] = deque()
         self.flow = flow
+        self._queued = queued
+        self._max_queued = max_queued
+        #: The last take stopped because the socket had too much queued: try again later.
+        self.socket_full = False
 
     def room(self) -> int:
         """Values the backlog takes before publishers stop getting credit."""
@@ -65,10 +80,13 @@ class OutboundCredit:
         backlog.extend((stamp, v) for v in values[:fit])
         return len(values) - fit
 
-    def take(self, next_seq: int) -> tuple[list[int], list[Any]]:
-        """What may go now, given the next sequence number to send, oldest first."""
-        n = min(len(self.backlog), self.limit - next_seq)
+    def take(self, next_seq: int, most: int) -> tuple[list[int], list[Any]]:
+        """What may go now (at most ``most``), given the next sequence number to send."""
+        n = min(len(self.backlog), self.limit - next_seq, most)
         if n <= 0:
+            return [], []
+        self.socket_full = self._queued() > self._max_queued
+        if self.socket_full:
             return [], []
         popleft = self.backlog.popleft
         pairs = [popleft() for _ in range(n)]

@@ -28,13 +28,25 @@ def test_only_tcp_every_value_channels_that_ask_are_flow_controlled() -> None:
 def test_outbound_sends_within_credit_and_backlogs_the_rest() -> None:
     out = OutboundCredit(window=3, flow=TopicFlow())
     assert out.queue(7, list(range(5))) == 0
-    assert out.take(0) == ([7, 7, 7], [0, 1, 2])
-    assert out.take(3) == ([], [])  # no credit left
+    assert out.take(0, 2) == ([7, 7], [0, 1])  # at most two per take
+    assert out.take(2, 10) == ([7], [2])
+    assert out.take(3, 10) == ([], [])  # no credit left
     assert not out.on_credit(2)  # old news
     assert out.on_credit(4)
-    assert out.take(3) == ([7], [3])
+    assert out.take(3, 10) == ([7], [3])
     assert len(out.backlog) == 1
     assert out.room() == BACKLOG_SOFT - 1
+
+
+def test_a_full_socket_keeps_values_in_the_backlog() -> None:
+    queued = [100]
+    out = OutboundCredit(window=10, flow=TopicFlow(), queued=lambda: queued[0], max_queued=50)
+    out.queue(0, [1, 2])
+    assert out.take(0, 10) == ([], [])
+    assert out.socket_full
+    queued[0] = 0
+    assert out.take(0, 10) == ([0, 0], [1, 2])
+    assert not out.socket_full
 
 
 def test_backlog_beyond_the_hard_cap_is_dropped_and_counted() -> None:
@@ -57,7 +69,7 @@ def test_publishers_get_credit_as_the_slowest_subscriber_makes_room() -> None:
     inbound.grant(arrived[0])
     assert sent == []  # no room: no credit, the publisher waits
     slow.on_credit(100)
-    slow.take(0)  # the subscriber read: 100 left the backlog, the flow re-grants
+    slow.take(0, 1000)  # the subscriber read: 100 left the backlog, the flow re-grants
     assert sent == [Credit(5, CREDIT_CHUNK + 100)]
 
 
