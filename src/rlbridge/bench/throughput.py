@@ -197,7 +197,7 @@ def subscriber(params: Params) -> None:
     bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-sub")
     ch = bridge.subscribe(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                           blocking=True, buffer_size=SLOW_BUFFER if sub_rate else SUB_BUFFER,
-                          flow=params.get("flow"))
+                          flow=params.get("sub_flow"))
     emit("ready")
     emit("joined")
     tally = Tally(control, float(params["idle_s"]))
@@ -247,6 +247,9 @@ def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
     server, host, port = start_server(group, max_batch=case.batch)
     common: Params = {"host": host, "port": port, "transport": case.transport,
                       "sub_rate": case.sub_rate, "flow": case.flow,
+                      # The send-loop rows are about the publisher: their reader keeps the
+                      # default (flow-controlled), the slow-reader rows compare both ends.
+                      "sub_flow": None if case.send_form else case.flow,
                       "send_form": case.send_form, "idle": case.idle}
     sub = group.start("subscriber", "b", MODULE, "subscriber", {**common, "idle_s": idle_s})
     pub = group.start("publisher", "b", MODULE, "publisher",
