@@ -53,6 +53,7 @@ class Park:
 
     def idle(self, poll: Callable[[], T], block: Callable[[float | None], T],
              timeout: float | None) -> T:
+        """Block at once: the thread costs nothing until the kernel wakes it."""
         return block(timeout)
 
     def __repr__(self) -> str:
@@ -74,6 +75,7 @@ class SpinThenPark:
 
     def idle(self, poll: Callable[[], T], block: Callable[[float | None], T],
              timeout: float | None) -> T:
+        """Spin, then poll with a yield between polls, then block for the time left."""
         got = poll()
         if got:
             return got
@@ -105,6 +107,7 @@ class BusySpin:
 
     def idle(self, poll: Callable[[], T], block: Callable[[float | None], T],
              timeout: float | None) -> T:
+        """Poll until work or the timeout; never calls ``block``."""
         deadline = None if timeout is None else _now() + int(timeout * 1e9)
         while True:
             got = poll()
