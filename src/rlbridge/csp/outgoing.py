@@ -178,8 +178,9 @@ class OutgoingChannel:
                                     timeout)
 
     def ready(self, now_ns: int) -> bool:
-        """Send thread: values wait and may leave now (credit and rate allow one)."""
-        if not len(self._ring) and self._held is None:
+        """Send thread: values wait in the ring and may leave now (credit and rate allow
+        one). A held latest value is not counted: the thread re-checks it on its own poll."""
+        if not len(self._ring):
             return False
         admission = self.admission
         return admission is None or admission.allowance(self._next_seq, now_ns) > 0
