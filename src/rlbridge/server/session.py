@@ -96,8 +96,10 @@ class Session:
         self.codec: PacketCodec = ctx.codec
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
-        #: What the last LossReport said per publish channel (only changes are sent).
+        #: What the last LossReport said per publish channel (only changes are sent), and
+        #: the channels whose last change is sent once more (a lost datagram is made good).
         self._reported: dict[int, ChannelLoss] = {}
+        self._repeat: set[int] = set()
         self._watchdog = SessionWatchdog(self)
 
     # -- transports ------------------------------------------------------------------------
@@ -270,16 +272,21 @@ class Session:
         """The first hop of every publish channel whose counts moved since the last report.
 
         Sent by the watchdog every heartbeat period (server/watchdog.py); counts are
-        cumulative, so a report lost on UDP is made good by the next one.
+        cumulative, so a report lost on UDP is made good by the next one, and the last
+        counts of a channel that stopped changing are sent twice, in two periods.
         """
         changed = []
-        reported = self._reported
+        reported, repeat = self._reported, self._repeat
         for ch, binding in self.inbound.items():
             if not binding.request.loss_report:
                 continue
             loss = binding.loss()
             if reported.get(ch) != loss:
                 reported[ch] = loss
+                repeat.add(ch)
+                changed.append(loss)
+            elif ch in repeat:
+                repeat.discard(ch)
                 changed.append(loss)
         return [LossReport(changed[i : i + REPORT_CHANNELS])
                 for i in range(0, len(changed), REPORT_CHANNELS)]
@@ -292,6 +299,7 @@ class Session:
             return
         self._retire(binding.stats())
         self._reported.pop(ch, None)
+        self._repeat.discard(ch)
         binding.close()
         self.ctx.flows.release(binding.request.topic)
 
