@@ -112,7 +112,9 @@ def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[
         "accepted by the server; server: accepted - sent to the subscriber; hop 2: sent - "
         "arrived in the subscriber's ring; subscriber ring: arrived - read), so the stages add "
         "up to the end-to-end loss. The last column counts some of the same loss another way "
-        "(sequence gaps at each receiver, values the server's TCP send buffer refused). "
+        "(sequence gaps at each receiver, values the server dropped for a full send "
+        "buffer or backlog; session restarts, after which the server's counters start again "
+        "and the stages are not known). "
         "`written/s` is the publisher's rate, `read/s` the subscriber's: with flow control "
         "the first follows the second.",
         "",
