@@ -103,3 +103,6 @@ def test_rate_limit_holds_values_in_the_ring_and_loses_none(server: ServerThread
         assert out.pending() == 0
         assert out.statistics().overwritten == 0
         assert out.health().rate_limit_hz == 20
+        out.write_many([float(i) for i in range(10)])
+        b.send(wait=True)  # waits for the rate limit too
+        assert out.pending() == 0

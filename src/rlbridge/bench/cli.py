@@ -142,7 +142,8 @@ def throughput(
     rate: Annotated[float, typer.Option(help="Offered values/s of rlbridge rows (0: flood).")]
     = 0.0,
     only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, zenoh, rlb-udp-1, rlb-tcp-1, "
-                                      "rlb-udp-batch, rlb-tcp-batch, rlb-tcp-slow-flow, "
+                                      "rlb-udp-batch, rlb-tcp-batch, rlb-tcp-batch-noflow, "
+                                      "rlb-tcp-slow-flow, "
                                       "rlb-tcp-slow-noflow, rlb-tcp-send, rlb-tcp-send-spin, "
                                       "rlb-tcp-send-wait, rlb-tcp-send-wait-spin.")] = "",
     out: Out = Path("docs/benchmarks.md"),

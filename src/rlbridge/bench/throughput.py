@@ -95,6 +95,8 @@ def cases(batch: int = 4096) -> tuple[Case, ...]:
         Case("rlb-tcp-1", "rlbridge TCP, 1 value/frame", "rlbridge", "tcp", 1),
         Case("rlb-udp-batch", f"rlbridge UDP, write_many({batch})", "rlbridge", "udp", batch),
         Case("rlb-tcp-batch", f"rlbridge TCP, write_many({batch})", "rlbridge", "tcp", batch),
+        Case("rlb-tcp-batch-noflow", f"rlbridge TCP, write_many({batch}), flow=False",
+             "rlbridge", "tcp", batch, flow=False),
         Case("rlb-tcp-slow-flow", f"rlbridge TCP, write_many(1024), reader at "
              f"{SLOW_RATE:,.0f}/s, flow control", "rlbridge", "tcp", 1024, SLOW_RATE, True),
         Case("rlb-tcp-slow-noflow", f"rlbridge TCP, write_many(1024), reader at "

@@ -255,7 +255,12 @@ class Bridge(BridgeStatus):
         return channel
 
     def send(self, wait: bool = False) -> None:
-        """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``."""
+        """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``.
+
+        ``wait=True`` returns once the send thread has handed them to the sockets, and no
+        value waits for credit or a rate limit any more (at most 5 s): what each form costs
+        and promises is in docs/concepts.md.
+        """
         if self._conn.closed.is_set():
             raise ConnectionClosed(f"bridge is closed: {self._conn.close_reason}")
         self._sender.flush(wait=wait)

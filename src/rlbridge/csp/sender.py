@@ -113,6 +113,8 @@ class SendLoop:
         self.idle = idle
         #: Seconds until a rate-limited value may go (None: no such value waits).
         self._retry: float | None = None
+        #: Some channel's values still wait for credit or the rate limit (``flush(wait)``).
+        self._deferred = False
         #: Rung by immediate channels' writes, only while this thread sleeps.
         self.doorbell = Doorbell()
         self._flush_all = False
@@ -160,7 +162,9 @@ class SendLoop:
     def flush(self, wait: bool = False, timeout: float = 5.0) -> None:
         """Send every buffered value now (``Bridge.send``); optionally wait until it is out.
 
-        While paused the values stay buffered and this returns at once: they go on resume.
+        With ``wait``, also until no value waits for credit or a rate limit any more (at
+        their pace, within ``timeout``). While paused the values stay buffered and this
+        returns at once: they go on resume.
         """
         if self._paused:
             return
@@ -171,7 +175,8 @@ class SendLoop:
         if wait:
             with self._flushed:
                 self._flushed.wait_for(
-                    lambda: self._flush_count >= target or self._stop.is_set(), timeout)
+                    lambda: (self._flush_count >= target and not self._deferred)
+                    or self._stop.is_set() or self._paused, timeout)
 
     def _run(self) -> None:
         period = self._period
@@ -191,14 +196,15 @@ class SendLoop:
                 next_tick += period  # type: ignore[operator]
                 if next_tick < time.monotonic():  # overrun: skip, do not burst
                     next_tick = time.monotonic() + period  # type: ignore[operator]
+            was_deferred = self._deferred
             try:
                 self._send_pending(flush_all)
             except OSError as exc:
                 self.send_errors += 1
                 log.warning("send failed: %s", exc)
-            if flush_all:
+            if flush_all or was_deferred:
                 with self._flushed:
-                    self._flush_count += 1
+                    self._flush_count += flush_all
                     self._flushed.notify_all()
 
     def _park(self, timeout: float | None) -> bool:
@@ -223,6 +229,7 @@ class SendLoop:
         token = conn.ack.token if conn.ack is not None else 0
         backed_up: bool | None = None  # asked of the kernel once per round, if needed
         holding = False
+        deferred = False
         retry: float | None = None
         for credit in self._credits:
             if credit.credit_due():
@@ -238,6 +245,7 @@ class SendLoop:
                 busy = backed_up
             first_seq, stamps, values, repeated = src.take(busy)
             holding = holding or src.holding
+            deferred = deferred or src.deferred
             if src.admission is not None:
                 wait = src.retry_in(time.monotonic_ns())
                 if wait is not None and (retry is None or wait < retry):
@@ -255,6 +263,7 @@ class SendLoop:
                     self._send_datagram(packet, token)
         self._holding = holding
         self._retry = retry
+        self._deferred = deferred
         if frames:
             conn.send_tcp(frames)
 

@@ -38,9 +38,9 @@ from rlbridge.wire import Credit, TopicConnect
 SOCKET_SHARE = 2
 
 #: Most credit a publisher is granted ahead of what arrived (values).
-CREDIT_CHUNK = 4096
+CREDIT_CHUNK = 1 << 16
 #: A subscriber's backlog that stops new credit to the topic's publishers (values).
-BACKLOG_SOFT = 4096
+BACKLOG_SOFT = 1 << 16
 #: A backlog this long drops (and counts) what still arrives: nothing may grow unbounded.
 BACKLOG_HARD = 8 * BACKLOG_SOFT
 
