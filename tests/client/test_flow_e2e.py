@@ -79,7 +79,7 @@ def test_write_many_batches_also_follow_the_reader(server: ServerThread) -> None
             Bridge.connect("127.0.0.1", server.port, name="flow-pub2") as pb:
         sub = sb.subscribe("/flow2", I64, transport="tcp", blocking=True, buffer_size=64)
         out = pb.publish("/flow2", I64, transport="tcp", buffer_size=4096)
-        total = 4 * BACKLOG_SOFT
+        total = 64 * 512
         got: list[int] = []
 
         def reader() -> None:
