@@ -214,7 +214,7 @@ def _rlbridge_once(group: ProcessGroup, case: Case, stream: Params) -> Measureme
     flow = run_flow(pub, sub, [pub, server, sub], _timeout(stream))
     m = _summary(flow.received, int(flow.sent["sent"]))
     span = float(flow.sent["t_end"]) - float(flow.sent["t_start"])
-    if span > 0:
+    if span > 0 and stream.get("idle_rows"):
         m.cpu_pub, m.cpu_server, m.cpu_sub = (
             100 * flow.cpu_s[w.name] / span for w in (pub, server, sub))
     m.loop_late_p99 = float(flow.sent.get("late_p99_us", math.nan))

@@ -19,7 +19,7 @@ import logging
 import select
 import socket
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rlbridge.wire import (
     Batch,
@@ -41,7 +41,7 @@ from rlbridge.wire import (
 from rlbridge.wire.link import LinkMonitor, LinkState
 
 if TYPE_CHECKING:
-    from rlbridge.csp.connection import Connection
+    from rlbridge.csp.session_owner import SessionOwner
 
 log = logging.getLogger("rlbridge.client")
 
@@ -54,7 +54,7 @@ MAX_DRAIN = 256
 class Receiver:
     """Reading for session ``generation`` of ``conn``; see the module docstring."""
 
-    def __init__(self, conn: Connection, generation: int,
+    def __init__(self, conn: SessionOwner, generation: int,
                  leftover: list[Packet | Malformed], wake: socket.socket) -> None:
         self._conn = conn
         self._generation = generation
@@ -81,10 +81,10 @@ class Receiver:
         sockets = [s for s in (conn.tcp, conn.udp, self._wake) if s is not None]
         idle = conn.idle
 
-        def poll() -> list[socket.socket]:
+        def poll() -> list[Any]:
             return select.select(sockets, [], [], 0)[0]
 
-        def block(timeout: float | None) -> list[socket.socket]:
+        def block(timeout: float | None) -> list[Any]:
             return select.select(sockets, [], [], timeout)[0]
 
         try:
@@ -94,8 +94,9 @@ class Receiver:
                 now = time.monotonic_ns()
                 timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
                 readable = idle.idle(poll, block, timeout)
+                tcp, udp = conn.tcp, conn.udp
                 for sock in readable:
-                    if sock is conn.tcp:
+                    if tcp is not None and sock is tcp:
                         data = sock.recv(1 << 18)
                         self._tcp_bytes_in += len(data)
                         if not data:
@@ -107,7 +108,7 @@ class Receiver:
                                             packet.error.reason)
                             else:
                                 self._dispatch(packet)
-                    elif sock is conn.udp:
+                    elif udp is not None and sock is udp:
                         self._receive_datagrams(sock, token)
                     else:
                         return
