@@ -34,8 +34,20 @@ def test_outbound_sends_within_credit_and_backlogs_the_rest() -> None:
     assert not out.on_credit(2)  # old news
     assert out.on_credit(4)
     assert out.take(3, 10) == ([7], [3])
-    assert len(out.backlog) == 1
+    assert out.waiting == 1
     assert out.room() == BACKLOG_SOFT - 1
+
+
+def test_batches_are_taken_across_their_boundaries_in_order() -> None:
+    out = OutboundCredit(window=100, flow=TopicFlow())
+    out.queue(1, [0, 1, 2])
+    out.queue(2, [3, 4])
+    out.queue(3, [5])
+    assert out.take(0, 4) == ([1, 1, 1, 2], [0, 1, 2, 3])
+    assert out.take(4, 10) == ([2, 3], [4, 5])
+    assert out.waiting == 0
+    out.queue(4, [6, 7])
+    assert out.clear() == 2
 
 
 def test_a_full_socket_keeps_values_in_the_backlog() -> None:
@@ -52,7 +64,7 @@ def test_a_full_socket_keeps_values_in_the_backlog() -> None:
 def test_backlog_beyond_the_hard_cap_is_dropped_and_counted() -> None:
     out = OutboundCredit(window=1, flow=TopicFlow())
     assert out.queue(0, [0] * (BACKLOG_HARD + 5)) == 5
-    assert len(out.backlog) == BACKLOG_HARD
+    assert out.waiting == BACKLOG_HARD
 
 
 def test_publishers_get_credit_as_the_slowest_subscriber_makes_room() -> None:

@@ -111,17 +111,20 @@ def cases(batch: int = 4096) -> tuple[Case, ...]:
 
 # -- worker roles (child processes) --------------------------------------------------------
 def _write_loop(out: OutgoingChannel, batch: int, high: int, count: int, seconds: float,
-                rate: float) -> tuple[int, float]:
+                rate: float, half: list[float] | None = None) -> tuple[int, float]:
     """Write ``count`` values (or for ``seconds``); return how many and the start time.
 
     Waits while more than ``high`` values are unsent (the ring would otherwise overwrite
-    them); with ``rate`` > 0 it also keeps to that many values per second.
+    them); with ``rate`` > 0 it also keeps to that many values per second. ``half`` gets
+    ``[time, sent]`` at half time and at the end: the rate once the path is full.
     """
     values = [float(i) for i in range(batch)]
     sent = 0
     start = time.monotonic()
     end = start + seconds
     while sent < count and time.monotonic() < end:
+        if half is not None and not half and time.monotonic() >= start + seconds / 2:
+            half += [time.monotonic(), sent]
         while out.pending() > high:
             time.sleep(0.0001)
         if rate > 0:  # offered load: stay on the schedule, at most 1 ms ahead
@@ -137,6 +140,8 @@ def _write_loop(out: OutgoingChannel, batch: int, high: int, count: int, seconds
             n = min(batch, count - sent)
             out.write_many(values if n == batch else values[:n])
         sent += n
+    if half:
+        half += [time.monotonic(), sent]
     return sent, start
 
 
@@ -163,6 +168,7 @@ def publisher(params: Params) -> None:
     batch = int(params["batch"])
     buffer = max(4 * batch, 1 << 16)
     form = str(params.get("send_form", ""))
+    half: list[float] = []
     bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub",
                             idle=str(params.get("idle", "park")))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
@@ -174,14 +180,16 @@ def publisher(params: Params) -> None:
                                  float(params["seconds"]), wait=form == "send-wait")
     else:
         sent, start = _write_loop(out, batch, buffer // 2, int(params["count"]),
-                                  float(params["seconds"]), float(params.get("rate", 0.0)))
+                                  float(params["seconds"]), float(params.get("rate", 0.0)), half)
     drained = time.monotonic() + 120.0  # flow control: what waits leaves at the reader's pace
     while out.pending() and time.monotonic() < drained:
         bridge.send()  # a buffered channel's values leave only on send()
         time.sleep(0.001)
     bridge.send(wait=True)
     stats = out.statistics()
+    steady = (half[3] - half[1]) / (half[2] - half[0]) if len(half) == 4 else None
     emit("sent", sent=sent, t_start=start, t_end=time.monotonic(), written=stats.written,
+         steady_rate=steady,
          overwritten=stats.overwritten, taken=stats.read)
     control.wait("stats", 120.0)
     channel = bridge.server_stats()["session"]["channels"][str(out.channel_id)]
@@ -288,7 +296,9 @@ def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
             "hop 1 gaps (server)": int(hop1["lost"]),
             "hop 2 gaps (IncomingChannel.lost)": int(got["lost"]),
             "of hop 2: dropped by the server (send buffer or backlog full)": int(got["dropped"])}
-    pub_rate = written / max(1e-9, float(flow.sent["t_end"]) - float(flow.sent["t_start"]))
+    # The publisher's rate once the path is full (its second half), else over the whole run.
+    pub_rate = flow.sent.get("steady_rate") or \
+        written / max(1e-9, float(flow.sent["t_end"]) - float(flow.sent["t_start"]))
     return _measurement(flow, written, loss, seen, pub_rate)
 
 

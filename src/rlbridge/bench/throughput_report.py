@@ -115,8 +115,9 @@ def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[
         "(sequence gaps at each receiver, values the server dropped for a full send "
         "buffer or backlog; session restarts, after which the server's counters start again "
         "and the stages are not known). "
-        "`written/s` is the publisher's rate, `read/s` the subscriber's: with flow control "
-        "the first follows the second.",
+        "`written/s` is the publisher's rate over the second half of its writing (the path "
+        "full; the whole run when it finished early), `read/s` the subscriber's: with flow "
+        "control the first follows the second.",
         "",
         loss_table(results),
     ]

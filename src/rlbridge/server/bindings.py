@@ -300,7 +300,7 @@ class Outbound:
             self._seq = seq + len(values)
             self.values_out += len(values)
             self._send_run(seq, stamps, values)
-        if credit.socket_full and credit.backlog and self._timer is None:
+        if credit.socket_full and credit.waiting and self._timer is None:
             with contextlib.suppress(RuntimeError):  # no loop (a test driving it by hand)
                 self._timer = asyncio.get_running_loop().call_later(HOLD_POLL_S,
                                                                     self._on_flow_timer)
@@ -380,15 +380,14 @@ class Outbound:
             "transport": self.request.transport, "values_out": self.values_out,
             "dropped": self.dropped}
         if self.credit is not None:
-            stats["backlog"] = len(self.credit.backlog)
+            stats["backlog"] = self.credit.waiting
             stats["credit_limit"] = self.credit.limit
         return stats
 
     def close(self) -> None:
         credit = self.credit
         if credit is not None:  # never sent: counted, and the publishers may go on
-            self.dropped += len(credit.backlog)
-            credit.backlog.clear()
+            self.dropped += credit.clear()
             credit.flow.outbound.discard(credit)
             credit.flow.changed()
         if self._timer is not None:

@@ -27,7 +27,7 @@ UDP channels have no flow control: their first-hop loss is reported instead (``L
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from rlbridge.wire import Credit, TopicConnect
@@ -62,7 +62,11 @@ class OutboundCredit:
                  max_queued: int = 1 << 62) -> None:
         #: Values numbered below this may be sent (initially the client's ring size).
         self.limit = max(1, window)
-        self.backlog: deque[tuple[int, Any]] = deque()
+        #: Waiting values in the batches they came in, ``(stamp, values)``: per batch, not
+        #: per value, so a backlog costs list slices, not a tuple per value.
+        self._chunks: deque[tuple[int, list[Any]]] = deque()
+        #: Values in the backlog.
+        self.waiting = 0
         self.flow = flow
         self._queued = queued
         self._max_queued = max_queued
@@ -71,28 +75,48 @@ class OutboundCredit:
 
     def room(self) -> int:
         """Values the backlog takes before publishers stop getting credit."""
-        return max(0, BACKLOG_SOFT - len(self.backlog))
+        return max(0, BACKLOG_SOFT - self.waiting)
 
-    def queue(self, stamp: int, values: Any) -> int:
+    def queue(self, stamp: int, values: Sequence[Any]) -> int:
         """Add values behind the backlog; returns how many did not fit (dropped)."""
-        backlog = self.backlog
-        fit = max(0, min(len(values), BACKLOG_HARD - len(backlog)))
-        backlog.extend((stamp, v) for v in values[:fit])
+        fit = max(0, min(len(values), BACKLOG_HARD - self.waiting))
+        if fit:
+            self._chunks.append((stamp, list(values[:fit])))
+            self.waiting += fit
         return len(values) - fit
 
     def take(self, next_seq: int, most: int) -> tuple[list[int], list[Any]]:
         """What may go now (at most ``most``), given the next sequence number to send."""
-        n = min(len(self.backlog), self.limit - next_seq, most)
+        n = min(self.waiting, self.limit - next_seq, most)
         if n <= 0:
             return [], []
         self.socket_full = self._queued() > self._max_queued
         if self.socket_full:
             return [], []
-        popleft = self.backlog.popleft
-        pairs = [popleft() for _ in range(n)]
-        if len(self.backlog) < BACKLOG_SOFT:
+        stamps: list[int] = []
+        values: list[Any] = []
+        chunks = self._chunks
+        left = n
+        while left:
+            stamp, chunk = chunks[0]
+            if len(chunk) <= left:
+                chunks.popleft()
+                part = chunk
+            else:
+                part, chunks[0] = chunk[:left], (stamp, chunk[left:])
+            values += part
+            stamps += [stamp] * len(part)
+            left -= len(part)
+        self.waiting -= n
+        if self.waiting < BACKLOG_SOFT:
             self.flow.changed()
-        return [s for s, _ in pairs], [v for _, v in pairs]
+        return stamps, values
+
+    def clear(self) -> int:
+        """Drop the backlog (the channel closes); returns how many values it held."""
+        dropped, self.waiting = self.waiting, 0
+        self._chunks.clear()
+        return dropped
 
     def on_credit(self, limit: int) -> bool:
         """A credit arrived; True if it moved the limit (then values may go)."""
