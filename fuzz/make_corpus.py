@@ -67,7 +67,7 @@ EVERY_TYPE: list[Packet] = [
     Credit(2, 64),
     LossReport([ChannelLoss(1, 10, 2, 12, 0), ChannelLoss(3, 0, 0, 0, 5)]),
     TopicConnect(4, "subscribe", "/a", F64, buffer_size=8, flow=True),
-    TopicAck(5, F64, 0.0, 4096),
+    TopicAck(5, F64, 0.0, credit=4096),
 ]
 
 #: A session's life as a client drives it: publish and subscribe on both transports.

@@ -246,9 +246,7 @@ class Bridge(BridgeStatus):
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
             max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
             reliability=reliability, depth=depth, flow=flow, loss_report=True))
-        channel.msg_type = ack.msg_type
-        if ack.credit is not None:
-            channel.on_credit(ack.credit)
+        channel.bound(ack)
         with self._lock:
             self._outgoing[ch_id] = channel
         self._sender.add(channel)

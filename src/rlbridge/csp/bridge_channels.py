@@ -28,8 +28,9 @@ from operator import itemgetter
 from typing import Any, NamedTuple
 
 from rlbridge.csp.channel import _MISSING, Channel, Doorbell, _Missing
+from rlbridge.csp.errors import SecondWriterError
 from rlbridge.csp.health import ChannelHealth
-from rlbridge.csp.outgoing import OutgoingChannel, SecondWriterError
+from rlbridge.csp.outgoing import OutgoingChannel
 
 __all__ = ["AgedValue", "IncomingChannel", "OutgoingChannel", "SecondWriterError"]
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter

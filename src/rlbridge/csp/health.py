@@ -48,3 +48,7 @@ class ChannelHealth(msgspec.Struct, frozen=True, gc=False):
     arrived: int = -1
     #: Outgoing with ``max_rate_hz``: the rate limit in force (adaptive: it moves). -1: none.
     rate_limit_hz: int = -1
+    #: Values refused for not being of the channel's type: outgoing, at ``write`` (a
+    #: ``TypeError``) and by the server (an ``Error(BAD_VALUE)`` counting them); server side,
+    #: the values of a publish channel it refused.
+    rejected: int = 0

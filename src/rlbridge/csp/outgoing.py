@@ -25,9 +25,11 @@ from typing import Any
 
 from rlbridge.csp.admission import Admission
 from rlbridge.csp.channel import ChannelStatistics, Doorbell
-from rlbridge.csp.errors import ChannelClosed, ChannelMisuseError
+from rlbridge.csp.errors import ChannelClosed, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.stamped_ring import StampedRing
+from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
+from rlbridge.wire import TopicAck
 from rlbridge.wire.clock import ClockOffset
 from rlbridge.wire.link import LinkMonitor
 from rlbridge.wire.packets import ChannelLoss
@@ -38,26 +40,14 @@ _NO_CLOCK = ClockOffset()
 _get_ident = threading.get_ident
 
 
-class SecondWriterError(ChannelMisuseError):
-    """A second thread wrote an outgoing channel whose first writer thread is still alive."""
-
-    def __init__(self, topic: str, owner: int, intruder: int) -> None:
-        super().__init__(f"{topic} out", "writer")
-        self.args = (
-            f"outgoing channel {topic!r} is written by thread {owner}; thread {intruder} "
-            "wrote it too. Its ring buffer has a single producer: two writers would lose "
-            "values without a trace. Publish one channel per writer thread, or hand values "
-            "to the one writer through a local Channel.",)
-
-
 class OutgoingChannel:
     """Control code -> middleware. ``write`` never blocks and never touches a socket."""
 
-    __slots__ = ("_bell", "_clock", "_closed", "_discarded", "_expired", "_held", "_history",
-                 "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq", "_overtaken",
-                 "_ring", "_space", "_writer", "admission", "channel_id", "deferred", "field",
-                 "flow", "immediate", "latest", "msg_type", "redundancy", "topic",
-                 "transport")  # fmt: skip
+    __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
+                 "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
+                 "_overtaken", "_refused", "_rejected", "_ring", "_space", "_within", "_writer",
+                 "admission", "channel_id", "deferred", "field", "flow", "immediate", "latest",
+                 "msg_type", "redundancy", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
@@ -105,6 +95,24 @@ class OutgoingChannel:
         #: The server's last loss report for this binding, and the totals of earlier ones.
         self._hop: ChannelLoss | None = None
         self._hop_base = (0, 0)
+        self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
+        self._rejected = self._refused = 0  # refused at ``write``; by the server
+
+    def bound(self, ack: TopicAck) -> None:
+        """The server's answer: the type's normalised name, the schema values must match,
+        and (flow control) the first credit."""
+        self.msg_type, check = ack.msg_type, compile_check(ack.schema)
+        self._accept, self._check, self._within = check.accept, check.coerce, check.within
+        if ack.credit is not None:
+            self.on_credit(ack.credit)
+
+    def refused(self, count: int) -> None:  # receive thread: counted in health().rejected
+        """The server refused ``count`` values of this channel (``Error`` BAD_VALUE)."""
+        self._refused += count
+
+    def _wrong(self, exc: Mismatch) -> WrongValueType:
+        self._rejected += 1
+        return WrongValueType(self.topic, self.msg_type, self.field, exc)
 
     def _check_writer(self) -> None:
         """Slow path: a thread other than the recorded writer writes (module docstring)."""
@@ -115,11 +123,18 @@ class OutgoingChannel:
         self._writer = me  # first write, or the previous writer thread has ended
 
     def write(self, value: Any) -> None:
-        """Queue one value for the send thread; a full buffer drops its oldest value (counted)."""
+        """Queue one value for the send thread; a full buffer drops its oldest value (counted).
+        A value that cannot be the field's type raises ``WrongValueType`` (a TypeError)."""
         if self._closed:
             raise ChannelClosed(self.topic)
         if _get_ident() != self._writer:
             self._check_writer()
+        if type(value) not in self._accept or (self._within is not None
+                                               and value not in self._within):
+            try:
+                value = self._check(value)
+            except Mismatch as exc:
+                raise self._wrong(exc) from None
         self._ring.push_stamped(time.time_ns(), value)
         if self.immediate:
             bell = self._bell
@@ -132,6 +147,12 @@ class OutgoingChannel:
             raise ChannelClosed(self.topic)
         if _get_ident() != self._writer:
             self._check_writer()
+        accept = self._accept if self._within is None else ()
+        if not all(type(v) in accept for v in values):
+            try:
+                values = [v if type(v) in accept else self._check(v) for v in values]
+            except Mismatch as exc:
+                raise self._wrong(exc) from None
         self._ring.push_many_stamped(time.time_ns(), values)
         if self.immediate:
             bell = self._bell
@@ -296,7 +317,7 @@ class OutgoingChannel:
             expired=self._expired, values=ring.written,
             clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns,
             arrived=base_received + (hop.received if hop else 0) if reported else -1,
-            rate_limit_hz=rate)
+            rate_limit_hz=rate, rejected=self._rejected + self._refused)
 
     @property
     def closed(self) -> bool:

@@ -40,7 +40,7 @@ from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.connection import Connection
 from rlbridge.csp.idle import PARK, IdleStrategy
 from rlbridge.tcpstate import congested
-from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Packet, Value
+from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Packet, Value
 
 log = logging.getLogger("rlbridge.client")
 
@@ -83,6 +83,10 @@ class OutgoingSource(Protocol):
 
     def retry_in(self, now_ns: int) -> float | None:
         """Seconds until the rate limit lets a waiting value go; None: nothing to wait for."""
+        ...
+
+    def refused(self, count: int) -> None:
+        """The server refused ``count`` values sent on this channel (receive thread)."""
         ...
 
 
@@ -128,6 +132,15 @@ class SendLoop:
         self.values_repeated = 0
         self.send_errors = 0
         self._holding = False
+        conn.on_error = self._on_error
+
+    def _on_error(self, error: Error) -> None:
+        """Receive thread: an ``Error(BAD_VALUE)`` counts the values the server refused."""
+        if error.code != ErrorCode.BAD_VALUE or error.channel is None:
+            return
+        for source in self._sources:
+            if source.channel_id == error.channel:
+                source.refused(error.values or 1)
 
     def start(self) -> None:
         self._thread.start()
