@@ -8,7 +8,7 @@ thread sleeps; with ``through_buffer`` on, a write makes no system call at all a
 leaves on ``Bridge.send()`` or the next send-loop tick. The ring is single-producer: a write
 from a second thread while the first writer thread lives raises :class:`ChannelMisuseError`.
 
-What may leave when is the channel's :class:`~rlbridge.csp.admission.Admission`: the credit a
+What may leave when is the channel's :class:`~rlbridge.csp.pacing.Pacing`: the credit a
 flow-controlled TCP channel was granted and a ``max_rate_hz`` limit. What it holds back stays
 in the ring, where control code sees it (``writable``, ``wait_writable``, ``overwritten``).
 The server's loss reports (``LossReport``) land in :meth:`OutgoingChannel.on_loss`, so
@@ -23,10 +23,10 @@ from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
-from rlbridge.csp.admission import Admission
 from rlbridge.csp.channel import ChannelStatistics, Doorbell
 from rlbridge.csp.errors import ChannelClosed, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
+from rlbridge.csp.pacing import Pacing
 from rlbridge.csp.stamped_ring import StampedRing
 from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
 from rlbridge.wire import TopicAck
@@ -46,8 +46,8 @@ class OutgoingChannel:
     __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
                  "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
                  "_overtaken", "_refused", "_rejected", "_ring", "_space", "_within", "_writer",
-                 "admission", "channel_id", "deferred", "field", "flow", "immediate", "latest",
-                 "msg_type", "redundancy", "topic", "transport")  # fmt: skip
+                 "channel_id", "deferred", "field", "flow", "immediate", "latest", "msg_type",
+                 "pacing", "redundancy", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
@@ -83,9 +83,9 @@ class OutgoingChannel:
         self._overtaken = 0
         self._expired = 0
         self._discarded = 0
-        #: Rate limit and credit (csp/admission.py); None: everything may leave at once.
-        self.admission = (None if max_rate_hz is None and not flow else
-                          Admission(max_rate_hz, adapt=adapt_rate, now_ns=time.monotonic_ns()))
+        #: Rate limit and credit (csp/pacing.py); None: everything may leave at once.
+        self.pacing = (None if max_rate_hz is None and not flow else
+                          Pacing(max_rate_hz, adapt=adapt_rate, now_ns=time.monotonic_ns()))
         #: Asked the server for credit flow control (TCP, not latest; docs/policies.md).
         self.flow = flow
         #: Send thread: the last take left values behind (rate limit or credit).
@@ -175,8 +175,8 @@ class OutgoingChannel:
         if hop is not None:
             self._hop_base = (self._hop_base[0] + hop.received, self._hop_base[1] + hop.lost)
             self._hop = None
-        if self.admission is not None:
-            self.admission.limit = None
+        if self.pacing is not None:
+            self.pacing.limit = None
 
     def pending(self) -> int:
         """Values written and not yet taken by the send thread (a snapshot, for monitors)."""
@@ -203,20 +203,20 @@ class OutgoingChannel:
         one). A held latest value is not counted: the thread re-checks it on its own poll."""
         if not len(self._ring):
             return False
-        admission = self.admission
-        return admission is None or admission.allowance(self._next_seq, now_ns) > 0
+        pacing = self.pacing
+        return pacing is None or pacing.allowance(self._next_seq, now_ns) > 0
 
     def retry_in(self, now_ns: int) -> float | None:
         """Send thread: seconds until the rate limit lets a waiting value go (None: never
         by itself; credit rings the doorbell when it arrives)."""
-        admission = self.admission
-        if admission is None or not (len(self._ring) or self._held is not None):
+        pacing = self.pacing
+        if pacing is None or not (len(self._ring) or self._held is not None):
             return None
-        return admission.wait_s(now_ns)
+        return pacing.wait_s(now_ns)
 
     def on_credit(self, limit: int) -> bool:
         """Receive thread: the server granted credit; True if values may now go."""
-        return self.admission is not None and self.admission.on_credit(limit)
+        return self.pacing is not None and self.pacing.on_credit(limit)
 
     def on_loss(self, loss: ChannelLoss) -> int:
         """Receive thread: the server's loss report for this channel; returns the values
@@ -225,8 +225,8 @@ class OutgoingChannel:
         self._hop = loss
         received = loss.received - (before.received if before is not None else 0)
         lost = loss.lost - (before.lost if before is not None else 0)
-        if self.admission is not None:
-            self.admission.on_report(received, lost)
+        if self.pacing is not None:
+            self.pacing.on_report(received, lost)
         return lost
 
     @property
@@ -243,10 +243,10 @@ class OutgoingChannel:
         ``redundancy`` k puts the previous k values (``repeated`` of them) in front. Sequence
         numbers are given here, so discarded values leave no gap the server would call lost.
         """
-        admission = self.admission
+        pacing = self.pacing
         allowed = None
-        if admission is not None:
-            allowed = admission.allowance(self._next_seq, time.monotonic_ns())
+        if pacing is not None:
+            allowed = pacing.allowance(self._next_seq, time.monotonic_ns())
         stamps, values = self._ring.drain_stamped(None if self.latest else allowed)
         self.deferred = allowed is not None and len(self._ring) > 0
         if self._space.waiting:
@@ -273,8 +273,8 @@ class OutgoingChannel:
         first = self._next_seq
         n = len(values)
         self._next_seq = first + n
-        if admission is not None:
-            admission.spend(n)
+        if pacing is not None:
+            pacing.spend(n)
         if not self.redundancy or n == 0:
             return first, stamps, values, 0
         history = self._history
@@ -308,8 +308,8 @@ class OutgoingChannel:
         ring = self._ring
         hop, (base_received, base_lost) = self._hop, self._hop_base
         reported = hop is not None or base_received or base_lost
-        admission = self.admission
-        rate = -1 if admission is None or admission.rate_hz is None else int(admission.rate_hz)
+        pacing = self.pacing
+        rate = -1 if pacing is None or pacing.rate_hz is None else int(pacing.rate_hz)
         return ChannelHealth(
             rtt_ns=rtt, one_way_ns=rtt // 2 if rtt >= 0 else -1, jitter_ns=-1,
             lost=base_lost + (hop.lost if hop else 0) if reported else -1,

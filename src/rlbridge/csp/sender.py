@@ -18,7 +18,7 @@ channel on TCP is handed the kernel's view of the connection (:mod:`rlbridge.tcp
 while it is backed up, holds its newest value instead of queueing a burst behind a
 retransmission; this thread then re-checks every ``HOLD_POLL_S`` until the value is out.
 UDP channels with ``redundancy`` k carry the previous k values in each datagram. A channel's
-:class:`~rlbridge.csp.admission.Admission` (credit of a flow-controlled TCP channel, a
+:class:`~rlbridge.csp.pacing.Pacing` (credit of a flow-controlled TCP channel, a
 ``max_rate_hz`` limit) may let only part of what waits go; the rest stays in the ring, the
 thread comes back when the rate allows (``retry_in``) or a ``Credit`` rings its doorbell. The
 thread also grants credit for flow-controlled incoming channels whose reader consumed enough
@@ -35,10 +35,10 @@ import threading
 import time
 from typing import Protocol
 
-from rlbridge.csp.admission import Admission
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.connection import Connection
 from rlbridge.csp.idle import PARK, IdleStrategy
+from rlbridge.csp.pacing import Pacing
 from rlbridge.tcpstate import congested
 from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Packet, Value
 
@@ -57,7 +57,7 @@ class OutgoingSource(Protocol):
     transport: str
     immediate: bool
     latest: bool
-    admission: Admission | None
+    pacing: Pacing | None
     #: The last take left values behind for the rate limit or credit: take again later.
     deferred: bool
 
@@ -259,7 +259,7 @@ class SendLoop:
             first_seq, stamps, values, repeated = src.take(busy)
             holding = holding or src.holding
             deferred = deferred or src.deferred
-            if src.admission is not None:
+            if src.pacing is not None:
                 wait = src.retry_in(time.monotonic_ns())
                 if wait is not None and (retry is None or wait < retry):
                     retry = wait

@@ -1,6 +1,6 @@
 """How many of an outgoing channel's waiting values may leave now: credit and a rate limit.
 
-Theory of operation. The send thread asks :meth:`Admission.allowance` before it drains a
+Theory of operation. The send thread asks :meth:`Pacing.allowance` before it drains a
 channel's ring and takes at most that many values; the rest stay in the ring, where the
 channel's overflow policy (drop the oldest, counted in ``overwritten``) applies *at the
 source*, in the control code's own process, instead of as silent loss further on.
@@ -30,11 +30,11 @@ LOSS_TOLERANCE = 0.01
 GROWTH = 0.05
 #: An adaptive rate never goes below this fraction of its maximum.
 MIN_RATE_FRACTION = 1 / 256
-#: Stands for "no limit" in :meth:`Admission.allowance`.
+#: Stands for "no limit" in :meth:`Pacing.allowance`.
 UNLIMITED = 1 << 62
 
 
-class Admission:
+class Pacing:
     """Credit and rate limit of one outgoing channel; see the module docstring."""
 
     __slots__ = ("_at", "_tokens", "adapt", "limit", "max_rate_hz", "rate_hz")

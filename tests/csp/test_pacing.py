@@ -1,24 +1,24 @@
-"""Admission (credit and rate limit of an outgoing channel) and the stamped ring's partial
+"""Pacing (credit and rate limit of an outgoing channel) and the stamped ring's partial
 drain: pure bookkeeping, driven by a fake clock."""
 
 from __future__ import annotations
 
 import pytest
 
-from rlbridge.csp.admission import BURST_S, MIN_RATE_FRACTION, UNLIMITED, Admission
+from rlbridge.csp.pacing import BURST_S, MIN_RATE_FRACTION, UNLIMITED, Pacing
 from rlbridge.csp.stamped_ring import StampedRing
 
 MS = 1_000_000
 
 
 def test_no_limits_allow_everything() -> None:
-    a = Admission()
+    a = Pacing()
     assert a.allowance(0, 0) == UNLIMITED
     assert a.wait_s(0) is None
 
 
 def test_credit_limits_by_sequence_number_and_never_goes_back() -> None:
-    a = Admission()
+    a = Pacing()
     assert a.on_credit(10)
     assert a.allowance(0, 0) == 10
     assert a.allowance(7, 0) == 3
@@ -29,7 +29,7 @@ def test_credit_limits_by_sequence_number_and_never_goes_back() -> None:
 
 
 def test_rate_refills_at_the_rate_up_to_the_burst() -> None:
-    a = Admission(1000.0, now_ns=0)
+    a = Pacing(1000.0, now_ns=0)
     burst = int(1000 * BURST_S)
     assert a.allowance(0, 0) == burst
     a.spend(burst)
@@ -40,13 +40,13 @@ def test_rate_refills_at_the_rate_up_to_the_burst() -> None:
 
 
 def test_rate_and_credit_together_take_the_smaller() -> None:
-    a = Admission(1000.0, now_ns=0)
+    a = Pacing(1000.0, now_ns=0)
     a.on_credit(2)
     assert a.allowance(0, 0) == 2
 
 
 def test_adaptive_rate_halves_on_loss_and_creeps_back() -> None:
-    a = Admission(1000.0, adapt=True)
+    a = Pacing(1000.0, adapt=True)
     a.on_report(received=90, lost=10)
     assert a.rate_hz == 500
     a.on_report(received=1000, lost=5)  # under the tolerance: counts as no loss
@@ -62,13 +62,13 @@ def test_adaptive_rate_halves_on_loss_and_creeps_back() -> None:
 
 
 def test_fixed_rate_ignores_reports_and_bad_settings_are_refused() -> None:
-    a = Admission(100.0)
+    a = Pacing(100.0)
     a.on_report(0, 100)
     assert a.rate_hz == 100
     with pytest.raises(ValueError, match="positive"):
-        Admission(0.0)
+        Pacing(0.0)
     with pytest.raises(ValueError, match="needs max_rate_hz"):
-        Admission(None, adapt=True)
+        Pacing(None, adapt=True)
 
 
 def test_stamped_ring_partial_drain_keeps_the_rest_in_order() -> None:
