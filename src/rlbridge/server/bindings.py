@@ -305,8 +305,9 @@ class Outbound:
         self._send_run(seq, stamps, values)
 
     def _send_run(self, seq: int, stamps: list[int], values: list[Any]) -> None:
-        """Values numbered from ``seq`` as Value or Batch packets; refused ones counted."""
-        if len(values) == 1:
+        """Values numbered from ``seq`` as Value or Batch packets; refused ones counted.
+        With redundancy every packet is a Batch (docs/protocol.md 10.1)."""
+        if len(values) == 1 and self._history is None:
             if not self.sink.send(Value(self.channel, seq, stamps[0], values[0]), data=True):
                 self.dropped += 1
             return
