@@ -24,13 +24,16 @@ from rlbridge.wire import (
     AuthProof,
     Batch,
     Bundle,
+    ChannelLoss,
     ConnectAck,
     ConnectError,
+    Credit,
     Disconnect,
     Error,
     Heartbeat,
     Hello,
     Limits,
+    LossReport,
     Packet,
     PacketCodec,
     Stats,
@@ -63,6 +66,10 @@ EVERY_TYPE: list[Packet] = [
     AuthChallenge(b"n" * 16, b"p" * 32),
     AuthProof(b"p" * 32),
     Bundle([Value(1, 0, 0, 1.5), Batch(2, 0, [0, 0], [1.0, 2.0])]),
+    Credit(2, 64),
+    LossReport([ChannelLoss(1, 10, 2, 12, 0), ChannelLoss(3, 0, 0, 0, 5)]),
+    TopicConnect(4, "subscribe", "/a", F64, buffer_size=8, flow=True),
+    TopicAck(5, F64, 0.0, credit=4096),
 ]
 
 #: A session's life as a client drives it: publish and subscribe on both transports.
@@ -75,6 +82,13 @@ SESSION: list[Packet] = [
     Value(3, 0, 0, {"linear": {"x": 1.0}}),
     Bundle([Value(1, 4, 0, 4.0), Value(3, 1, 0, {"angular": {"z": 0.5}}),
             Batch(1, 5, [0, 0], [5.0, 6.0])]),
+    TopicConnect(4, "subscribe", "/f", F64, buffer_size=4, flow=True),
+    TopicConnect(5, "publish", "/f", F64, flow=True, loss_report=True),
+    Batch(5, 0, [0] * 6, [1.0] * 6),
+    Credit(4, 8),
+    Credit(4, 2),  # old news
+    Credit(1, 9),  # not a flow-controlled subscription
+    LossReport([ChannelLoss(5, 1, 0, 1)]),  # a server's packet, from a client
     Heartbeat(5, 0),
     Stats(),
     TopicClose(2),
@@ -118,6 +132,9 @@ BAD: list[bytes] = [
     frame(body(32, "not a list")),
     frame(body(32)),
     frame(body(32, [[8] * 3] * 200)),
+    frame(body(34, 1, -5)),  # negative credit
+    frame(body(35, [[1, 2, 3, 4]] * 300)),  # a loss report over its 256 channels
+    frame(body(35, [[1, "x", 3, 4]])),  # a loss report with a bad count
 ]
 
 

@@ -302,6 +302,8 @@ TAG_STATS = 13
 TAG_AUTH_CHALLENGE = 14
 TAG_AUTH_PROOF = 15
 TAG_BUNDLE = 32
+TAG_CREDIT = 34
+TAG_LOSS_REPORT = 35
 
 TAG_NAMES = {
     TAG_HELLO: "Hello", TAG_CONNECT_ACK: "ConnectAck", TAG_CONNECT_ERROR: "ConnectError",
@@ -310,6 +312,7 @@ TAG_NAMES = {
     TAG_HEARTBEAT: "Heartbeat", TAG_DISCONNECT: "Disconnect", TAG_ERROR: "Error",
     TAG_STATS: "Stats", TAG_AUTH_CHALLENGE: "AuthChallenge", TAG_AUTH_PROOF: "AuthProof",
     TAG_BUNDLE: "Bundle",
+    TAG_CREDIT: "Credit", TAG_LOSS_REPORT: "LossReport",
 }
 
 # Error codes (doc section 12.2).
