@@ -34,6 +34,13 @@ Port = Annotated[int, typer.Option("--port", "-p", help="Bridge server port.")]
 Field = Annotated[str, typer.Option("--field", "-f",
                                     help="Field path ('data', 'linear.x'); '' = whole message.")]
 TransportOpt = Annotated[str, typer.Option("--transport", "-t", help="udp or tcp.")]
+TlsOpt = Annotated[bool, typer.Option("--tls", help="Connect with TLS, trusting the system's "
+                                      "CAs (or --ca / --fingerprint).")]
+CaOpt = Annotated[str | None, typer.Option("--ca", help="CA file the server's TLS certificate "
+                                           "must be signed by (implies --tls).")]
+FingerprintOpt = Annotated[str | None, typer.Option(
+    "--fingerprint", help="SHA-256 fingerprint of the server's TLS certificate to pin, as "
+    "`rlbridge tls init` prints it (implies --tls).")]
 
 
 def fail(message: str, code: int = 1) -> typer.Exit:
@@ -112,6 +119,14 @@ def serve(
         help="Pre-shared keys, hex, one per line ('<hex>' or '<client-name> <hex>'); without "
         "it $RLBRIDGE_PSK (hex); without both, no authentication. Never a key on the "
         "command line.")] = None,
+    tls_cert: Annotated[str | None, typer.Option(
+        help="TLS certificate (PEM): TCP clients must then use TLS 1.3. `rlbridge tls init` "
+        "makes one.")] = None,
+    tls_key: Annotated[str | None, typer.Option(help="The TLS certificate's key (PEM).")]
+    = None,
+    tls_client_ca: Annotated[str | None, typer.Option(
+        help="Mutual TLS: clients need a certificate signed by this CA; its common name is "
+        "the client's identity.")] = None,
     allow: Annotated[list[str] | None, typer.Option(
         help="Client network allowed in (repeatable): 192.168.1.0/24, 127.0.0.1. Default: any.")]
     = None,
@@ -132,7 +147,9 @@ def serve(
         config = ServerConfig(host=host, port=port, tcp=tcp, udp=udp, nodelay=nodelay,
                               adapter=adapter, heartbeat_ms=heartbeat_ms,
                               timeout_ms=timeout_ms, node_name=node_name, namespace=namespace,
-                              psk_file=psk_file, allow=tuple(allow or ()), max_rate=max_rate,
+                              psk_file=psk_file, tls_cert=tls_cert, tls_key=tls_key,
+                              tls_client_ca=tls_client_ca,
+                              allow=tuple(allow or ()), max_rate=max_rate,
                               max_sessions=max_sessions, max_channels=max_channels,
                               max_packet=max_packet,
                               metrics_port=metrics_port)
@@ -163,12 +180,16 @@ def topic_pub(
     transport: TransportOpt = "udp",
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
 ) -> None:
     """Publish VALUE on TOPIC through the bridge."""
     from rlbridge.csp.bridge import Bridge
 
     parsed = _parse_value(value)
-    with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
         out = bridge.publish(topic, msg_type, field or None, transport=_transport(transport))  # type: ignore[arg-type]
         n = max(1, count) if rate > 0 else 1
         period = 1.0 / rate if rate > 0 else 0.0
@@ -193,11 +214,15 @@ def topic_echo(
                                                 "without a value (0 = wait forever).")] = 0.0,
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
     from rlbridge.csp.bridge import Bridge
 
-    with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=4096)
         seen = 0
@@ -245,12 +270,16 @@ def topic_hz(
     transport: TransportOpt = "udp",
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second)."""
     from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.errors import ChannelClosed
 
-    with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=65536)
         arrivals: list[float] = []
@@ -291,13 +320,17 @@ def format_rate(arrivals: list[float]) -> str:
 def topic_list(
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
     show_types: Annotated[bool, typer.Option("--show-types", "-t", help="Print types too.")]
     = False,
 ) -> None:
     """List the topics the server's middleware knows."""
     from rlbridge.csp.bridge import Bridge
 
-    with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
         for name, msg_type in bridge.server_stats()["topics"]:
             typer.echo(f"{name} [{msg_type}]" if show_types else name)
 
@@ -307,6 +340,9 @@ def topic_list(
 def stats(
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
     = False,
 ) -> None:
@@ -314,7 +350,8 @@ def stats(
     from rlbridge.csp.bridge import Bridge
     from rlbridge.server.report import format_stats
 
-    with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
         body = bridge.server_stats()
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 
@@ -333,6 +370,9 @@ def build_app() -> typer.Typer:
 
     app.add_typer(bench_app, name="bench")
     register_demo(app)
+    from rlbridge.tls.cli import tls_app
+
+    app.add_typer(tls_app, name="tls")
     try:
         from rlbridge.netem.cli import netem_app
     except ImportError:  # the emulator is being built in parallel; the CLI works without it

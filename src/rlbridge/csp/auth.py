@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from rlbridge.csp.connection import ConnectionFailed
@@ -51,12 +51,14 @@ class AuthRefused(ConnectionFailed, AuthenticationFailed):
     """
 
 
-def resolve_key(psk: bytes | None = None, psk_file: str | Path | None = None,
+def resolve_key(psk: bytes | str | None = None, psk_file: str | Path | None = None,
                 environ: Mapping[str, str] | None = None) -> bytes | None:
     """The key to authenticate with, from the first source that has one (module docstring).
 
     ``environ`` defaults to ``os.environ`` (tests pass their own mapping).
     """
+    if isinstance(psk, str):
+        return parse_key(psk, "psk=")
     if psk is not None:
         if len(psk) < MIN_KEY_SIZE:
             raise ValueError(f"psk of {len(psk)} bytes is too short; use at least "
@@ -84,12 +86,14 @@ class ClientAuth:
         """What the hello carries in its ``auth`` field."""
         return self._handshake.nonce
 
-    def answer(self, challenge: AuthChallenge, sock: socket.socket) -> AuthProof:
+    def answer(self, challenge: AuthChallenge,
+               sock: socket.socket | Callable[[Packet], object]) -> AuthProof:
         """Our proof; raises :class:`AuthRefused` if the server does not know the key.
 
         Before raising, a ``Disconnect(AUTH_FAILED)`` goes to the server over ``sock`` (the
-        handshake's TCP or UDP socket), so it can count and log the refusal: the client
-        refuses first, and never sends a proof to a server that has not proven the key.
+        handshake's UDP socket, or a function sending a packet on the TCP connection, TLS
+        or not), so it can count and log the refusal: the client refuses first, and never
+        sends a proof to a server that has not proven the key.
         """
         try:
             proof = self._handshake.answer(challenge)
@@ -98,7 +102,9 @@ class ClientAuth:
                                  "proof: the two sides have different keys")
             codec = PacketCodec()
             with contextlib.suppress(OSError):
-                if sock.type == socket.SOCK_STREAM:
+                if not isinstance(sock, socket.socket):
+                    sock(goodbye)
+                elif sock.type == socket.SOCK_STREAM:
                     sock.sendall(codec.encode_frame(goodbye))
                 else:
                     sock.send(codec.encode_datagram(goodbye, 0))

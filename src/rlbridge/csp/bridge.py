@@ -19,6 +19,7 @@ import contextlib
 import itertools
 import logging
 import os
+import ssl
 import sys
 import threading
 from collections.abc import Callable
@@ -35,6 +36,7 @@ from rlbridge.csp.io_priority import IoPriority
 from rlbridge.csp.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
 from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
+from rlbridge.tls import client_tls
 from rlbridge.wire import RemoteError, TopicClose, TopicConnect
 from rlbridge.wire.link import LinkState
 from rlbridge.wire.packets import Reliability
@@ -82,8 +84,13 @@ class Bridge:
         timeout: float = 5.0,
         switch_interval: float | None = DEFAULT_SWITCH_INTERVAL,
         reconnect: bool | Backoff = True,
-        psk: bytes | None = None,
+        psk: bytes | str | None = None,
         psk_file: str | Path | None = None,
+        tls: bool | ssl.SSLContext = False,
+        ca: str | Path | None = None,
+        fingerprint: str | None = None,
+        client_cert: str | Path | None = None,
+        client_key: str | Path | None = None,
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
 
@@ -103,13 +110,22 @@ class Bridge:
         ``None`` leaves the interpreter's setting alone. ``psk`` (raw bytes), else ``psk_file``
         (hex), else ``$RLBRIDGE_PSK`` (hex) is the pre-shared key for a server that requires
         one; a wrong key raises :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
+
+        TLS (a server started with ``--tls-cert``): ``tls=True`` trusts the system's CAs,
+        ``ca=`` a CA file, ``fingerprint=`` exactly the certificate with that SHA-256
+        fingerprint (what ``rlbridge tls init`` prints), ``tls=`` an ``ssl.SSLContext`` of your
+        own. ``client_cert``/``client_key``: this client's certificate, for a server that
+        requires one (``--tls-client-ca``). A certificate that does not verify raises
+        :class:`~rlbridge.csp.tls_client.TlsFailed` saying why.
         """
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
             sys.setswitchinterval(switch_interval)
         key = resolve_key(psk, psk_file)  # before any socket exists: a bad key leaks nothing
+        tls_settings = client_tls(tls, ca=ca, fingerprint=fingerprint, cert=client_cert,
+                                  key=client_key)
         conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
                           control=control, timeout=timeout)
-        conn.psk = key
+        conn.psk, conn.tls = key, tls_settings
         ack = conn.open()
         try:
             sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch)

@@ -36,10 +36,12 @@ from rlbridge.wire import (
     ConnectAck,
     Disconnect,
     Error,
+    ErrorCode,
     Hello,
     Malformed,
     Packet,
     PacketCodec,
+    RemoteProtocolError,
     TopicAck,
     TopicConnect,
 )
@@ -47,6 +49,7 @@ from rlbridge.wire.link import LinkMonitor, LinkState
 
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
+    from rlbridge.tls import ClientTls, TlsEngine
 
 __all__ = ["Connection", "ConnectionClosed", "ConnectionFailed", "Control", "LinkHandler",
            "MAX_DRAIN", "RUN_DATAGRAMS", "ValuesHandler"]
@@ -74,6 +77,11 @@ class Connection:
         #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.
         self.psk: bytes | None = None
         self.auth: ClientAuth | None = None
+        #: TLS settings (rlbridge.tls); with them every session's TCP bytes go through
+        #: ``tls_engine``, serialised by ``tls_lock`` (held only to transform bytes).
+        self.tls: ClientTls | None = None
+        self.tls_engine: TlsEngine | None = None
+        self.tls_lock = threading.Lock()
         #: Datagrams the receive thread refused, by reason (bad_mac, replayed, bad_token, ...).
         self.datagrams_dropped: collections.Counter[str] = collections.Counter()
         self.tcp: socket.socket | None = None
@@ -150,6 +158,7 @@ class Connection:
 
         self.auth = ClientAuth(self.psk, self.name) if self.psk else None
         self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
+        self.tls_engine = None
         hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
             ack, self._leftover = (handshake.open_tcp(self, hello, self._wake_r)
@@ -224,12 +233,40 @@ class Connection:
 
     # -- sending (any SRT thread) ------------------------------------------------------------
     def send_tcp(self, data: bytes | bytearray) -> None:
+        """Write frames to the TCP connection (through TLS when on), whole, in call order."""
         tcp = self.tcp
         if tcp is None:
             raise ConnectionClosed("this session has no TCP connection")
         with self.tcp_lock:
-            tcp.sendall(data)
-            self.tcp_bytes_out += len(data)
+            engine = self.tls_engine
+            if engine is not None:
+                # Encrypted and written under one lock, so records leave in sequence order.
+                with self.tls_lock:
+                    data = engine.send(data)
+            if data:
+                tcp.sendall(data)
+                self.tcp_bytes_out += len(data)
+
+    def tcp_received(self, data: bytes) -> bytes:
+        """The plaintext of bytes the TCP socket read: all of it, none left buffered in TLS.
+
+        Raises :class:`~rlbridge.wire.RemoteProtocolError` when TLS refuses them.
+        """
+        engine = self.tls_engine
+        if engine is None:
+            return data
+        import ssl
+
+        try:
+            with self.tls_lock:
+                plain = engine.receive(data)
+                reply = engine.wants_write
+        except ssl.SSLError as exc:
+            raise RemoteProtocolError(ErrorCode.AUTH_FAILED,
+                                      f"TLS: {exc.reason or exc}", fatal=True) from None
+        if reply:  # e.g. a key update's answer: out in order with everything else
+            self.send_tcp(b"")
+        return plain
 
     def send_udp(self, data: bytes) -> None:
         udp = self.udp

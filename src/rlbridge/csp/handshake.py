@@ -19,6 +19,7 @@ import time
 from typing import TYPE_CHECKING
 
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
+from rlbridge.csp.tls_client import TlsFailed, plaintext_refused, start_tls
 from rlbridge.wire import (
     AuthChallenge,
     ConnectAck,
@@ -47,7 +48,10 @@ def open_tcp(conn: Connection, hello: Hello,
     conn.tcp = sock = connect_tcp(conn, wake)
     if conn.nodelay:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    sock.sendall(conn.codec.encode_frame(hello))
+    where = f"{conn.host}:{conn.port}"
+    if conn.tls is not None:
+        conn.tls_engine = start_tls(conn, sock, wake)
+    conn.send_tcp(conn.codec.encode_frame(hello))
     decoder = FrameDecoder(conn.codec)
     deadline = time.monotonic() + conn.timeout
     while True:
@@ -55,13 +59,22 @@ def open_tcp(conn: Connection, hello: Hello,
         try:
             data = sock.recv(65536)
         except TimeoutError:
-            raise ConnectionFailed(
-                f"no answer from {conn.host}:{conn.port} within {conn.timeout} s") from None
+            raise ConnectionFailed(f"no answer from {where} within {conn.timeout} s") from None
         if not data:
-            raise ConnectionFailed(f"{conn.host}:{conn.port} closed the connection")
-        packets = decoder.feed(data)
+            raise ConnectionFailed(f"{where} closed the connection")
+        if conn.tls is None and (wants_tls := plaintext_refused(data, where)) is not None:
+            raise wants_tls
+        try:
+            packets = decoder.feed(conn.tcp_received(data))
+        except RemoteProtocolError as exc:
+            if conn.tls is not None:
+                raise TlsFailed(f"{where} refused the TLS session: {exc.reason}") from None
+            raise ConnectionFailed(f"{where} sent something that is not rlbridge protocol: "
+                                   f"{exc.reason}") from None
         if conn.auth is not None and packets and isinstance(packets[0], AuthChallenge):
-            sock.sendall(conn.codec.encode_frame(conn.auth.answer(packets[0], sock)))
+            proof = conn.auth.answer(
+                packets[0], lambda p: conn.send_tcp(conn.codec.encode_frame(p)))
+            conn.send_tcp(conn.codec.encode_frame(proof))
             packets = packets[1:]
         if packets:
             first = packets[0]

@@ -89,7 +89,7 @@ class Receiver:
                         if not data:
                             conn.end_session("server closed the TCP connection", generation)
                             return
-                        for packet in decoder.feed(data):
+                        for packet in decoder.feed(conn.tcp_received(data)):
                             if isinstance(packet, Malformed):
                                 log.warning("malformed packet from server: %s",
                                             packet.error.reason)

@@ -26,6 +26,7 @@ from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import ServerContext
 from rlbridge.server.tcp import TcpConnection
 from rlbridge.server.udp import UdpEndpoint
+from rlbridge.tls import TlsError, server_context
 from rlbridge.wire import PacketCodec
 
 log = logging.getLogger("rlbridge.server")
@@ -94,14 +95,16 @@ class Server:
         cfg = self.config
         try:  # before the adapter and the sockets: a bad key file is the operator's to fix
             keys = KeyStore.load(cfg.psk_file)
-        except ValueError as exc:
+            tls = (server_context(cfg.tls_cert, cfg.tls_key, cfg.tls_client_ca)
+                   if cfg.tls_cert is not None and cfg.tls_key is not None else None)
+        except (ValueError, TlsError) as exc:
             raise ServerError(str(exc)) from None
         adapter = self._adapter or load_adapter(
             cfg.adapter, node_name=cfg.node_name, namespace=cfg.namespace,
             parameters={"use_tcp": cfg.tcp, "use_udp": cfg.udp, "disable_nagle": cfg.nodelay},
         )
         ctx = ServerContext(cfg, adapter, PacketCodec(), loop, LoopHandoff(loop),
-                            keys=keys, allow=AllowList(cfg.allow))
+                            keys=keys, allow=AllowList(cfg.allow), tls=tls)
         self.registry = registry = SessionRegistry(ctx)
         tcp_server: asyncio.Server | None = None
         udp_transport: asyncio.DatagramTransport | None = None
@@ -118,9 +121,9 @@ class Server:
             self.address = BoundAddress(cfg.host, port, tcp_server is not None,
                                         udp_transport is not None,
                                         metrics.port if metrics is not None else None)
-            log.info("rlbridge serving on %s:%d (tcp=%s udp=%s nodelay=%s adapter=%s psk=%s)",
-                     cfg.host, port, cfg.tcp, cfg.udp, cfg.nodelay, adapter.name,
-                     keys is not None)
+            log.info("rlbridge serving on %s:%d (tcp=%s udp=%s nodelay=%s adapter=%s psk=%s "
+                     "tls=%s)", cfg.host, port, cfg.tcp, cfg.udp, cfg.nodelay, adapter.name,
+                     keys is not None, "mutual" if cfg.tls_client_ca else tls is not None)
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     loop.add_signal_handler(sig, self._stop.set)

@@ -40,6 +40,12 @@ class ServerConfig(BaseModel):
     # -- access and limits (docs/security.md) --
     psk_file: Path | None = Field(
         None, description="Pre-shared keys; without it $RLBRIDGE_PSK, without both no auth.")
+    tls_cert: Path | None = Field(
+        None, description="TLS certificate (PEM); with tls_key, TCP clients must use TLS 1.3.")
+    tls_key: Path | None = Field(None, description="The TLS certificate's private key (PEM).")
+    tls_client_ca: Path | None = Field(
+        None, description="Mutual TLS: clients need a certificate from this CA; its common "
+        "name is the client's identity.")
     allow: tuple[str, ...] = Field(
         (), description="Client networks allowed in (CIDR or address); empty: any.")
     max_rate: float | None = Field(
@@ -66,4 +72,9 @@ class ServerConfig(BaseModel):
             raise ValueError("enable at least one transport: tcp or udp")
         if self.timeout_ms <= self.heartbeat_ms:
             raise ValueError("timeout_ms must be longer than heartbeat_ms")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("TLS needs both a certificate and its key (--tls-cert and "
+                             "--tls-key)")
+        if self.tls_client_ca is not None and self.tls_cert is None:
+            raise ValueError("--tls-client-ca needs TLS: add --tls-cert and --tls-key")
         return self

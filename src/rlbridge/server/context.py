@@ -7,6 +7,7 @@ a CLI server) never see each other's settings, counters or keys.
 from __future__ import annotations
 
 import asyncio
+import ssl
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -33,6 +34,8 @@ class ServerContext:
     #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
     handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
     allow: AllowList = field(default_factory=lambda: AllowList(()))
+    #: TLS on the TCP listener (``--tls-cert``): every connection runs it (server/tls_side.py).
+    tls: ssl.SSLContext | None = None
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
 

@@ -69,6 +69,10 @@ class Session:
         self.id = session_id
         self.token = token
         self.name = name
+        #: Who the client proved to be: its mutual-TLS certificate's common name, or the name
+        #: its own pre-shared key is filed under; None when nothing proved a name
+        #: (authorization then applies the default rules: server/authz.py).
+        self.identity: str | None = None
         self._on_closed = on_closed
         cfg = ctx.config
         self.link = LinkMonitor(
@@ -311,6 +315,7 @@ class Session:
         return {
             "session": self.id,
             "name": self.name,
+            "identity": self.identity,
             "state": link.state.value,
             "rtt_us": link.rtt_ns / 1000 if link.rtt_ns >= 0 else None,
             "packets_in": self.packets_in,

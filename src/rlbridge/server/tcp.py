@@ -11,6 +11,7 @@ from rlbridge.server.gate import Gate
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
+from rlbridge.server.tls_side import ServerTls
 from rlbridge.wire import (
     AuthProof,
     ConnectError,
@@ -51,6 +52,7 @@ class TcpConnection(asyncio.Protocol):
         #: The hello and its handshake while a key-requiring server waits for the proof.
         self._pending: tuple[Hello, ServerHandshake] | None = None
         self._deadline: asyncio.TimerHandle | None = None
+        self._tls: ServerTls | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = t = cast(asyncio.Transport, transport)
@@ -62,18 +64,24 @@ class TcpConnection(asyncio.Protocol):
             # without --nodelay it has to be turned back on to mean what the option says.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, int(ctx.config.nodelay))
         t.set_write_buffer_limits(high=ctx.config.max_write_buffer)
-        self._sink = TcpSink(t, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
         peer = t.get_extra_info("peername")
         refused = self._gate.allowed(peer[0] if peer else "?", "TCP connection")
-        if refused is not None:
-            self._sink.send(refused)
+        if refused is not None:  # in plain protocol, before any TLS: nothing to protect
+            TcpSink(t, ctx.codec, ctx.config.max_write_buffer).send(refused)
             t.close()
             return
+        out: asyncio.Transport = t
+        if ctx.tls is not None:
+            self._tls = ServerTls(ctx.tls, t, ctx, self._peer)
+            out = self._tls.transport
+        self._sink = TcpSink(out, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
         # A connection that never completes its hello (or its proof) must not hold a socket.
         self._deadline = ctx.loop.call_later(HELLO_TIMEOUT, self._no_hello)
         ctx.handshaking.add(t)
 
     def data_received(self, data: bytes) -> None:
+        if self._sink is None:  # refused at connect (allow-list): nothing more is read
+            return
         if len(data) >= YIELD_AFTER_BYTES and self._transport is not None:
             # Fairness: uvloop (libuv) reads a busy socket up to 32 times in one loop
             # iteration; a flooding client would hold the loop for seconds, starving other
@@ -81,6 +89,11 @@ class TcpConnection(asyncio.Protocol):
             # heartbeats sit unread). Pause after a large chunk, resume on the next iteration.
             self._transport.pause_reading()
             self._registry.ctx.loop.call_soon(self._resume_reading)
+        if self._tls is not None:
+            plain = self._tls.received(data)
+            if not plain:
+                return
+            data = plain
         try:
             packets = self._decoder.feed(data)
         except RemoteProtocolError as exc:
@@ -143,6 +156,8 @@ class TcpConnection(asyncio.Protocol):
             self._transport.close()
             return
         result.attach_tcp(self._sink, self._transport.close)
+        if self._tls is not None and self._tls.identity is not None:
+            result.identity = self._tls.identity  # a certificate outranks a key's name
         self._session = result
         log.info("session %d (%s) opened over TCP from %s", result.id, hello.name, self._peer)
         self._sink.send(self._registry.ack(result))

@@ -185,6 +185,10 @@ class AuthProof(_Packet, tag=15, frozen=True):
     proof: Mac
 
 
+# Tags of new packet kinds are allocated per line of work, so that parallel branches never
+# reuse a number (tags are the wire format): 16-19 security (TLS/AEAD/authorization),
+# 20-29 ROS 2 services/actions/parameters, 30-31 value rejection, 32-33 UDP bundles,
+# 34-37 loss feedback and flow control. Add new kinds at the end of the union below.
 Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
     | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
