@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime
 import socket
 import ssl
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,6 +21,8 @@ from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.tls_client import TlsFailed
 from rlbridge.server import ServerThread
 from rlbridge.tls.certs import Issued, init_server, issue, make_ca
+from rlbridge.wire import PROTOCOL_VERSION, ConnectError, Hello, PacketCodec, Value
+from rlbridge.wire.seal import SealedCodec
 
 F64 = "std_msgs/msg/Float64"
 WAIT = 10.0
@@ -29,6 +32,13 @@ def write(issued: Issued, directory: Path, stem: str) -> tuple[Path, Path]:
     cert, key = directory / f"{stem}.crt", directory / f"{stem}.key"
     issued.write(cert, key)
     return cert, key
+
+
+def wait_until(predicate: Callable[[], object]) -> None:
+    deadline = time.monotonic() + WAIT
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.01)
 
 
 def counters(srv: ServerThread) -> dict[str, int]:
@@ -184,3 +194,37 @@ def test_unreadable_files_are_one_line_server_errors(
         make_server(tls_cert=junk, tls_key=self_signed[1])
     with pytest.raises(ValueError, match="not a SHA-256 fingerprint"):
         Bridge.connect("127.0.0.1", 1, fingerprint="abc", reconnect=False)
+
+
+def test_udp_channels_of_a_tls_session_are_sealed(tls_server: ServerThread,
+                                                  self_signed: tuple[Path, Path, str]) -> None:
+    """The datagram keys come over TLS; a datagram without the seal is dropped and counted."""
+    with Bridge.connect("127.0.0.1", tls_server.port, fingerprint=self_signed[2],
+                        reconnect=False) as bridge:
+        out = bridge.publish("/tls/udp", F64, transport="udp")
+        inp = bridge.subscribe("/tls/udp", F64, transport="udp", blocking=True, buffer_size=8)
+        out.write(2.5)
+        bridge.send(wait=True)
+        assert inp.read(timeout=WAIT) == 2.5
+        assert tls_server.server.registry is not None
+        session = next(iter(tls_server.server.registry))
+        assert isinstance(session.codec, SealedCodec)
+        token = bridge._conn.ack.token  # type: ignore[union-attr]
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+            udp.sendto(PacketCodec().encode_datagram(Value(1, 1, 0, 99.0), token),
+                       ("127.0.0.1", tls_server.port))
+            wait_until(lambda: counters(tls_server).get("udp_unsealed") == 1)
+        out.write(3.5)
+        bridge.send(wait=True)
+        assert inp.read(timeout=WAIT) == 3.5
+
+
+def test_udp_only_hello_is_refused_by_a_tls_only_server(tls_server: ServerThread) -> None:
+    codec = PacketCodec()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+        udp.settimeout(WAIT)
+        udp.sendto(codec.encode_datagram(Hello(PROTOCOL_VERSION, "udp-only"), 0),
+                   ("127.0.0.1", tls_server.port))
+        packet = codec.decode_datagram(udp.recv(65536))[2]
+    assert isinstance(packet, ConnectError)
+    assert "open the session over TCP with TLS" in packet.reason

@@ -33,6 +33,7 @@ from rlbridge.wire.auth import (
     PSK_ENV,
     ClientHandshake,
     SealedCodec,
+    SessionKeys,
     parse_key,
     sealed_codec,
 )
@@ -80,6 +81,11 @@ class ClientAuth:
     def __init__(self, key: bytes, name: str, nonce: bytes | None = None) -> None:
         self._handshake = ClientHandshake(key, name, nonce or os.urandom(NONCE_SIZE))
         self._codec: SealedCodec | None = None
+
+    @property
+    def keys(self) -> SessionKeys | None:
+        """The session's keys, once the server's challenge was answered."""
+        return self._handshake.keys
 
     @property
     def nonce(self) -> bytes:

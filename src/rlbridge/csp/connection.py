@@ -37,6 +37,7 @@ from rlbridge.wire import (
     Disconnect,
     Error,
     ErrorCode,
+    FrameDecoder,
     Hello,
     Malformed,
     Packet,
@@ -46,6 +47,8 @@ from rlbridge.wire import (
     TopicConnect,
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
+from rlbridge.wire.records import RecordSealer, SealedStreamDecoder
+from rlbridge.wire.seal import sealed_codec, tls_datagram_keys
 
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
@@ -82,6 +85,11 @@ class Connection:
         self.tls: ClientTls | None = None
         self.tls_engine: TlsEngine | None = None
         self.tls_lock = threading.Lock()
+        #: A pre-shared-key session without TLS: seals the TCP stream into records
+        #: (wire/records.py), under ``tcp_lock`` so records leave in counter order.
+        self.stream_sealer: RecordSealer | None = None
+        #: The handshake's frame decoder, which the receive thread goes on with.
+        self.tcp_decoder: FrameDecoder | SealedStreamDecoder | None = None
         #: Datagrams the receive thread refused, by reason (bad_mac, replayed, bad_token, ...).
         self.datagrams_dropped: collections.Counter[str] = collections.Counter()
         self.tcp: socket.socket | None = None
@@ -159,12 +167,17 @@ class Connection:
         self.auth = ClientAuth(self.psk, self.name) if self.psk else None
         self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
         self.tls_engine = None
+        self.stream_sealer = None
+        self.tcp_decoder = None
         hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
             ack, self._leftover = (handshake.open_tcp(self, hello, self._wake_r)
                                    if self.control == "tcp" else handshake.open_udp(self, hello))
             if self.auth is not None:
                 self.codec = self.auth.sealed(ack)
+            elif self.tls_engine is not None and ack.datagram_key:
+                self.codec = sealed_codec(tls_datagram_keys(ack.datagram_key, ack.token),
+                                          server=False)
             return ack
         except OSError as exc:
             self._close_session_sockets()
@@ -243,6 +256,8 @@ class Connection:
                 # Encrypted and written under one lock, so records leave in sequence order.
                 with self.tls_lock:
                     data = engine.send(data)
+            elif self.stream_sealer is not None and data:
+                data = self.stream_sealer.seal(data)
             if data:
                 tcp.sendall(data)
                 self.tcp_bytes_out += len(data)

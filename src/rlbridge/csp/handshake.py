@@ -24,6 +24,7 @@ from rlbridge.wire import (
     AuthChallenge,
     ConnectAck,
     ConnectError,
+    ErrorCode,
     FrameDecoder,
     Heartbeat,
     Hello,
@@ -31,6 +32,7 @@ from rlbridge.wire import (
     Packet,
     RemoteProtocolError,
 )
+from rlbridge.wire.records import RecordOpener, SealedStreamDecoder, stream_sealers
 
 if TYPE_CHECKING:
     from rlbridge.csp.connection import Connection
@@ -52,7 +54,9 @@ def open_tcp(conn: Connection, hello: Hello,
     if conn.tls is not None:
         conn.tls_engine = start_tls(conn, sock, wake)
     conn.send_tcp(conn.codec.encode_frame(hello))
-    decoder = FrameDecoder(conn.codec)
+    sealed = conn.auth is not None and conn.tls is None  # records after the proof
+    decoder = SealedStreamDecoder(conn.codec) if sealed else FrameDecoder(conn.codec)
+    conn.tcp_decoder = decoder
     deadline = time.monotonic() + conn.timeout
     while True:
         sock.settimeout(max(0.01, deadline - time.monotonic()))
@@ -75,6 +79,8 @@ def open_tcp(conn: Connection, hello: Hello,
             proof = conn.auth.answer(
                 packets[0], lambda p: conn.send_tcp(conn.codec.encode_frame(p)))
             conn.send_tcp(conn.codec.encode_frame(proof))
+            if isinstance(decoder, SealedStreamDecoder):
+                seal_stream(conn, decoder)
             packets = packets[1:]
         if packets:
             first = packets[0]
@@ -83,9 +89,24 @@ def open_tcp(conn: Connection, hello: Hello,
     if isinstance(first, Malformed):
         raise ConnectionFailed(f"server sent an invalid packet: {first.error.reason}")
     ack = expect_ack(first)
+    if isinstance(decoder, SealedStreamDecoder) and decoder.installed and not decoder.records:
+        from rlbridge.csp.auth import AuthRefused
+
+        raise AuthRefused(int(ErrorCode.AUTH_FAILED), f"{where} sent the session's ack "
+                          "unsealed: not the server that proved the key (someone in between)")
     leftover = packets[1:]
     conn.udp = udp_socket(conn.host, conn.port)
     return ack, leftover
+
+
+def seal_stream(conn: Connection, decoder: SealedStreamDecoder) -> None:
+    """After our proof: records both ways (the ack is the server's first sealed record)."""
+    assert conn.auth is not None
+    assert conn.auth.keys is not None
+    sealer, opener_key = stream_sealers(conn.auth.keys, server=False)
+    decoder.install(RecordOpener(opener_key), strict=False)
+    with conn.tcp_lock:
+        conn.stream_sealer = sealer
 
 
 def open_udp(conn: Connection, hello: Hello) -> tuple[ConnectAck, Leftover]:

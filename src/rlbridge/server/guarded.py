@@ -16,10 +16,19 @@ from typing import Any
 class GuardedTransport(asyncio.Transport):
     """``inner`` with every write passed through ``protect`` first."""
 
+    @staticmethod
+    def plain(data: bytes | bytearray | memoryview) -> bytes:
+        """No transformation (a keyed connection before its handshake ends)."""
+        return bytes(data)
+
     def __init__(self, inner: asyncio.Transport,
                  protect: Callable[[bytes | bytearray | memoryview], bytes]) -> None:
         super().__init__()
         self._inner = inner
+        self._protect = protect
+
+    def protect_with(self, protect: Callable[[bytes | bytearray | memoryview], bytes]) -> None:
+        """Transform later writes with ``protect`` (the handshake is over: keys exist)."""
         self._protect = protect
 
     def write(self, data: bytes | bytearray | memoryview) -> None:

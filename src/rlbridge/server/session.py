@@ -43,6 +43,7 @@ from rlbridge.wire import (
     Value,
 )
 from rlbridge.wire.link import LinkMonitor
+from rlbridge.wire.seal import SessionKeys
 
 __all__ = ["CHANNEL_TOTALS", "ServerContext", "Session"]
 
@@ -93,6 +94,8 @@ class Session:
         self.closed = False
         #: Seals and opens this session's datagrams (the gate swaps in a SealedCodec).
         self.codec: PacketCodec = ctx.codec
+        #: The keys of a pre-shared-key session (the TCP connection seals its records).
+        self.keys: SessionKeys | None = None
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
         self._watchdog = SessionWatchdog(self)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import socket
 from typing import cast
 
 from rlbridge.server.gate import Gate
+from rlbridge.server.guarded import GuardedTransport
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
@@ -21,9 +23,12 @@ from rlbridge.wire import (
     FrameDecoder,
     Hello,
     Malformed,
+    PacketCodec,
     RemoteProtocolError,
 )
 from rlbridge.wire.auth import ServerHandshake
+from rlbridge.wire.records import RecordOpener, SealedStreamDecoder, stream_sealers
+from rlbridge.wire.seal import KEY_SIZE, sealed_codec, tls_datagram_keys
 
 log = logging.getLogger("rlbridge.server")
 
@@ -43,7 +48,8 @@ class TcpConnection(asyncio.Protocol):
     def __init__(self, registry: SessionRegistry) -> None:
         self._registry = registry
         ctx = registry.ctx
-        self._decoder = FrameDecoder(ctx.codec, ctx.config.max_packet)
+        self._decoder: FrameDecoder | SealedStreamDecoder = FrameDecoder(
+            ctx.codec, ctx.config.max_packet)
         self._transport: asyncio.Transport | None = None
         self._sink: TcpSink | None = None
         self._session: Session | None = None
@@ -53,6 +59,10 @@ class TcpConnection(asyncio.Protocol):
         self._pending: tuple[Hello, ServerHandshake] | None = None
         self._deadline: asyncio.TimerHandle | None = None
         self._tls: ServerTls | None = None
+        self._guarded: GuardedTransport | None = None
+        #: Set when the keys were installed mid-read: records after the proof then wait in
+        #: the decoder and are read at the end of this ``data_received``.
+        self._refeed = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = t = cast(asyncio.Transport, transport)
@@ -74,6 +84,10 @@ class TcpConnection(asyncio.Protocol):
         if ctx.tls is not None:
             self._tls = ServerTls(ctx.tls, t, ctx, self._peer)
             out = self._tls.transport
+        elif ctx.keys is not None:
+            # Plain frames until the proof, sealed records after (wire/records.py).
+            self._guarded = out = GuardedTransport(t, GuardedTransport.plain)
+            self._decoder = SealedStreamDecoder(ctx.codec, ctx.config.max_packet)
         self._sink = TcpSink(out, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
         # A connection that never completes its hello (or its proof) must not hold a socket.
         self._deadline = ctx.loop.call_later(HELLO_TIMEOUT, self._no_hello)
@@ -97,7 +111,8 @@ class TcpConnection(asyncio.Protocol):
         try:
             packets = self._decoder.feed(data)
         except RemoteProtocolError as exc:
-            self._registry.ctx.count("malformed")
+            self._registry.ctx.count("tcp_rejected_records" if exc.code == ErrorCode.AUTH_FAILED
+                                     else "malformed")
             self._fatal(exc.code, exc.reason)
             return
         if self._session is not None:
@@ -125,6 +140,9 @@ class TcpConnection(asyncio.Protocol):
                 self._fatal(ErrorCode.UNEXPECTED,
                             f"expected {wanted}, got {type(packet).__name__}")
                 return
+        if self._refeed:
+            self._refeed = False
+            self.data_received(b"")
 
     def _hello(self, hello: Hello) -> None:
         assert self._sink is not None
@@ -158,9 +176,20 @@ class TcpConnection(asyncio.Protocol):
         result.attach_tcp(self._sink, self._transport.close)
         if self._tls is not None and self._tls.identity is not None:
             result.identity = self._tls.identity  # a certificate outranks a key's name
+        if self._guarded is not None and result.keys is not None:
+            sealer, opener_key = stream_sealers(result.keys, server=True)
+            self._guarded.protect_with(sealer.seal)
+            assert isinstance(self._decoder, SealedStreamDecoder)
+            self._decoder.install(RecordOpener(opener_key), strict=True)
+            self._refeed = True
         self._session = result
         log.info("session %d (%s) opened over TCP from %s", result.id, hello.name, self._peer)
-        self._sink.send(self._registry.ack(result))
+        secret = b""
+        if self._tls is not None and type(result.codec) is PacketCodec:
+            # No key handshake gave this session datagram keys: hand it a secret inside TLS.
+            secret = os.urandom(KEY_SIZE)
+            result.codec = sealed_codec(tls_datagram_keys(secret, result.token), server=True)
+        self._sink.send(self._registry.ack(result, secret))
 
     def _fatal(self, code: ErrorCode, reason: str) -> None:
         """The byte stream cannot be trusted any more: say why, then close.
