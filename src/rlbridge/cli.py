@@ -127,6 +127,9 @@ def serve(
     tls_client_ca: Annotated[str | None, typer.Option(
         help="Mutual TLS: clients need a certificate signed by this CA; its common name is "
         "the client's identity.")] = None,
+    insecure: Annotated[bool, typer.Option(
+        help="Listen on an address other than loopback without TLS or a key (warned at "
+        "start); without it such a server refuses to start.")] = False,
     allow: Annotated[list[str] | None, typer.Option(
         help="Client network allowed in (repeatable): 192.168.1.0/24, 127.0.0.1. Default: any.")]
     = None,
@@ -148,7 +151,7 @@ def serve(
                               adapter=adapter, heartbeat_ms=heartbeat_ms,
                               timeout_ms=timeout_ms, node_name=node_name, namespace=namespace,
                               psk_file=psk_file, tls_cert=tls_cert, tls_key=tls_key,
-                              tls_client_ca=tls_client_ca,
+                              tls_client_ca=tls_client_ca, insecure=insecure,
                               allow=tuple(allow or ()), max_rate=max_rate,
                               max_sessions=max_sessions, max_channels=max_channels,
                               max_packet=max_packet,

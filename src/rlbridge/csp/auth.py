@@ -1,12 +1,13 @@
 """The client's half of pre-shared-key authentication (docs/security.md).
 
-Where the key comes from, in order: ``Bridge.connect(psk=...)`` (raw bytes), ``psk_file=``
-(a file holding the key in hex, the format ``rlbridge serve --psk-file`` reads for one key),
-the ``RLBRIDGE_PSK`` environment variable (hex). A client given a key insists on
-authentication: a server that answers the hello without a challenge (no key configured, or
-someone in the middle stripping it) is refused, so a key can never silently downgrade to a
-session anyone could spoof. Once the server has proven the key and accepted ours, every
-datagram both ways is sealed with the derived session keys.
+Where the key comes from, in order: ``Bridge.connect(psk=...)`` (hex, or the key's bytes),
+``psk_file=`` (the key file format ``rlbridge serve --psk-file`` reads: the line of this
+client's name, else the default line), the ``RLBRIDGE_PSK`` environment variable (hex).
+A client given a key insists on authentication: a server that answers the hello without a
+challenge (no key configured, or someone in the middle stripping it) is refused, so a key can
+never silently downgrade to a session anyone could spoof. Once the server has proven the key
+and accepted ours, every datagram both ways and (without TLS) the TCP stream are sealed with
+the derived session keys.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import socket
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
+from rlbridge import keyfile
 from rlbridge.csp.connection import ConnectionFailed
 from rlbridge.wire import (
     AuthChallenge,
@@ -53,10 +55,14 @@ class AuthRefused(ConnectionFailed, AuthenticationFailed):
 
 
 def resolve_key(psk: bytes | str | None = None, psk_file: str | Path | None = None,
-                environ: Mapping[str, str] | None = None) -> bytes | None:
+                environ: Mapping[str, str] | None = None, name: str | None = None
+                ) -> bytes | None:
     """The key to authenticate with, from the first source that has one (module docstring).
 
-    ``environ`` defaults to ``os.environ`` (tests pass their own mapping).
+    ``psk`` is the key in hex (``openssl rand -hex 32``), as in the key file and
+    ``$RLBRIDGE_PSK``; ``bytes`` are taken as the key itself. ``psk_file`` is a key file in
+    the server's format: the line of client ``name``, else the default line. ``environ``
+    defaults to ``os.environ`` (tests pass their own mapping).
     """
     if isinstance(psk, str):
         return parse_key(psk, "psk=")
@@ -66,11 +72,11 @@ def resolve_key(psk: bytes | str | None = None, psk_file: str | Path | None = No
                              f"{MIN_KEY_SIZE} random bytes")
         return bytes(psk)
     if psk_file is not None:
-        try:
-            text = Path(psk_file).read_text()
-        except OSError as exc:
-            raise ValueError(f"cannot read the key file {psk_file}: {exc.strerror}") from None
-        return parse_key(text.split("#", 1)[0], str(psk_file))
+        path = Path(psk_file)
+        key = keyfile.key_for(keyfile.parse(keyfile.read(path), str(path)), name or "")
+        if key is None:
+            raise ValueError(f"{path}: no key for client name {name!r} and no default key")
+        return key
     env = (os.environ if environ is None else environ).get(PSK_ENV)
     return parse_key(env, f"${PSK_ENV}") if env else None
 

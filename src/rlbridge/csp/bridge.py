@@ -107,9 +107,10 @@ class Bridge:
         ``switch_interval`` shortens CPython's process-wide GIL switch interval (5 ms by
         default) to this many seconds, never lengthens it: a control loop that wakes while
         another Python thread computes then waits at most that long for the GIL (docs/gil.md).
-        ``None`` leaves the interpreter's setting alone. ``psk`` (raw bytes), else ``psk_file``
-        (hex), else ``$RLBRIDGE_PSK`` (hex) is the pre-shared key for a server that requires
-        one; a wrong key raises :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
+        ``None`` leaves the interpreter's setting alone. ``psk`` (hex, as everywhere), else
+        ``psk_file`` (the server's key file format), else ``$RLBRIDGE_PSK`` is the pre-shared
+        key for a server that requires one; a wrong key raises
+        :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
 
         TLS (a server started with ``--tls-cert``): ``tls=True`` trusts the system's CAs,
         ``ca=`` a CA file, ``fingerprint=`` exactly the certificate with that SHA-256
@@ -120,10 +121,11 @@ class Bridge:
         """
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
             sys.setswitchinterval(switch_interval)
-        key = resolve_key(psk, psk_file)  # before any socket exists: a bad key leaks nothing
+        name = name or f"rlbridge-{os.getpid()}"
+        key = resolve_key(psk, psk_file, name=name)  # before any socket: a bad key leaks nothing
         tls_settings = client_tls(tls, ca=ca, fingerprint=fingerprint, cert=client_cert,
                                   key=client_key)
-        conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
+        conn = Connection(host, port, name=name, nodelay=nodelay,
                           control=control, timeout=timeout)
         conn.psk, conn.tls = key, tls_settings
         ack = conn.open()

@@ -18,7 +18,9 @@ from types import TracebackType
 from typing import Any
 
 from rlbridge.adapters import MiddlewareAdapter, load_adapter
-from rlbridge.server.access import AllowList, KeyStore
+from rlbridge.server.access import AllowList
+from rlbridge.server.access import load as load_keys
+from rlbridge.server.authz import Access
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
@@ -94,17 +96,28 @@ class Server:
         self._stop = asyncio.Event()
         cfg = self.config
         try:  # before the adapter and the sockets: a bad key file is the operator's to fix
-            keys = KeyStore.load(cfg.psk_file)
+            keys, entries = load_keys(cfg.psk_file)
             tls = (server_context(cfg.tls_cert, cfg.tls_key, cfg.tls_client_ca)
                    if cfg.tls_cert is not None and cfg.tls_key is not None else None)
         except (ValueError, TlsError) as exc:
             raise ServerError(str(exc)) from None
+        exposed = not cfg.loopback and keys is None and tls is None
+        if exposed and not cfg.insecure:
+            raise ServerError(
+                f"refusing to listen on {cfg.host} without TLS or a key: anyone who can reach "
+                "it could read and write your topics; give --psk-file (or $RLBRIDGE_PSK) or "
+                "--tls-cert and --tls-key, or --insecure to accept that")
+        if exposed:
+            log.warning("listening on %s with --insecure: no TLS, no key; anyone who can reach "
+                        "it can read and write your topics", cfg.host)
         adapter = self._adapter or load_adapter(
             cfg.adapter, node_name=cfg.node_name, namespace=cfg.namespace,
             parameters={"use_tcp": cfg.tcp, "use_udp": cfg.udp, "disable_nagle": cfg.nodelay},
         )
         ctx = ServerContext(cfg, adapter, PacketCodec(), loop, LoopHandoff(loop),
-                            keys=keys, allow=AllowList(cfg.allow), tls=tls)
+                            keys=keys, allow=AllowList(cfg.allow), tls=tls,
+                            access=Access(entries, authenticated=keys is not None
+                                          or cfg.tls_client_ca is not None))
         self.registry = registry = SessionRegistry(ctx)
         tcp_server: asyncio.Server | None = None
         udp_transport: asyncio.DatagramTransport | None = None

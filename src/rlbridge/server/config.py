@@ -46,6 +46,9 @@ class ServerConfig(BaseModel):
     tls_client_ca: Path | None = Field(
         None, description="Mutual TLS: clients need a certificate from this CA; its common "
         "name is the client's identity.")
+    insecure: bool = Field(
+        False, description="Allow an address other than loopback without TLS or a key "
+        "(the server then warns at start).")
     allow: tuple[str, ...] = Field(
         (), description="Client networks allowed in (CIDR or address); empty: any.")
     max_rate: float | None = Field(
@@ -66,6 +69,11 @@ class ServerConfig(BaseModel):
         None, ge=0, le=65535, description="Serve Prometheus /metrics on this port of host."
     )
 
+    @property
+    def loopback(self) -> bool:
+        """True when ``host`` is a loopback address (only this machine can connect)."""
+        return is_loopback(self.host)
+
     @model_validator(mode="after")
     def _check(self) -> ServerConfig:
         if not (self.tcp or self.udp):
@@ -78,3 +86,14 @@ class ServerConfig(BaseModel):
         if self.tls_client_ca is not None and self.tls_cert is None:
             raise ValueError("--tls-client-ca needs TLS: add --tls-cert and --tls-key")
         return self
+
+
+def is_loopback(host: str) -> bool:
+    """``localhost`` or a loopback address; any other name or address (0.0.0.0, ::, a LAN
+    address, a host name) reaches beyond this machine."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False

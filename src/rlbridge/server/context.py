@@ -14,6 +14,7 @@ from typing import Any
 
 from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
+from rlbridge.server.authz import Access
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.wire import PacketCodec
@@ -34,6 +35,8 @@ class ServerContext:
     #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
     handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
     allow: AllowList = field(default_factory=lambda: AllowList(()))
+    #: Who may publish and subscribe to what, and see whose Stats (server/authz.py).
+    access: Access = field(default_factory=Access)
     #: TLS on the TCP listener (``--tls-cert``): every connection runs it (server/tls_side.py).
     tls: ssl.SSLContext | None = None
     #: Server totals and every session's counters (set by the registry; see ``Stats``).

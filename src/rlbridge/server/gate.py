@@ -82,6 +82,8 @@ class Gate:
         if isinstance(result, Session):
             result.codec = sealed_codec(keys, server=True)
             result.keys = keys
+            store = self._registry.ctx.keys
+            result.identity = store.identity(hello.name) if store is not None else None
             self._registry.ctx.count("sessions_authenticated")
         return result
 

@@ -89,6 +89,8 @@ class Session:
         self.tcp_bytes_in = 0  # of those, on TCP (heartbeats skip a busy TCP connection)
         self.malformed = 0
         self.errors_sent = 0
+        #: Topic-connects refused by the key file's rules (server/authz.py).
+        self.topics_refused = 0
         #: Totals of channels closed before now, so a session's counters never go back.
         self._retired: dict[str, int] = dict.fromkeys(CHANNEL_TOTALS, 0)
         self.closed = False
@@ -293,7 +295,10 @@ class Session:
             report = self.ctx.report()
             body["server"] = report["server"]
             if sink is not None and sink is self.tcp:
-                body["sessions"] = report["sessions"]
+                sessions = report["sessions"]
+                if not self.ctx.access.sees_all(self.identity):  # only its own (authz.py)
+                    sessions = [s for s in sessions if s["session"] == self.id]
+                body["sessions"] = sessions
         self.send_control(Stats(body), sink)
 
     def _retire(self, channel: dict[str, Any]) -> None:
@@ -327,6 +332,7 @@ class Session:
             "tcp_queued_bytes": getattr(self.tcp, "queued", 0),
             "malformed": self.malformed,
             "errors_sent": self.errors_sent,
+            "topics_refused": self.topics_refused,
             **totals,
             "channels": channels,
         }
