@@ -92,7 +92,7 @@ def test_a_certificate_name_carries_its_rules(make_server: Callable[..., ServerT
     srv = make_server(tls_cert=tmp_path / "s.crt", tls_key=tmp_path / "s.key",
                       tls_client_ca=tmp_path / "ca.crt", psk_file=rules)
     with Bridge.connect("127.0.0.1", srv.port, ca=tmp_path / "ca.crt",
-                        client_cert=tmp_path / "c.crt", client_key=tmp_path / "c.key",
+                        client_cert=(tmp_path / "c.crt", tmp_path / "c.key"),
                         reconnect=False) as camera:
         camera.publish("/camera/image_mean", F64)
         with pytest.raises(RemoteError, match="'camera' may not publish to /cmd"):

@@ -153,12 +153,12 @@ def test_mutual_tls_names_the_client_and_refuses_others(
     srv = make_server(tls_cert=cert, tls_key=key, tls_client_ca=ca_file)
     robot_cert, robot_key = write(issue("robot-7", ca=ca, client=True), tmp_path, "robot")
     stranger = write(issue("robot-7", ca=make_ca("rogue"), client=True), tmp_path, "rogue")
-    with Bridge.connect("127.0.0.1", srv.port, ca=ca_file, client_cert=robot_cert,
-                        client_key=robot_key, name="whatever", reconnect=False) as bridge:
+    with Bridge.connect("127.0.0.1", srv.port, ca=ca_file, client_cert=(robot_cert, robot_key),
+                        name="whatever", reconnect=False) as bridge:
         mine = bridge.server_stats()["session"]
         assert mine["identity"] == "robot-7"
         assert mine["name"] == "whatever"
-    for kwargs in ({}, {"client_cert": stranger[0], "client_key": stranger[1]}):
+    for kwargs in ({}, {"client_cert": stranger}):
         with pytest.raises(TlsFailed, match="refused the TLS session") as info:
             Bridge.connect("127.0.0.1", srv.port, ca=ca_file, reconnect=False,
                            **kwargs)  # type: ignore[arg-type]

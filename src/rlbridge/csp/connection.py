@@ -31,28 +31,25 @@ from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import MAX_DRAIN, RUN_DATAGRAMS, Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
+from rlbridge.csp.stream_guard import StreamGuard
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     ConnectAck,
     Disconnect,
     Error,
-    ErrorCode,
-    FrameDecoder,
     Hello,
     Malformed,
     Packet,
     PacketCodec,
-    RemoteProtocolError,
     TopicAck,
     TopicConnect,
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
-from rlbridge.wire.records import RecordSealer, SealedStreamDecoder
 from rlbridge.wire.seal import sealed_codec, tls_datagram_keys
 
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
-    from rlbridge.tls import ClientTls, TlsEngine
+    from rlbridge.tls import ClientTls
 
 __all__ = ["Connection", "ConnectionClosed", "ConnectionFailed", "Control", "LinkHandler",
            "MAX_DRAIN", "RUN_DATAGRAMS", "ValuesHandler"]
@@ -80,16 +77,9 @@ class Connection:
         #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.
         self.psk: bytes | None = None
         self.auth: ClientAuth | None = None
-        #: TLS settings (rlbridge.tls); with them every session's TCP bytes go through
-        #: ``tls_engine``, serialised by ``tls_lock`` (held only to transform bytes).
+        #: TLS settings (rlbridge.tls), and what protects the current session's TCP stream.
         self.tls: ClientTls | None = None
-        self.tls_engine: TlsEngine | None = None
-        self.tls_lock = threading.Lock()
-        #: A pre-shared-key session without TLS: seals the TCP stream into records
-        #: (wire/records.py), under ``tcp_lock`` so records leave in counter order.
-        self.stream_sealer: RecordSealer | None = None
-        #: The handshake's frame decoder, which the receive thread goes on with.
-        self.tcp_decoder: FrameDecoder | SealedStreamDecoder | None = None
+        self.guard = StreamGuard()
         #: Datagrams the receive thread refused, by reason (bad_mac, replayed, bad_token, ...).
         self.datagrams_dropped: collections.Counter[str] = collections.Counter()
         self.tcp: socket.socket | None = None
@@ -166,16 +156,14 @@ class Connection:
 
         self.auth = ClientAuth(self.psk, self.name) if self.psk else None
         self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
-        self.tls_engine = None
-        self.stream_sealer = None
-        self.tcp_decoder = None
+        self.guard.reset()
         hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
             ack, self._leftover = (handshake.open_tcp(self, hello, self._wake_r)
                                    if self.control == "tcp" else handshake.open_udp(self, hello))
             if self.auth is not None:
                 self.codec = self.auth.sealed(ack)
-            elif self.tls_engine is not None and ack.datagram_key:
+            elif self.guard.tls is not None and ack.datagram_key:
                 self.codec = sealed_codec(tls_datagram_keys(ack.datagram_key, ack.token),
                                           server=False)
             return ack
@@ -251,34 +239,14 @@ class Connection:
         if tcp is None:
             raise ConnectionClosed("this session has no TCP connection")
         with self.tcp_lock:
-            engine = self.tls_engine
-            if engine is not None:
-                # Encrypted and written under one lock, so records leave in sequence order.
-                with self.tls_lock:
-                    data = engine.send(data)
-            elif self.stream_sealer is not None and data:
-                data = self.stream_sealer.seal(data)
+            data = self.guard.protect(data)  # in the lock: records leave in counter order
             if data:
                 tcp.sendall(data)
                 self.tcp_bytes_out += len(data)
 
     def tcp_received(self, data: bytes) -> bytes:
-        """The plaintext of bytes the TCP socket read: all of it, none left buffered in TLS.
-
-        Raises :class:`~rlbridge.wire.RemoteProtocolError` when TLS refuses them.
-        """
-        engine = self.tls_engine
-        if engine is None:
-            return data
-        import ssl
-
-        try:
-            with self.tls_lock:
-                plain = engine.receive(data)
-                reply = engine.wants_write
-        except ssl.SSLError as exc:
-            raise RemoteProtocolError(ErrorCode.AUTH_FAILED,
-                                      f"TLS: {exc.reason or exc}", fatal=True) from None
+        """The plaintext of bytes the TCP socket read (all of it: none left inside TLS)."""
+        plain, reply = self.guard.open(data)
         if reply:  # e.g. a key update's answer: out in order with everything else
             self.send_tcp(b"")
         return plain

@@ -52,11 +52,11 @@ def open_tcp(conn: Connection, hello: Hello,
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     where = f"{conn.host}:{conn.port}"
     if conn.tls is not None:
-        conn.tls_engine = start_tls(conn, sock, wake)
+        conn.guard.tls = start_tls(conn, sock, wake)
     conn.send_tcp(conn.codec.encode_frame(hello))
     sealed = conn.auth is not None and conn.tls is None  # records after the proof
     decoder = SealedStreamDecoder(conn.codec) if sealed else FrameDecoder(conn.codec)
-    conn.tcp_decoder = decoder
+    conn.guard.decoder = decoder
     deadline = time.monotonic() + conn.timeout
     while True:
         sock.settimeout(max(0.01, deadline - time.monotonic()))
@@ -106,7 +106,7 @@ def seal_stream(conn: Connection, decoder: SealedStreamDecoder) -> None:
     sealer, opener_key = stream_sealers(conn.auth.keys, server=False)
     decoder.install(RecordOpener(opener_key), strict=False)
     with conn.tcp_lock:
-        conn.stream_sealer = sealer
+        conn.guard.sealer = sealer
 
 
 def open_udp(conn: Connection, hello: Hello) -> tuple[ConnectAck, Leftover]:

@@ -64,7 +64,7 @@ class Receiver:
     def run(self) -> None:
         """The thread's body: packets that came with the ack first, then the loop."""
         conn, generation = self._conn, self._generation
-        decoder = conn.tcp_decoder or FrameDecoder(conn.codec)
+        decoder = conn.guard.decoder or FrameDecoder(conn.codec)
         link = conn.link
         assert link is not None
         assert conn.ack is not None

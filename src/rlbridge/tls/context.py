@@ -92,15 +92,16 @@ class ClientTls:
 
 
 def client_tls(tls: bool | ssl.SSLContext | None = None, *, ca: str | Path | None = None,
-               fingerprint: str | None = None, cert: str | Path | None = None,
-               key: str | Path | None = None) -> ClientTls | None:
+               fingerprint: str | None = None,
+               client_cert: tuple[str | Path, str | Path] | None = None) -> ClientTls | None:
     """The client's TLS settings, or None for plaintext.
 
     TLS is on when ``tls`` is true or a context, or when ``ca`` or ``fingerprint`` is given.
-    ``cert``/``key`` are this client's certificate for a server that requires one.
+    ``client_cert`` is this client's ``(certificate, key)`` files for a server that requires
+    one.
     """
     if not (tls or ca or fingerprint):
-        if cert or key:
+        if client_cert:
             raise ValueError("a client certificate needs TLS: add tls=True, ca= or fingerprint=")
         return None
     pinned = normalize_fingerprint(fingerprint) if fingerprint else None
@@ -118,9 +119,10 @@ def client_tls(tls: bool | ssl.SSLContext | None = None, *, ca: str | Path | Non
         except (ssl.SSLError, OSError) as exc:
             raise TlsError(f"cannot use the CA file {ca}: {_why(exc)}") from None
     ctx.minimum_version = ssl.TLSVersion.TLSv1_3
-    if cert or key:
+    if client_cert:
+        cert, key = client_cert
         try:
-            ctx.load_cert_chain(str(cert or key), str(key) if key and cert else None)
+            ctx.load_cert_chain(str(cert), str(key))
         except (ssl.SSLError, OSError) as exc:
             raise TlsError(f"cannot use the client certificate {cert}: {_why(exc)}") from None
     return ClientTls(ctx, pinned)
