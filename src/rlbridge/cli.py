@@ -38,6 +38,9 @@ TlsOpt = Annotated[bool, typer.Option("--tls", help="Connect with TLS, trusting 
                                       "CAs (or --ca / --fingerprint).")]
 CaOpt = Annotated[str | None, typer.Option("--ca", help="CA file the server's TLS certificate "
                                            "must be signed by (implies --tls).")]
+PskFileOpt = Annotated[str | None, typer.Option(
+    "--psk-file", help="Key file in the server's format (this command's line, else the "
+    "default line); without it $RLBRIDGE_PSK.")]
 FingerprintOpt = Annotated[str | None, typer.Option(
     "--fingerprint", help="SHA-256 fingerprint of the server's TLS certificate to pin, as "
     "`rlbridge tls init` prints it (implies --tls).")]
@@ -186,13 +189,14 @@ def topic_pub(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
 ) -> None:
     """Publish VALUE on TOPIC through the bridge."""
     from rlbridge.csp.bridge import Bridge
 
     parsed = _parse_value(value)
     with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         out = bridge.publish(topic, msg_type, field or None, transport=_transport(transport))  # type: ignore[arg-type]
         n = max(1, count) if rate > 0 else 1
         period = 1.0 / rate if rate > 0 else 0.0
@@ -220,12 +224,13 @@ def topic_echo(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
     from rlbridge.csp.bridge import Bridge
 
     with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=4096)
         seen = 0
@@ -276,13 +281,14 @@ def topic_hz(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second)."""
     from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.errors import ChannelClosed
 
     with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=65536)
         arrivals: list[float] = []
@@ -326,6 +332,7 @@ def topic_list(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
     show_types: Annotated[bool, typer.Option("--show-types", "-t", help="Print types too.")]
     = False,
 ) -> None:
@@ -333,7 +340,7 @@ def topic_list(
     from rlbridge.csp.bridge import Bridge
 
     with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         for name, msg_type in bridge.server_stats()["topics"]:
             typer.echo(f"{name} [{msg_type}]" if show_types else name)
 
@@ -346,6 +353,7 @@ def stats(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
     = False,
 ) -> None:
@@ -354,7 +362,7 @@ def stats(
     from rlbridge.server.report import format_stats
 
     with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint) as bridge:
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         body = bridge.server_stats()
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 

@@ -52,3 +52,22 @@ def test_serve_refuses_half_a_tls_setup(cli: Any, free_port: Callable[[], int],
     assert result.returncode == 1
     assert "no such file" in result.stderr
     assert result.stderr.count("\n") == 1
+
+
+def test_client_commands_take_the_servers_key_file(cli: Any, cli_server: Callable[..., Any],
+                                                   tmp_path: Path) -> None:
+    keys = tmp_path / "keys"
+    keys.write_text(f"rlbridge-stats {'ab' * 32} stats=all\n* {'cd' * 32} publish=\n")
+    keys.chmod(0o600)
+    port, _proc = cli_server("--psk-file", str(keys))
+    ok = cli.run("stats", "--json", "-p", str(port), "--psk-file", str(keys))
+    assert ok.returncode == 0, ok.stderr
+    assert '"identity": "rlbridge-stats"' in ok.stdout
+    refused = cli.run("topic", "pub", "/x", "std_msgs/msg/Float64", "1.0", "-p", str(port),
+                      "--psk-file", str(keys))
+    assert refused.returncode == 1
+    assert "may not publish to /x" in refused.stderr
+    assert refused.stderr.count("\n") == 1
+    missing = cli.run("stats", "-p", str(port))
+    assert missing.returncode == 1
+    assert "requires a pre-shared key" in missing.stderr

@@ -124,3 +124,18 @@ def test_a_text_key_fails_on_the_client_not_at_the_server(
         Bridge.connect("127.0.0.1", srv.port, psk="cd" * 32, reconnect=False)
     assert srv.server.registry is not None
     assert srv.server.registry.ctx.counters.get("sessions_opened", 0) == 0
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or os.geteuid() != 0,
+                    reason="needs root and unshare for a private network namespace")
+def test_demo_bridge_beyond_loopback_makes_and_uses_a_key(tmp_path: Path) -> None:
+    code = ("import sys; from rlbridge.cli import main; "
+            "sys.argv = ['rlbridge', 'demo', '--role', 'bridge', '--host', '0.0.0.0', "
+            "'--port', '0', '--seconds', '1', '--no-dashboard', '--no-plot']; main()")
+    result = subprocess.run(["unshare", "--net", sys.executable, "-c", code], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    assert "made a new key file rlbridge-demo.key" in result.stdout
+    key = tmp_path / "rlbridge-demo.key"
+    assert key.stat().st_mode & 0o077 == 0
+    assert resolve_key(psk_file=key, name="controller") is not None
