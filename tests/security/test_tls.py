@@ -228,3 +228,29 @@ def test_udp_only_hello_is_refused_by_a_tls_only_server(tls_server: ServerThread
         packet = codec.decode_datagram(udp.recv(65536))[2]
     assert isinstance(packet, ConnectError)
     assert "open the session over TCP with TLS" in packet.reason
+
+
+def test_tls_and_a_key_together(make_server: Callable[..., ServerThread],
+                                self_signed: tuple[Path, Path, str], tmp_path: Path) -> None:
+    """The key handshake runs inside TLS; its keys seal the datagrams; TCP is not sealed twice."""
+    keys = tmp_path / "keys"
+    keys.write_text(f"robot {'ab' * 32}\n")
+    keys.chmod(0o600)
+    cert, key, fp = self_signed
+    srv = make_server(tls_cert=cert, tls_key=key, psk_file=keys)
+    with pytest.raises(AuthRefused, match="no pre-shared key for client name 'anonymous'"):
+        Bridge.connect("127.0.0.1", srv.port, fingerprint=fp, name="anonymous",
+                       reconnect=False)
+    with Bridge.connect("127.0.0.1", srv.port, fingerprint=fp, psk="ab" * 32, name="robot",
+                        reconnect=False) as bridge:
+        for transport in ("tcp", "udp"):
+            out = bridge.publish(f"/both/{transport}", F64, transport=transport)
+            inp = bridge.subscribe(f"/both/{transport}", F64, transport=transport,
+                                   blocking=True)
+            out.write(7.0)
+            bridge.send(wait=True)
+            assert inp.read(timeout=WAIT) == 7.0
+        assert bridge.server_stats()["session"]["identity"] == "robot"
+    seen = counters(srv)
+    assert seen["sessions_authenticated"] == 1
+    assert "tcp_rejected_records" not in seen
