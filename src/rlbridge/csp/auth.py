@@ -19,7 +19,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from rlbridge import keyfile
-from rlbridge.csp.connection import ConnectionFailed
+from rlbridge.csp.session_errors import ConnectionFailed
 from rlbridge.wire import (
     AuthChallenge,
     AuthProof,

@@ -21,7 +21,7 @@ from rlbridge.tls import TlsEngine, TlsError
 from rlbridge.wire import MAGIC
 
 if TYPE_CHECKING:
-    from rlbridge.csp.connection import Connection
+    from rlbridge.csp.session_owner import SessionOwner
 
 #: First bytes of a TLS record (handshake or alert, TLS 1.x): what a TLS server answers with.
 TLS_RECORD_STARTS = (b"\x16\x03", b"\x15\x03")
@@ -34,7 +34,7 @@ class TlsFailed(ConnectionFailed):
     """
 
 
-def start_tls(conn: Connection, sock: socket.socket, wake: socket.socket) -> TlsEngine:
+def start_tls(conn: SessionOwner, sock: socket.socket, wake: socket.socket) -> TlsEngine:
     """Run the TLS handshake on connected ``sock``; return the engine for the session."""
     settings = conn.tls
     assert settings is not None

@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 
 import typer
 
+from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.demo.plot import DEFAULT_NAME
 
 ROLES = ("all", "bridge", "controller")
@@ -23,7 +24,6 @@ DEMO_KEY = "rlbridge-demo.key"
 
 def register_demo(app: typer.Typer) -> None:
     """Add the ``demo`` command to the main app."""
-    from rlbridge.cli import fail, one_line_errors
 
     @app.command()
     @one_line_errors
