@@ -55,6 +55,8 @@ SEAL_OVERHEAD = COUNTER.size + TAG_SIZE
 REPLAY_WINDOW = 1024
 _KEYS_LABEL = b"rlbridge-keys-v1\x00"
 _NONCE_PAD = b"\x00\x00\x00\x00"
+#: Header and counter of a sealed datagram in one ``pack`` (the hot path: one call, not two).
+_SEALED_HEAD = struct.Struct(">2sBBQQ")
 
 
 @dataclass(frozen=True, slots=True)
@@ -133,10 +135,9 @@ class SealedCodec(PacketCodec):
 
     def seal_body(self, body: bytes, token: int, flags: int = 0) -> bytes:
         """A sealed datagram around ``body`` (encoded packet bytes, or anything: fuzzing)."""
-        counter = next(self._counter)
-        head = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, flags | FLAG_SEALED,
-                                    token) + COUNTER.pack(counter)
-        return head + self._seal(nonce(counter), body, head)
+        head = _SEALED_HEAD.pack(MAGIC, PROTOCOL_VERSION, flags | FLAG_SEALED, token,
+                                 next(self._counter))
+        return head + self._seal(_NONCE_PAD + head[12:], body, head)
 
     def decode_datagram(self, data: bytes) -> tuple[int, int, Packet]:
         start = DATAGRAM_HEADER.size + COUNTER.size
@@ -147,13 +148,13 @@ class SealedCodec(PacketCodec):
         check_header(magic, version)
         if not flags & FLAG_SEALED:
             raise DatagramRejected("unsealed", "unsealed datagram on a sealed session")
-        (counter,) = COUNTER.unpack_from(data, DATAGRAM_HEADER.size)
         view = memoryview(data)
         try:
-            body = self._open(nonce(counter), view[start:], view[:start])
+            body = self._open(_NONCE_PAD + data[12:start], view[start:], view[:start])
         except InvalidTag:
             raise DatagramRejected("bad_mac", "datagram does not open under this session's "
                                    "key (forged, altered, or another session's)") from None
+        (counter,) = COUNTER.unpack_from(data, DATAGRAM_HEADER.size)
         if not self.window.check(counter):
             raise DatagramRejected("replayed", f"datagram counter {counter} was already "
                                    "seen or is older than the replay window")
