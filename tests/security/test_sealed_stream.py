@@ -23,6 +23,7 @@ from rlbridge.server import ServerThread
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     AuthChallenge,
+    AuthProof,
     ConnectAck,
     Disconnect,
     Error,
@@ -33,6 +34,8 @@ from rlbridge.wire import (
     PacketCodec,
     RemoteProtocolError,
     Stats,
+    TopicAck,
+    TopicConnect,
     Value,
 )
 from rlbridge.wire.records import (
@@ -118,6 +121,27 @@ def test_records_wait_for_the_key_and_the_client_accepts_a_plain_refusal() -> No
         decoder.feed(plain)  # after the first record, plain frames are refused
 
 
+def test_decoding_stops_after_the_proof_until_the_key_is_there() -> None:
+    """Whatever follows the AuthProof in the same read is never taken as plain."""
+    keys = derive_keys(KEY, b"salt", b"context")
+    _, server_key = stream_sealers(keys, server=True)
+    decoder = SealedStreamDecoder(CODEC, stop_after=AuthProof)
+    injected = CODEC.encode_frame(Value(1, 0, 0, 6.0))
+    got = decoder.feed(CODEC.encode_frame(AuthProof(bytes(32))) + injected)
+    assert got == [AuthProof(bytes(32))]
+    decoder.install(RecordOpener(server_key), strict=True)
+    with pytest.raises(RemoteProtocolError, match="unsealed frame"):
+        decoder.feed(b"")
+
+
+def test_records_before_the_key_are_bounded() -> None:
+    sealer = RecordSealer(bytes(32))
+    decoder = SealedStreamDecoder(CODEC)
+    decoder.feed(sealer.seal(b"x" * RECORD_MAX))  # one record may wait for its key
+    with pytest.raises(RemoteProtocolError, match="before the handshake"):
+        decoder.feed(sealer.seal(b"x" * 100))
+
+
 def test_oversized_record_and_frame_are_refused_from_the_header() -> None:
     _, decoder = keys_pair()
     from rlbridge.wire import FRAME_HEADER, MAGIC
@@ -195,6 +219,31 @@ def test_a_frame_injected_into_a_sealed_stream_ends_the_session(psk_server: Serv
         bystander.send(wait=True)
         assert inp.read(timeout=WAIT) == 4.0
     assert counters(psk_server)["tcp_rejected_records"] == 1
+
+
+def test_a_frame_sent_with_the_proof_is_refused_not_run(psk_server: ServerThread) -> None:
+    """An attacker appending a plain frame to the client's proof gets nothing bound."""
+    sock = socket.create_connection(("127.0.0.1", psk_server.port), timeout=WAIT)
+    with sock:
+        auth = ClientAuth(KEY, "raw")
+        sock.sendall(CODEC.encode_frame(Hello(PROTOCOL_VERSION, "raw", auth.nonce)))
+        challenge = FrameDecoder(CODEC).feed(sock.recv(65536))[0]
+        assert isinstance(challenge, AuthChallenge)
+        proof = auth.answer(challenge, sock)
+        injected = CODEC.encode_frame(TopicConnect(1, "publish", "/injected", F64))
+        sock.sendall(CODEC.encode_frame(proof) + injected)
+        assert auth.keys is not None
+        _, opener_key = stream_sealers(auth.keys, server=False)
+        decoder = SealedStreamDecoder(CODEC)
+        decoder.install(RecordOpener(opener_key), strict=False)
+        packets = read_until_closed(sock, decoder)
+    assert isinstance(packets[0], ConnectAck)
+    assert not any(isinstance(p, TopicAck) for p in packets)
+    errors = [p for p in packets if isinstance(p, Error)]
+    assert errors
+    assert "unsealed frame" in errors[0].reason
+    assert psk_server.server.registry is not None
+    assert "/injected" not in [t for t, _ in psk_server.server.registry.ctx.adapter.topics()]
 
 
 class Relay:

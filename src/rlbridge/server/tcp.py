@@ -87,7 +87,8 @@ class TcpConnection(asyncio.Protocol):
         elif ctx.keys is not None:
             # Plain frames until the proof, sealed records after (wire/records.py).
             self._guarded = out = GuardedTransport(t, GuardedTransport.plain)
-            self._decoder = SealedStreamDecoder(ctx.codec, ctx.config.max_packet)
+            self._decoder = SealedStreamDecoder(ctx.codec, ctx.config.max_packet,
+                                                stop_after=AuthProof)
         self._sink = TcpSink(out, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
         # A connection that never completes its hello (or its proof) must not hold a socket.
         self._deadline = ctx.loop.call_later(HELLO_TIMEOUT, self._no_hello)

@@ -87,9 +87,14 @@ class SealedStreamDecoder:
     """Plain frames, then sealed records, into packets (module docstring)."""
 
     def __init__(self, codec: PacketCodec | None = None,
-                 max_packet: int = DEFAULT_MAX_PACKET) -> None:
+                 max_packet: int = DEFAULT_MAX_PACKET,
+                 stop_after: type[Packet] | None = None) -> None:
         self._frames = FrameDecoder(codec, max_packet)
         self._max = max_packet
+        #: The plain packet after which the key comes (the server's AuthProof): decoding stops
+        #: there, so nothing sent after it in the same read is taken as plain; it is read
+        #: again once the key is installed (strict), as records or refused.
+        self._stop_after = stop_after
         self._buf = bytearray()
         self._opener: RecordOpener | None = None
         self._strict = False
@@ -134,8 +139,12 @@ class SealedStreamDecoder:
                 check_header(magic, version)
                 end = pos + hsize + length
                 if flags & FLAG_SEALED:
-                    if self._opener is None:
-                        break  # the key is not there yet: wait in the buffer
+                    if self._opener is None:  # the key is not there yet: wait in the buffer
+                        if size - pos > RECORD_MAX + TAG_SIZE + hsize:
+                            raise RemoteProtocolError(
+                                ErrorCode.UNEXPECTED, "sealed records before the handshake "
+                                "gave their key", fatal=True)
+                        break
                     if length > RECORD_MAX + TAG_SIZE:
                         raise RemoteProtocolError(
                             ErrorCode.TOO_LARGE, f"TCP record of {length} bytes exceeds "
@@ -157,7 +166,12 @@ class SealedStreamDecoder:
                             f"of {self._max} bytes", fatal=True)
                     if end > size:
                         break
-                    out += self._frames.feed(bytes(buf[pos:end]))
+                    got = self._frames.feed(bytes(buf[pos:end]))
+                    out += got
+                    if (self._stop_after is not None and self._opener is None
+                            and any(isinstance(p, self._stop_after) for p in got)):
+                        pos = end
+                        break
                 pos = end
         finally:
             if pos:
