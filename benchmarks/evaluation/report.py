@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from benchmarks.evaluation import policies
+from benchmarks.evaluation.scenarios import SCENARIOS, Scenario
 from benchmarks.evaluation.sweep import (
     BASELINE_SCENARIOS,
     PERIOD_MS,
@@ -23,7 +24,7 @@ from benchmarks.evaluation.sweep import (
     ThroughputPoint,
 )
 from rlbridge.bench.common import fmt, machine_info, markdown_table
-from rlbridge.bench.scenarios import SCENARIOS, TRANSPORTS, Scenario, Summary
+from rlbridge.bench.scenarios import TRANSPORTS, Summary
 
 THESIS_TP = {  # tables 3.1 (native ROS port) and 3.2 (ROS-LUNA bridge), values/s
     "up": {100: ("99.9", "100.0"), 250: ("250.4", "250.0"), 500: ("500.2", "250.0"),

@@ -66,16 +66,15 @@ from rlbridge.csp.bridge import Bridge, Transport
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.coupling import (
-    HRT_SWITCH_INTERVAL,
     BaseCoupling,
     ControlLoop,
     Coupling,
     LoopOptions,
     Pump,
     Ticker,
-    realtime_switch_interval,
 )
 from rlbridge.csp.errors import ChannelClosed, NoValueYet
+from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, realtime_switch_interval
 from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling, Layout
 from rlbridge.csp.patterns_process import unsubscriber
 from rlbridge.csp.process import Process
