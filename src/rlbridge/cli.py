@@ -99,8 +99,8 @@ def serve(
         help="Mutual TLS: clients need a certificate signed by this CA; its common name is "
         "the client's identity.")] = None,
     insecure: Annotated[bool, typer.Option(
-        help="Listen on an address other than loopback without TLS or a key (warned at "
-        "start); without it such a server refuses to start.")] = False,
+        "--insecure", help="Listen on an address other than loopback without TLS or a key "
+        "(warned at start); without it such a server refuses to start.")] = False,
     allow: Annotated[list[str] | None, typer.Option(
         help="Client network allowed in (repeatable): 192.168.1.0/24, 127.0.0.1. Default: any.")]
     = None,

@@ -19,8 +19,9 @@ def init(
         "--name", "-n", help="Host name or address clients use, besides localhost and "
         "127.0.0.1 (repeatable).")] = None,
     days: Annotated[int, typer.Option(help="Days the certificate is valid.")] = 825,
-    force: Annotated[bool, typer.Option(help="Replace an existing key (clients must pin the "
-                                        "new fingerprint).")] = False,
+    force: Annotated[bool, typer.Option(
+        "--force", help="Replace an existing key (clients must pin the new fingerprint).")]
+    = False,
 ) -> None:
     """Write DIR/server.key and DIR/server.crt and print the fingerprint clients pin."""
     from rlbridge.tls.certs import init_server
