@@ -254,3 +254,44 @@ def test_tls_and_a_key_together(make_server: Callable[..., ServerThread],
     seen = counters(srv)
     assert seen["sessions_authenticated"] == 1
     assert "tcp_rejected_records" not in seen
+
+
+@pytest.mark.parametrize("mode", ["tls", "psk"])
+def test_a_protected_session_reconnects_with_fresh_keys(
+        tmp_path: Path, self_signed: tuple[Path, Path, str], mode: str) -> None:
+    """After a server restart the SDK runs the TLS or key handshake again by itself."""
+    from rlbridge.server import ServerConfig
+
+    cert, key, fp = self_signed
+    keys = tmp_path / "keys"
+    keys.write_text("ab" * 32 + "\n")
+    keys.chmod(0o600)
+    extra: dict[str, object] = ({"tls_cert": cert, "tls_key": key} if mode == "tls"
+                                else {"psk_file": keys})
+    client: dict[str, object] = {"fingerprint": fp} if mode == "tls" else {"psk": "ab" * 32}
+    config = ServerConfig(port=0, heartbeat_ms=50, timeout_ms=1000, **extra)  # type: ignore[arg-type]
+    first = ServerThread(config).start()
+    port = first.port
+    bridge = Bridge.connect("127.0.0.1", port, timeout=WAIT, **client)  # type: ignore[arg-type]
+    try:
+        out = bridge.publish("/again/x", F64, transport="tcp")
+        inp = bridge.subscribe("/again/x", F64, transport="udp", blocking=True, buffer_size=64)
+        first.stop()
+        second = ServerThread(config.model_copy(update={"port": port})).start()
+        try:
+            wait_until(lambda: bridge.reconnects >= 1 and bridge.state == "connected")
+            deadline = time.monotonic() + WAIT
+            got = None
+            while got != 9.0:  # values flow again over the new session's TCP and UDP
+                assert time.monotonic() < deadline, "no value after the reconnect"
+                out.write(9.0)
+                bridge.send(wait=True)
+                try:
+                    got = inp.read(timeout=0.2)
+                except TimeoutError:
+                    continue
+        finally:
+            bridge.close()
+            second.stop()
+    finally:
+        bridge.close()
