@@ -132,7 +132,7 @@ def test_expired_and_not_yet_valid_certificates(
         message_ca: str, message_pin: str) -> None:
     ca = make_ca()
     ca_file = write(ca, tmp_path, "ca")[0]
-    now = datetime.datetime.now(datetime.timezone.utc)  # noqa: UP017 (runs on 3.10)
+    now = datetime.datetime.now(datetime.timezone.utc)
     start = now + datetime.timedelta(days=shift)
     leaf = issue("localhost", names=["localhost", "127.0.0.1"], ca=ca, not_before=start,
                  days=10)

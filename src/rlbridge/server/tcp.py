@@ -10,6 +10,7 @@ from typing import cast
 
 from rlbridge.server.gate import Gate
 from rlbridge.server.guarded import GuardedTransport
+from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
@@ -184,13 +185,15 @@ class TcpConnection(asyncio.Protocol):
             self._decoder.install(RecordOpener(opener_key), strict=True)
             self._refeed = True
         self._session = result
-        log.info("session %d (%s) opened over TCP from %s", result.id, hello.name, self._peer)
+        log.log(session_level(hello.name), "session %d (%s) opened over TCP from %s", result.id,
+                hello.name, self._peer)
         secret = b""
         if self._tls is not None and type(result.codec) is PacketCodec:
             # No key handshake gave this session datagram keys: hand it a secret inside TLS.
             secret = os.urandom(KEY_SIZE)
             result.codec = sealed_codec(tls_datagram_keys(secret, result.token), server=True)
         self._sink.send(self._registry.ack(result, secret))
+        result.acknowledged()
 
     def _fatal(self, code: ErrorCode, reason: str) -> None:
         """The byte stream cannot be trusted any more: say why, then close.
@@ -198,7 +201,8 @@ class TcpConnection(asyncio.Protocol):
         Before a session exists the answer is a ConnectError ("no session"); inside a session
         it is an Error with the code, then a Disconnect, so the client's SDK reports the reason.
         """
-        log.warning("closing TCP connection from %s: %s", self._peer, reason)
+        self._registry.ctx.notices.warn("malformed",
+                                        f"closing TCP connection from {self._peer}: {reason}")
         if self._sink is None or self._transport is None:
             return
         if self._session is None:

@@ -68,7 +68,7 @@ def issue(common_name: str, *, names: Iterable[str] = (), ca: Issued | None = No
     ``client`` marks it for client authentication, ``is_ca`` lets it sign others.
     """
     key = ec.generate_private_key(ec.SECP256R1())
-    start = not_before or datetime.datetime.now(datetime.UTC) - datetime.timedelta(
+    start = not_before or datetime.datetime.now(datetime.timezone.utc) - datetime.timedelta(
         minutes=5)
     subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
     builder = (x509.CertificateBuilder()

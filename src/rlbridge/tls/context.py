@@ -82,7 +82,7 @@ class ClientTls:
         from cryptography import x509
 
         cert = x509.load_der_x509_certificate(der)
-        now = now or datetime.datetime.now(datetime.UTC)
+        now = now or datetime.datetime.now(datetime.timezone.utc)
         if now < cert.not_valid_before_utc:
             raise TlsError(f"the server's certificate is not valid yet (from "
                            f"{cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC)")
