@@ -226,7 +226,7 @@ def _authentication(keyed: bool, tls: bool, cfg: ServerConfig) -> str:
         parts.append("pre-shared key")
     if parts:
         return " + ".join(parts)
-    return "none (--insecure)" if not cfg.loopback else "none (loopback only)"
+    return "none" if cfg.loopback else "none (--insecure)"
 
 
 class ServerThread:

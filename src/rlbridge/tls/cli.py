@@ -16,7 +16,7 @@ def init(
     directory: Annotated[Path, typer.Argument(metavar="DIR", help="Where to write "
                                               "server.key and server.crt.")],
     name: Annotated[list[str] | None, typer.Option(
-        "--name", "-n", help="Host name or address clients use, besides localhost and "
+        "--name", help="Host name or address clients use, besides localhost and "
         "127.0.0.1 (repeatable).")] = None,
     days: Annotated[int, typer.Option(help="Days the certificate is valid.")] = 825,
     force: Annotated[bool, typer.Option(
