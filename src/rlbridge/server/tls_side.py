@@ -5,22 +5,19 @@ returns the plaintext for the frame decoder and writes handshake flights and ale
 A client that does not speak TLS (its first bytes are the rlbridge magic) is answered in
 plain protocol, a ``ConnectError`` saying this server needs TLS, so the client's user reads
 why instead of a dropped connection; a handshake that fails (no client certificate, a CA the
-client refuses) is logged with OpenSSL's reason and counted (``tls_failed``). Either way only
-this connection closes.
+client refuses) is logged with OpenSSL's reason (at most once per interval: the server's
+notices) and counted (``tls_failed``). Either way only this connection closes.
 """
 
 from __future__ import annotations
 
 import asyncio
-import logging
 import ssl
 
 from rlbridge.server.context import ServerContext
 from rlbridge.server.guarded import GuardedTransport
 from rlbridge.tls import TlsEngine
 from rlbridge.wire import MAGIC, ConnectError, ErrorCode
-
-log = logging.getLogger("rlbridge.server")
 
 
 class ServerTls:
@@ -42,8 +39,8 @@ class ServerTls:
         first, self._first = self._first, False
         if first and data.startswith(MAGIC):
             self._ctx.count("tls_plaintext_clients")
-            log.warning("refused a plaintext client from %s: this server requires TLS",
-                        self._peer)
+            self._ctx.notices.warn("tls", f"refused a plaintext client from {self._peer}: "
+                                   "this server requires TLS")
             self._raw.write(self._ctx.codec.encode_frame(ConnectError(
                 int(ErrorCode.AUTH_FAILED), "this server requires TLS: connect with TLS "
                 "(and the server's CA file or certificate fingerprint)")))
@@ -55,7 +52,7 @@ class ServerTls:
             plain = engine.receive(data)
         except ssl.SSLError as exc:
             self._ctx.count("tls_failed")
-            log.warning("TLS with %s failed: %s", self._peer, exc.reason or exc)
+            self._ctx.notices.warn("tls", f"TLS with {self._peer} failed: {exc.reason or exc}")
             alert = engine.outgoing()
             if alert:
                 self._raw.write(alert)
