@@ -34,6 +34,8 @@ FLAG_MAC = 0x01
 #: Set on every datagram of a peer that reads ``Bundle`` packets (docs/protocol.md 6.16): the
 #: other side bundles only to a peer that has said so, so an older client never meets one.
 FLAG_BUNDLES = 0x80
+#: First two bytes of a TLS handshake or alert record (TLS 1.0-1.3 all say 0x03 there).
+_TLS_STARTS = (b"\x16\x03", b"\x15\x03")
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,6 +187,13 @@ def _tag_and_channel(raw: object) -> tuple[int | None, int | None]:
 
 def check_header(magic: bytes, version: int) -> None:
     """Refuse a header that is not ours, or ours in a version this code does not speak."""
+    if magic in _TLS_STARTS:
+        raise RemoteProtocolError(
+            ErrorCode.MALFORMED,
+            "a TLS handshake on a port without TLS: connect without TLS, or start the server "
+            "with --tls-cert and --tls-key",
+            fatal=True,
+        )
     if magic != MAGIC:
         raise RemoteProtocolError(
             ErrorCode.MALFORMED,
