@@ -12,6 +12,7 @@ import os
 import signal
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 from pattern_laws import Counter, FailsAt, Recorder, double, not_a_number
@@ -31,11 +32,23 @@ pytestmark = [
 
 
 @pytest.fixture(autouse=True)
-def no_segment_left() -> Iterator[None]:
-    """Every test must leave /dev/shm as it found it: the coupling owns its segment."""
-    before = set(os.listdir("/dev/shm"))
+def no_segment_left(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Every segment a test's couplings create is gone after it: the coupling owns it.
+
+    The segments are the ones ``ShmLink.create`` made in this test (recorded), not a diff of
+    /dev/shm, which other programs on a shared machine (a DDS, other test runs) change too.
+    """
+    made: list[str] = []
+    create = ShmLink.create.__func__  # type: ignore[attr-defined]
+
+    def recording(cls: type[ShmLink], *args: Any, **kwargs: Any) -> ShmLink:
+        link: ShmLink = create(cls, *args, **kwargs)
+        made.append(link.name)
+        return link
+
+    monkeypatch.setattr(ShmLink, "create", classmethod(recording))
     yield
-    assert set(os.listdir("/dev/shm")) - before == set()
+    assert [n for n in made if os.path.exists(f"/dev/shm/{n.lstrip('/')}")] == []
 
 
 def test_the_default_layout_is_the_loops_own_process() -> None:
