@@ -97,7 +97,8 @@ def serve(
     max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
     metrics_port: Annotated[int | None, typer.Option(
-        help="Serve Prometheus metrics at http://HOST:PORT/metrics (default: off).")] = None,
+        help="Serve http://HOST:PORT/metrics (Prometheus), /healthz and /status (JSON); "
+             "default: off.")] = None,
     log_level: LogLevel = None,
 ) -> None:
     """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md).

@@ -193,6 +193,14 @@ def test_pub_to_an_unreachable_server(cli: Any, free_port: Callable[[], int]) ->
     assert_one_line_error(result, f"cannot reach rlbridge server at 127.0.0.1:{port}")
 
 
+def test_pub_of_a_value_of_the_wrong_type(cli: Any, shared_cli_server: int) -> None:
+    """Refused where it is written (the channel's schema), before anything is sent."""
+    result = cli.run("topic", "pub", "/x", F64, '"abc"', "--port", str(shared_cli_server))
+    assert_one_line_error(result, "topic '/x' (std_msgs/msg/Float64 field data) needs a float",
+                          "got str 'abc'")
+    assert "published" not in result.stdout
+
+
 def test_stats_to_an_unreachable_server(cli: Any, free_port: Callable[[], int]) -> None:
     port = free_port()
     result = cli.run("stats", "--port", str(port))

@@ -12,7 +12,6 @@ import os
 import signal
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 from pattern_laws import Counter, FailsAt, Recorder, double, not_a_number
@@ -20,6 +19,7 @@ from pattern_support import F64, WAIT, collect, drain, wait_until
 
 from proc_children import children, cmdline
 from rlbridge.csp import patterns
+from rlbridge.csp import shm as shm_module
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
 from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling
@@ -32,23 +32,16 @@ pytestmark = [
 
 
 @pytest.fixture(autouse=True)
-def no_segment_left(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """Every segment a test's couplings create is gone after it: the coupling owns it.
+def no_segment_left() -> Iterator[None]:
+    """Every test must leave no segment of its own in /dev/shm: the coupling owns its segment.
 
-    The segments are the ones ``ShmLink.create`` made in this test (recorded), not a diff of
-    /dev/shm, which other programs on a shared machine (a DDS, other test runs) change too.
+    Only the segments this process created count: other processes on the machine (a ROS 2
+    test's Fast DDS, another test run) create and remove theirs meanwhile.
     """
-    made: list[str] = []
-    create = ShmLink.create.__func__  # type: ignore[attr-defined]
-
-    def recording(cls: type[ShmLink], *args: Any, **kwargs: Any) -> ShmLink:
-        link: ShmLink = create(cls, *args, **kwargs)
-        made.append(link.name)
-        return link
-
-    monkeypatch.setattr(ShmLink, "create", classmethod(recording))
+    before = set(shm_module._created_here)
     yield
-    assert [n for n in made if os.path.exists(f"/dev/shm/{n.lstrip('/')}")] == []
+    ours = shm_module._created_here - before
+    assert ours.isdisjoint(os.listdir("/dev/shm")), sorted(ours)
 
 
 def test_the_default_layout_is_the_loops_own_process() -> None:

@@ -209,12 +209,27 @@ def test_compose_services_run_locally_track_and_stop_in_order(
     assert (tmp_path / "pan_tilt.png").read_bytes().startswith(b"\x89PNG")
 
     # `docker compose start bridge`: the controller, never restarted, reconnects and tracks.
-    services["bridge again"] = Service("bridge", localize(spec["bridge"]["command"], port,
-                                                          tmp_path / "again"))
+    again = services["bridge again"] = Service(
+        "bridge", localize(spec["bridge"]["command"], port, tmp_path / "again"))
     controller.wait_for_line(lambda line: "state -> tracking" in line, timeout=60)
     assert controller.proc.poll() is None, "".join(controller.output)
+    again.wait_for_line(lambda line: _tracking_after(line, 2.0), timeout=60)
     controller.proc.send_signal(signal.SIGTERM)
     assert controller.wait(timeout=60) == 0, "".join(controller.output)
+
+    # The restarted bridge counts only the angles sent to it: none of the first bridge's
+    # (thousands of them) show up as lost.
+    again.proc.send_signal(signal.SIGTERM)
+    assert again.wait(timeout=60) == 0, "".join(again.output)
+    second = json.loads((tmp_path / "again" / "report.json").read_text())
+    first_received = sum(report["angles_received"].values())
+    received = sum(second["angles_received"].values())
+    assert received > 0
+    # Before, "sent" was every angle since the controller started, so "lost" was at least
+    # what the first bridge had received; now it is what was sent to this bridge.
+    assert second["angles_sent"] < received + first_received // 4, (second, first_received)
+    assert second["angles_lost"] == max(0, second["angles_sent"] - received)
+    assert second["diagnostics"]["session"] == 1  # the controller's second session
 
 
 def _tracking_after(line: str, seconds: float) -> bool:

@@ -36,9 +36,10 @@ from localhost import free_port, rlbridge_command
 from rlbridge.demo.controller import PanTiltController
 from rlbridge.demo.loop import NO_SETPOINT, ControllerState, PanTiltLoop, SetpointSample
 from rlbridge.demo.metrics import Reference, tracking_metrics
-from rlbridge.demo.monitor import TraceSnapshot
+from rlbridge.demo.monitor import Trace, TraceSnapshot
 from rlbridge.demo.plant import COUNTS_PER_REV, PAN, RAD_PER_COUNT, PanTiltPlant
 from rlbridge.demo.sides import connect_controller, middleware_side
+from rlbridge.demo.topics import Diagnostics
 from rlbridge.demo.vision import Dropout, Lissajous
 
 REPO = Path(__file__).resolve().parents[2]
@@ -134,6 +135,26 @@ def test_tracking_error_reference_interpolates_frames_and_skips_dropouts() -> No
     assert (m.pan.samples, m.tilt.samples) == (1, 1)  # t=0.2 is before the settling ends
     assert m.pan.rms == pytest.approx(0.01)
     assert m.tilt.max_abs == pytest.approx(0.02)
+
+
+def test_trace_counts_angles_per_session_and_ignores_what_a_previous_bridge_was_sent() -> None:
+    trace = Trace(wall=lambda: 1_000)
+    trace.add_angles("pan", [0.0] * 7)
+    # Written before this bridge started: it waited in the SDK across the restart.
+    trace.set_diagnostics(Diagnostics(run="a", session=0, angles_sent_session=500,
+                                      angles_sent=500, written_ns=999))
+    assert trace.stale_diagnostics == 1
+    trace.set_diagnostics(Diagnostics(run="a", session=1, angles_sent_session=3,
+                                      angles_sent=503, written_ns=1_001))
+    trace.set_diagnostics(Diagnostics(run="a", session=1, angles_sent_session=5,
+                                      angles_sent=505, written_ns=1_002))
+    # The same link lost and back, or a restarted controller: their sessions add up.
+    trace.set_diagnostics(Diagnostics(run="a", session=2, angles_sent_session=2,
+                                      written_ns=1_003))
+    trace.set_diagnostics(Diagnostics(run="b", session=0, angles_sent_session=1,
+                                      written_ns=1_004))
+    snap = trace.snapshot()
+    assert (snap.angles_sent, snap.angles_lost) == (8, 1)
 
 
 # -- end to end: real servers, sockets and processes -------------------------------------------
@@ -285,9 +306,14 @@ def test_controller_holds_position_while_the_server_is_gone_and_resumes_when_it_
         assert abs(plant.pan.speed) < 0.2
         assert abs(plant.tilt.speed) < 0.2
         # The bridge comes back on the same port: the SDK reconnects and the loop tracks.
+        first = sum(mw.trace.snapshot().angles_total.values())
         with middleware_side(port=mw.port, vision_start=0.0) as mw_again:
             assert mw_again.trace.wait_for(
                 lambda s: "tracking" in [x for _, x in s.statuses], 20)
+            # The new bridge counts what was sent to it only (docs/concepts.md, the demo).
+            assert mw_again.trace.wait_for(lambda s: s.angles_sent > 50, 20)
+            snap = mw_again.trace.snapshot()
+            assert snap.angles_sent < sum(snap.angles_total.values()) + first // 4
         states = [s.value for _, s in controller.states()]
         assert states[states.index("lost-link"):][:2] in (
             ["lost-link", "safe"], ["lost-link", "tracking"])

@@ -66,5 +66,17 @@ class ChannelMisuseError(ChannelError, RuntimeError):
         self.end = end
 
 
+class SecondWriterError(ChannelMisuseError):
+    """A second thread wrote an outgoing channel whose first writer thread is still alive."""
+
+    def __init__(self, topic: str, owner: int, intruder: int) -> None:
+        super().__init__(f"{topic} out", "writer")
+        self.args = (
+            f"outgoing channel {topic!r} is written by thread {owner}; thread {intruder} "
+            "wrote it too. Its ring buffer has a single producer: two writers would lose "
+            "values without a trace. Publish one channel per writer thread, or hand values "
+            "to the one writer through a local Channel.",)
+
+
 class RealTimeWarning(RuntimeWarning):
     """A hard-real-time rule could not be honoured (blocking read, no RT scheduling)."""

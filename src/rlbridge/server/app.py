@@ -24,6 +24,7 @@ from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
 from rlbridge.server.notices import bind_failure, listening_line
 from rlbridge.server.registry import SessionRegistry
+from rlbridge.server.runner import run_on_loop
 from rlbridge.server.session import ServerContext
 from rlbridge.server.tcp import TcpConnection
 from rlbridge.server.udp import UdpEndpoint
@@ -72,8 +73,8 @@ class Server:
 
     def run(self) -> None:
         """Serve until SIGINT/SIGTERM; the CLI's entry point."""
-        with asyncio.Runner(loop_factory=lambda: new_event_loop(self.config.use_uvloop)) as r:
-            r.run(self.serve(install_signal_handlers=True))
+        run_on_loop(self.serve(install_signal_handlers=True),
+                    lambda: new_event_loop(self.config.use_uvloop))
 
     def stop(self) -> None:
         """Ask a running server to shut down; safe from any thread."""
@@ -111,8 +112,7 @@ class Server:
             tcp_server, udp_transport, port = await self._bind(loop, registry)
             if cfg.metrics_port is not None:
                 try:
-                    metrics = await MetricsEndpoint(registry.stats).start(cfg.host,
-                                                                          cfg.metrics_port)
+                    metrics = await MetricsEndpoint(registry).start(cfg.host, cfg.metrics_port)
                 except OSError as exc:
                     raise ServerError(f"cannot serve metrics on {cfg.host}:{cfg.metrics_port}: "
                                       f"{exc}") from None
@@ -222,10 +222,8 @@ class ServerThread:
         """Start serving; return once it listens, or raise ``ServerError`` saying why not."""
         def main() -> None:
             try:
-                with asyncio.Runner(
-                    loop_factory=lambda: new_event_loop(self.server.config.use_uvloop)
-                ) as runner:
-                    runner.run(self.server.serve(started=lambda _a: self._ready.set()))
+                run_on_loop(self.server.serve(started=lambda _a: self._ready.set()),
+                            lambda: new_event_loop(self.server.config.use_uvloop))
             except BaseException as exc:
                 self._error = exc
                 self._ready.set()

@@ -16,6 +16,7 @@ from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.ledger import Ledger
 from rlbridge.server.notices import Notices
 from rlbridge.wire import PacketCodec
 
@@ -40,6 +41,8 @@ class ServerContext:
     #: Rate-limited warnings for the operator: wrong keys, malformed packets, refusals.
     notices: Notices = field(
         default_factory=lambda: Notices(logging.getLogger("rlbridge.server")))
+    #: Counters of closed sessions and channels by client and topic (the metrics' labels).
+    ledger: Ledger = field(default_factory=Ledger)
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""

@@ -148,6 +148,7 @@ class TcpConnection(asyncio.Protocol):
         log.log(session_level(hello.name), "session %d (%s) opened over TCP from %s", result.id,
                 hello.name, self._peer)
         self._sink.send(self._registry.ack(result))
+        result.acknowledged()
 
     def _fatal(self, code: ErrorCode, reason: str) -> None:
         """The byte stream cannot be trusted any more: say why, then close.

@@ -15,6 +15,7 @@ from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
 from rlbridge.wire import (
+    PROTOCOL_VERSION,
     AuthProof,
     ConnectError,
     Disconnect,
@@ -24,7 +25,7 @@ from rlbridge.wire import (
     RemoteProtocolError,
 )
 from rlbridge.wire.auth import SEAL_OVERHEAD, DatagramRejected, ServerHandshake
-from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, peek_header
+from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, MAGIC, check_header, peek_header
 
 log = logging.getLogger("rlbridge.server")
 
@@ -32,6 +33,8 @@ log = logging.getLogger("rlbridge.server")
 RECEIVE_BUFFER = 4 << 20
 #: UDP handshakes (challenge sent, proof awaited) remembered at once; beyond, oldest go.
 MAX_PENDING = 256
+#: What every datagram of this protocol version starts with: magic and version.
+HEADER_PREFIX = MAGIC + bytes((PROTOCOL_VERSION,))
 
 
 class UdpEndpoint(asyncio.DatagramProtocol):
@@ -79,19 +82,27 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         if ctx.allow.networks and not ctx.allow.allows(addr[0]):
             ctx.count("udp_not_allowed")
             return
-        if len(data) > ctx.config.max_packet + DATAGRAM_HEADER.size + SEAL_OVERHEAD:
+        # The checks in the order docs/protocol.md section 3 gives them; none is answered
+        # before the token has picked a live session.
+        if len(data) < DATAGRAM_HEADER.size or data[:3] != HEADER_PREFIX:
+            ctx.count("udp_malformed")  # not ours, or not this version: nobody to tell
+            ctx.notices.warn("malformed", f"malformed UDP datagram from {addr}: "
+                             f"{_header_fault(data)}")
+            return
+        flags, token = peek_header(data)
+        seal = SEAL_OVERHEAD if flags & FLAG_MAC else 0
+        if len(data) - DATAGRAM_HEADER.size - seal > ctx.config.max_packet:
             ctx.count("udp_too_large")
+            return
+        session = self._registry.by_token(token) if token else None
+        if token and session is None:
+            ctx.count("udp_bad_token")  # a session that is gone, or a guess: never decoded
             return
         # The token picks the session, and the session the codec: an authenticated session's
         # datagrams must verify under its keys before their body is even decoded.
-        flags, token = peek_header(data)
-        session = self._registry.by_token(token) if token else None
-        if token and session is None and flags & FLAG_MAC:
-            ctx.count("udp_bad_token")  # sealed for a session that is gone: nothing to decode
-            return
         codec = session.codec if session is not None else ctx.codec
-        # The hot path (a live session, no keys): peek_header has checked the header already,
-        # so decode only the body, what decode_datagram would do next (one call, not three).
+        # The hot path (a live session, no keys): the header is checked already, so decode
+        # only the body, what decode_datagram would do next (one call, not three).
         plain = session is not None and type(codec) is PacketCodec
         try:
             if plain:
@@ -109,12 +120,9 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             ctx.count("udp_malformed")
             ctx.notices.warn("malformed", f"malformed UDP datagram from {addr}: {exc.reason}")
             # A live token (verified, if the session has keys) proves the sender is the
-            # client: tell it what was wrong.
+            # client: tell it what was wrong, at the address it registered.
             if session is not None and session.udp is not None:
                 session.malformed_packet(exc, session.udp)
-            return
-        if token and session is None:
-            ctx.count("udp_bad_token")
             return
         if session is None:
             if isinstance(packet, Hello):
@@ -198,6 +206,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         sink = session.udp
         assert isinstance(sink, UdpSink)
         sink.send(self._registry.ack(session))
+        session.acknowledged()  # the first heartbeat; none for a retransmitted hello's ack
 
     def _send(self, packet: Packet, addr: tuple[str, int]) -> None:
         assert self._transport is not None
@@ -220,3 +229,15 @@ class _Pending:
     handshake: ServerHandshake
     session_id: int | None = None
     proof: AuthProof | None = None
+
+
+def _header_fault(data: bytes) -> str:
+    """Why a datagram's header is not ours, for the operator (off the hot path)."""
+    if len(data) < DATAGRAM_HEADER.size:
+        return f"{len(data)} bytes, shorter than the {DATAGRAM_HEADER.size}-byte header"
+    magic, version = data[:2], data[2]
+    try:
+        check_header(magic, version)
+    except RemoteProtocolError as exc:
+        return exc.reason
+    return "bad header"
