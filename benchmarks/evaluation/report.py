@@ -9,7 +9,7 @@ import math
 import shlex
 from collections.abc import Sequence
 from dataclasses import asdict
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
 from benchmarks.evaluation import policies
@@ -231,7 +231,7 @@ def render(ev: Evaluation, settings: EvalSettings, command: Sequence[str],
         "`figures/evaluation/` next to it and `summary.{json,csv}` under `--results`, "
         "by default `benchmarks/results/evaluation/`).", "",
         "## Machine", "",
-        f"Date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}  ",
+        f"Date: {datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}  ",
         *[f"{k}: {v}  " for k, v in info.items()],
         f"load average during the run: {load}  ", "",
         "The machine is shared (2 vCPUs, up to 8 other jobs): tail figures (p99, max) carry "

@@ -59,8 +59,9 @@ them, so the last values written by the loop are not lost. A coupling runs once.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, Unpack
+from typing import Any
 
+from rlbridge._compat import Unpack
 from rlbridge.csp import patterns_process as isolated
 from rlbridge.csp.bridge import Bridge, Transport
 from rlbridge.csp.bridge_channels import OutgoingChannel

@@ -39,8 +39,9 @@ import subprocess
 from collections.abc import Sequence
 from contextlib import ExitStack
 from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
+from rlbridge._compat import Self
 from rlbridge.netem.impairment import Direction, Impairment
 from rlbridge.netem.link_settings import (
     DEFAULT_NETWORK,

@@ -23,6 +23,7 @@ from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
 from rlbridge.server.registry import SessionRegistry
+from rlbridge.server.runner import run_on_loop
 from rlbridge.server.session import ServerContext
 from rlbridge.server.tcp import TcpConnection
 from rlbridge.server.udp import UdpEndpoint
@@ -71,8 +72,8 @@ class Server:
 
     def run(self) -> None:
         """Serve until SIGINT/SIGTERM; the CLI's entry point."""
-        with asyncio.Runner(loop_factory=lambda: new_event_loop(self.config.use_uvloop)) as r:
-            r.run(self.serve(install_signal_handlers=True))
+        run_on_loop(self.serve(install_signal_handlers=True),
+                    lambda: new_event_loop(self.config.use_uvloop))
 
     def stop(self) -> None:
         """Ask a running server to shut down; safe from any thread."""
@@ -215,10 +216,8 @@ class ServerThread:
         """Start serving; return once it listens, or raise ``ServerError`` saying why not."""
         def main() -> None:
             try:
-                with asyncio.Runner(
-                    loop_factory=lambda: new_event_loop(self.server.config.use_uvloop)
-                ) as runner:
-                    runner.run(self.server.serve(started=lambda _a: self._ready.set()))
+                run_on_loop(self.server.serve(started=lambda _a: self._ready.set()),
+                            lambda: new_event_loop(self.server.config.use_uvloop))
             except BaseException as exc:
                 self._error = exc
                 self._ready.set()
