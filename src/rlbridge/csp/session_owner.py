@@ -17,11 +17,23 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
 
-from rlbridge.wire import ConnectAck, Error, Packet, PacketCodec, Stats, TopicAck, TopicError
+from rlbridge.wire import (
+    ConnectAck,
+    Error,
+    LossReport,
+    Packet,
+    PacketCodec,
+    Stats,
+    TopicAck,
+    TopicError,
+)
 from rlbridge.wire.link import LinkMonitor, LinkState
 
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
+    from rlbridge.csp.idle import IdleStrategy
+    from rlbridge.csp.stream_guard import StreamGuard
+    from rlbridge.tls import ClientTls
 
 __all__ = ["Answers", "Control", "LinkHandler", "SessionOwner", "ValuesHandler"]
 
@@ -58,12 +70,21 @@ class SessionOwner(Protocol):
     tcp: socket.socket | None
     udp: socket.socket | None
     tcp_bytes_out: int
+    tcp_lock: threading.Lock
     # -- the session's state (the receive thread reads and counts)
     datagrams_dropped: collections.Counter[str]
     reported_link: LinkState
+    #: How the receive thread waits for a readable socket.
+    idle: IdleStrategy
 
     @property
     def auth(self) -> ClientAuth | None: ...
+
+    @property
+    def tls(self) -> ClientTls | None: ...
+
+    @property
+    def guard(self) -> StreamGuard: ...
 
     @property
     def ack(self) -> ConnectAck | None: ...
@@ -76,6 +97,12 @@ class SessionOwner(Protocol):
 
     @property
     def on_error(self) -> Callable[[Error], None] | None: ...
+
+    @property
+    def on_credit(self) -> Callable[[int, int], None] | None: ...
+
+    @property
+    def on_loss(self) -> Callable[[LossReport], None] | None: ...
 
     @property
     def requests(self) -> Answers: ...
@@ -91,6 +118,8 @@ class SessionOwner(Protocol):
     def send_control(self, packet: Packet) -> None: ...
 
     def send_tcp(self, data: bytes | bytearray) -> None: ...
+
+    def tcp_received(self, data: bytes) -> bytes: ...
 
     def send_udp_packet(self, packet: Packet) -> None: ...
 
