@@ -31,6 +31,9 @@ API: list[tuple[str, str, list[str], str]] = [
     ("Bridge channels", "rlbridge.csp.bridge_channels",
      ["IncomingChannel", "OutgoingChannel", "AgedValue", "SecondWriterError"],
      "What `Bridge.subscribe` and `Bridge.publish` return."),
+    ("Write-time type checks", "rlbridge.csp.value_check", ["WrongValueType"],
+     "`OutgoingChannel.write` of a value that cannot be the bound field's type raises this "
+     "`TypeError` ([concepts.md](concepts.md#values-are-checked-where-they-are-written))."),
     ("Channel health", "rlbridge.csp.health", ["ChannelHealth"],
      "`channel.health()`: link health per channel, readable from control code "
      "([policies.md](policies.md))."),

@@ -2,7 +2,7 @@
 """Run the README's two SDK examples as a user would, on the Python that runs this script.
 
 What a user on Ubuntu 22.04 (Python 3.10), 24.04 (3.12) or Debian 13 (3.13) does after
-``pip install rlbridge``: start ``rlbridge serve --udp --nodelay`` (the command installed next
+``pip install rlbridge-sdk``: start ``rlbridge serve --udp --nodelay`` (the command installed next
 to this interpreter), then run the README's control-code example and its coupling-pattern
 example against it. The examples are taken from README.md as printed; only the server address
 changes (and the pattern's cycle count, to keep it short).
@@ -33,7 +33,7 @@ from typing import Any
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 ADDRESS = '"192.168.1.10", 7411'
-SERVING = re.compile(r"rlbridge serving on [^ ]+:(\d+) ")
+SERVING = re.compile(r"rlbridge listening on [^ ]+ port (\d+) ")
 TIMEOUT = 30.0
 SETPOINT = 1.0
 

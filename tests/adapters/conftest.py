@@ -66,7 +66,7 @@ def env_for(python: str) -> dict[str, str]:
 @pytest.fixture(scope="session")
 def ros_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
     """Scope ROS 2 discovery to this machine and this run; yields the domain id."""
-    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge[ros2]')")
+    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')")
     domain_id = int(os.environ.get("RLBRIDGE_TEST_ROS_DOMAIN_ID") or 1 + os.getpid() % 100)
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("ROS_LOG_DIR", str(tmp_path_factory.mktemp("ros_log")))

@@ -38,7 +38,7 @@ pytestmark = [pytest.mark.ros2, pytest.mark.timeout(90)]
 
 #: Bound of every wait (discovery and start-up on a loaded 2-core machine take seconds).
 TIMEOUT = 20.0
-SERVING = re.compile(r"rlbridge serving on [^ ]+:(\d+) ")
+SERVING = re.compile(r"rlbridge listening on [^ ]+ port (\d+) ")
 
 ZERO3 = {"x": 0.0, "y": 0.0, "z": 0.0}
 TWIST = {"linear": {"x": 0.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.25}}

@@ -217,7 +217,7 @@ class Bridge:
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
             max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
                 reliability=reliability, depth=depth))
-        channel.msg_type = ack.msg_type
+        channel.bound(ack)
         with self._lock:
             self._outgoing[ch_id] = channel
         self._sender.add(channel)

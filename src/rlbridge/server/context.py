@@ -7,6 +7,7 @@ a CLI server) never see each other's settings, counters or keys.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,6 +16,8 @@ from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.ledger import Ledger
+from rlbridge.server.notices import Notices
 from rlbridge.wire import PacketCodec
 
 
@@ -35,6 +38,11 @@ class ServerContext:
     allow: AllowList = field(default_factory=lambda: AllowList(()))
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
+    #: Rate-limited warnings for the operator: wrong keys, malformed packets, refusals.
+    notices: Notices = field(
+        default_factory=lambda: Notices(logging.getLogger("rlbridge.server")))
+    #: Counters of closed sessions and channels by client and topic (the metrics' labels).
+    ledger: Ledger = field(default_factory=Ledger)
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""
