@@ -23,13 +23,16 @@ from rlbridge.wire import (
     AuthChallenge,
     AuthProof,
     Batch,
+    ChannelLoss,
     ConnectAck,
     ConnectError,
+    Credit,
     Disconnect,
     Error,
     Heartbeat,
     Hello,
     Limits,
+    LossReport,
     Packet,
     PacketCodec,
     Stats,
@@ -61,6 +64,10 @@ EVERY_TYPE: list[Packet] = [
     Stats(),
     AuthChallenge(b"n" * 16, b"p" * 32),
     AuthProof(b"p" * 32),
+    Credit(2, 64),
+    LossReport([ChannelLoss(1, 10, 2, 12, 0), ChannelLoss(3, 0, 0, 0, 5)]),
+    TopicConnect(4, "subscribe", "/a", F64, buffer_size=8, flow=True),
+    TopicAck(5, F64, 0.0, credit=4096),
 ]
 
 #: A session's life as a client drives it: publish and subscribe on both transports.
@@ -71,6 +78,13 @@ SESSION: list[Packet] = [
     Value(1, 0, 0, 1.5),
     Batch(1, 1, [0, 0, 0], [1.0, 2.0, 3.0]),
     Value(3, 0, 0, {"linear": {"x": 1.0}}),
+    TopicConnect(4, "subscribe", "/f", F64, buffer_size=4, flow=True),
+    TopicConnect(5, "publish", "/f", F64, flow=True, loss_report=True),
+    Batch(5, 0, [0] * 6, [1.0] * 6),
+    Credit(4, 8),
+    Credit(4, 2),  # old news
+    Credit(1, 9),  # not a flow-controlled subscription
+    LossReport([ChannelLoss(5, 1, 0, 1)]),  # a server's packet, from a client
     Heartbeat(5, 0),
     Stats(),
     TopicClose(2),
@@ -107,6 +121,9 @@ BAD: list[bytes] = [
     b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
     frame(body(15, b"x" * 31)),  # proof of the wrong size
     frame(body(13, {"k" * 10: [1] * 1000})),  # stats with a big body
+    frame(body(34, 1, -5)),  # negative credit
+    frame(body(35, [[1, 2, 3, 4]] * 300)),  # a loss report over its 256 channels
+    frame(body(35, [[1, "x", 3, 4]])),  # a loss report with a bad count
 ]
 
 

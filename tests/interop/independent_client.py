@@ -297,6 +297,8 @@ TAG_ERROR = 12
 TAG_STATS = 13
 TAG_AUTH_CHALLENGE = 14
 TAG_AUTH_PROOF = 15
+TAG_CREDIT = 34
+TAG_LOSS_REPORT = 35
 
 TAG_NAMES = {
     TAG_HELLO: "Hello", TAG_CONNECT_ACK: "ConnectAck", TAG_CONNECT_ERROR: "ConnectError",
@@ -304,6 +306,7 @@ TAG_NAMES = {
     TAG_TOPIC_CLOSE: "TopicClose", TAG_VALUE: "Value", TAG_BATCH: "Batch",
     TAG_HEARTBEAT: "Heartbeat", TAG_DISCONNECT: "Disconnect", TAG_ERROR: "Error",
     TAG_STATS: "Stats", TAG_AUTH_CHALLENGE: "AuthChallenge", TAG_AUTH_PROOF: "AuthProof",
+    TAG_CREDIT: "Credit", TAG_LOSS_REPORT: "LossReport",
 }
 
 # Error codes (doc section 12.2).

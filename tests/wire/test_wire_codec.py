@@ -20,8 +20,10 @@ from rlbridge.wire import (
     AuthChallenge,
     AuthProof,
     Batch,
+    ChannelLoss,
     ConnectAck,
     ConnectError,
+    Credit,
     Disconnect,
     Error,
     ErrorCode,
@@ -29,6 +31,7 @@ from rlbridge.wire import (
     Heartbeat,
     Hello,
     Limits,
+    LossReport,
     Malformed,
     Packet,
     PacketCodec,
@@ -86,8 +89,11 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
         TopicConnect, U32, st.sampled_from(["subscribe", "publish"]), text(1, 40),
         text(1, 40), st.none() | text(1, 30), st.sampled_from(["tcp", "udp"]), U32,
         st.sampled_from([None, "reliable", "best_effort"]), U16, U32, st.integers(0, 16),
+        st.booleans(), st.booleans(), st.booleans(),
     ),
-    TopicAck: st.builds(TopicAck, U32, text(1, 40), values),
+    TopicAck: st.builds(TopicAck, U32, text(1, 40), values,
+                        st.none() | st.dictionaries(text(max_size=6), values, max_size=3),
+                        st.none() | U64),
     TopicError: st.builds(TopicError, U32, U16, text(max_size=200)),
     TopicClose: st.builds(TopicClose, U32),
     Value: st.builds(Value, U32, U64, I64, values),
@@ -99,6 +105,9 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
     AuthChallenge: st.builds(AuthChallenge, st.binary(min_size=16, max_size=16),
                              st.binary(min_size=32, max_size=32)),
     AuthProof: st.builds(AuthProof, st.binary(min_size=32, max_size=32)),
+    Credit: st.builds(Credit, U32, U64),
+    LossReport: st.builds(LossReport, st.lists(
+        st.builds(ChannelLoss, U32, U64, U64, U64, U64), max_size=5)),
 }
 PACKET_TYPES: tuple[type, ...] = Packet.__args__  # type: ignore[attr-defined]
 packets: st.SearchStrategy[Packet] = st.one_of(*packet_strategies.values())

@@ -23,7 +23,7 @@ from rlbridge.bench.base import Params, Role
 WORKER_MODULES = ("rlbridge.bench.child", "rlbridge.bench.throughput",
                   "rlbridge.bench.latency", "rlbridge.bench.baselines",
                   "rlbridge.bench.ros2_roles", "rlbridge.bench.netpath",
-                  "rlbridge.bench.load_roles")
+                  "rlbridge.bench.load_roles", "rlbridge.bench.feedback")
 
 
 def emit(event: str, **fields: Any) -> None:

@@ -21,22 +21,23 @@ import logging
 import os
 import sys
 import threading
-from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
 from rlbridge.csp.auth import resolve_key
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
-from rlbridge.csp.channel import _MISSING, Channel
+from rlbridge.csp.bridge_status import BridgeStatus
+from rlbridge.csp.channel import _MISSING
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
 from rlbridge.csp.failsafe import GuardedChannel, OnLost, fail_safe
+from rlbridge.csp.feedback import Feedback
+from rlbridge.csp.idle import IdleSpec, idle_pair
 from rlbridge.csp.io_priority import IoPriority
-from rlbridge.csp.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
-from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
+from rlbridge.csp.link_events import LinkEvents
+from rlbridge.csp.reconnect import Backoff, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
 from rlbridge.wire import RemoteError, TopicClose, TopicConnect
-from rlbridge.wire.link import LinkState
 from rlbridge.wire.packets import Reliability
 
 log = logging.getLogger("rlbridge.client")
@@ -49,7 +50,7 @@ DEFAULT_SWITCH_INTERVAL: float | None = None
 holds a short one while it runs (``rlbridge.csp.gil``); measured in docs/gil.md."""
 
 
-class Bridge:
+class Bridge(BridgeStatus):
     """A session with a bridge server. Thread-safe for SRT code; see the module docstring."""
 
     def __init__(self, conn: Connection, send_loop: SendLoop,
@@ -61,6 +62,7 @@ class Bridge:
         self._incoming: dict[int, IncomingChannel] = {}
         self._outgoing: dict[int, OutgoingChannel] = {}
         self._events = LinkEvents(conn.link_state)
+        self._feedback = Feedback(self._outgoing, self._events, send_loop.doorbell)
         self._io_priority = IoPriority(self._io_thread_ids)
         self._supervisor = None if backoff is None else ReconnectSupervisor(
             conn, backoff, self._bind_again)
@@ -68,6 +70,8 @@ class Bridge:
         conn.on_values = self._on_values
         conn.on_link_change = self._events.emit
         conn.on_session_end = self._on_session_end
+        conn.on_credit = self._feedback.on_credit
+        conn.on_loss = self._feedback.on_loss
 
     @classmethod
     def connect(
@@ -84,6 +88,7 @@ class Bridge:
         reconnect: bool | Backoff = True,
         psk: bytes | None = None,
         psk_file: str | Path | None = None,
+        idle: IdleSpec | tuple[IdleSpec, IdleSpec] = "park",
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
 
@@ -103,16 +108,23 @@ class Bridge:
         ``None`` leaves the interpreter's setting alone. ``psk`` (raw bytes), else ``psk_file``
         (hex), else ``$RLBRIDGE_PSK`` (hex) is the pre-shared key for a server that requires
         one; a wrong key raises :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
+        ``idle``: how the send and receive threads wait for work (:mod:`rlbridge.csp.idle`):
+        ``"park"`` (block in the kernel), ``"spin"`` (poll 20 us, yield 200 us, then park),
+        ``"busy"`` (poll, never park), an ``IdleStrategy``, or a ``(send, receive)`` pair;
+        what each costs in latency and CPU: docs/concepts.md.
         """
+        send_idle, receive_idle = idle_pair(idle)
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
             sys.setswitchinterval(switch_interval)
         key = resolve_key(psk, psk_file)  # before any socket exists: a bad key leaks nothing
         conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
                           control=control, timeout=timeout)
         conn.psk = key
+        conn.idle = receive_idle
         ack = conn.open()
         try:
-            sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch)
+            sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch,
+                              idle=send_idle)
         except BaseException:
             conn.close()  # e.g. a bad send rate: do not leak the session and its thread
             raise
@@ -140,6 +152,7 @@ class Bridge:
         reliability: Reliability | None = None,
         depth: int = 10,
         on_lost: OnLost = "hold",
+        flow: bool | None = None,
     ) -> IncomingChannel:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
 
@@ -155,7 +168,10 @@ class Bridge:
         Raises the server's reason (``UnknownTypeError``, ``NoSuchFieldError``,
         ``TypeClashError``) if the binding is refused. ``on_lost`` is what reads do while the
         link is lost: ``"hold"``, ``SafeValue(v)`` or ``"raise"`` (:mod:`rlbridge.csp.failsafe`).
+        ``flow``: credit flow control, every value end to end at the reader's pace (default:
+        on for blocking TCP channels that are not ``latest``; docs/policies.md).
         """
+        flow = _flow(flow, transport, latest, blocking)
         guard = fail_safe(on_lost, self._events)
         if buffer_size < 1:
             raise ValueError(
@@ -166,7 +182,8 @@ class Bridge:
         channel = kind(ch_id, topic, msg_type, field, transport=transport,
                                   blocking=blocking, buffer_size=buffer_size,
                                   initial=initial if not blocking else _MISSING,
-                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
+                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
+                                  credit_bell=self._sender.doorbell if flow else None)
         if isinstance(channel, GuardedChannel):
             channel.failsafe = guard
         with self._lock:
@@ -175,12 +192,14 @@ class Bridge:
             ack = self._conn.request_topic(TopicConnect(
                 ch_id, "subscribe", topic, msg_type, field, transport, buffer_size,
                 max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-                reliability=reliability, depth=depth))
+                reliability=reliability, depth=depth, flow=flow))
         except BaseException:
             with self._lock:
                 self._incoming.pop(ch_id, None)
             raise
         channel.msg_type = ack.msg_type
+        if flow:
+            self._sender.add_credit(channel)
         return channel
 
     def publish(
@@ -197,6 +216,9 @@ class Bridge:
         max_age_ms: int = 0,
         reliability: Reliability | None = None,
         depth: int = 10,
+        max_rate_hz: float | None = None,
+        adapt_rate: bool = False,
+        flow: bool | None = None,
     ) -> OutgoingChannel:
         """A channel whose values are published on ``topic``.
 
@@ -206,17 +228,24 @@ class Bridge:
         oldest value and counts it (``statistics().overwritten``). Policies as in
         :meth:`subscribe`; ``max_age_ms`` is enforced here before sending and by the server
         before publishing. ``reliability`` and ``depth``: the publisher's middleware QoS,
-        as in :meth:`subscribe`.
+        as in :meth:`subscribe`. ``max_rate_hz`` lets at most that many values per second
+        leave (the rest wait in the buffer); ``adapt_rate`` lowers it while the server
+        reports first-hop loss and raises it back (``health().rate_limit_hz``). ``flow``:
+        send only what the topic's subscribers have room for (default: on for TCP channels
+        that are not ``latest``; ``wait_writable()`` then paces a writer that must lose
+        nothing). docs/policies.md says what each promises.
         """
+        flow = _flow(flow, transport, latest, True)
         ch_id = next(self._ids)
         channel = OutgoingChannel(ch_id, topic, msg_type, field, transport=transport,
                                   immediate=not through_buffer, buffer_size=buffer_size,
                                   doorbell=self._sender.doorbell, redundancy=redundancy,
-                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
+                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
+                                  max_rate_hz=max_rate_hz, adapt_rate=adapt_rate, flow=flow)
         ack = self._conn.request_topic(TopicConnect(
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
             max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-                reliability=reliability, depth=depth))
+            reliability=reliability, depth=depth, flow=flow, loss_report=True))
         channel.bound(ack)
         with self._lock:
             self._outgoing[ch_id] = channel
@@ -224,7 +253,12 @@ class Bridge:
         return channel
 
     def send(self, wait: bool = False) -> None:
-        """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``."""
+        """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``.
+
+        ``wait=True`` returns once the send thread has handed them to the sockets, and no
+        value waits for credit or a rate limit any more (at most 5 s): what each form costs
+        and promises is in docs/concepts.md.
+        """
         if self._conn.closed.is_set():
             raise ConnectionClosed(f"bridge is closed: {self._conn.close_reason}")
         self._sender.flush(wait=wait)
@@ -236,6 +270,8 @@ class Bridge:
             out = self._outgoing.pop(channel.channel_id, None)
         if out is not None:
             self._sender.remove(out)
+        if isinstance(channel, IncomingChannel):
+            self._sender.remove_credit(channel)
         channel.close()
         self._conn.forget_topic(channel.channel_id)
         if self._conn.up:  # while reconnecting: the new session does not bind it again
@@ -262,68 +298,6 @@ class Bridge:
         """Rate of the SDK's send loop (``Bridge.connect(send_rate_hz=...)``), or ``None``."""
         return self._sender.rate_hz
 
-    # -- link ------------------------------------------------------------------------------
-    @property
-    def link_state(self) -> LinkState:
-        """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks.
-
-        ``lost`` from the end of a session until its channels are bound again.
-        """
-        return LinkState.LOST if self._events.lost else self._conn.link_state
-
-    @property
-    def state(self) -> ClientState:
-        """``connected``, ``reconnecting`` or ``closed`` (for good)."""
-        return self._conn.state
-
-    @property
-    def closed(self) -> bool:
-        """True once the bridge is closed for good: here, or its session ended without reconnect."""
-        return self._conn.closed.is_set()
-
-    @property
-    def close_reason(self) -> str:
-        """Why the last session ended (``""`` while the first one is open)."""
-        return self._conn.close_reason
-
-    @property
-    def reconnects(self) -> int:
-        """Sessions opened again after one ended (0 with ``reconnect=False``)."""
-        return 0 if self._supervisor is None else self._supervisor.reconnects
-
-    def on_link_change(self, callback: Callable[[LinkState], None]) -> None:
-        """Call ``callback(state)`` in the SDK thread that saw the change; keep it short."""
-        self._events.add_callback(callback)
-
-    def link_events(self, buffer_size: int = DEFAULT_EVENT_BUFFER) -> Channel[LinkEvent]:
-        """A non-blocking channel of :class:`~rlbridge.csp.link_events.LinkEvent` values.
-
-        Its first value is the current state; ``read()`` never waits (the newest event),
-        ``read_many()`` returns the events not read yet. Closed with the bridge.
-        """
-        return self._events.channel(buffer_size)
-
-    @property
-    def rtt_ns(self) -> int:
-        """Smoothed round-trip time from heartbeats (-1 until measured)."""
-        link = self._conn.link
-        return -1 if link is None else link.stats(0).rtt_ns
-
-    @property
-    def local_ports(self) -> dict[str, int]:
-        """The current session's local TCP and UDP ports (they change with every reconnect)."""
-        return self._conn.local_ports()
-
-    def server_stats(self) -> dict[str, Any]:
-        """The server's counters for this session, its totals, and the topics it knows."""
-        return dict(self._conn.request_stats())
-
-    @property
-    def session_id(self) -> int:
-        """The number the server gave this session: it names it in logs and ``rlbridge stats``."""
-        assert self._conn.ack is not None
-        return self._conn.ack.session
-
     def _on_values(self, ch: int, first_seq: int, stamps: list[int], values: list[Any]) -> None:
         channel = self._incoming.get(ch)
         if channel is not None:
@@ -344,13 +318,17 @@ class Bridge:
         """
         for req in self._conn.bindings():
             incoming = self._incoming.get(req.channel)
+            outgoing = self._outgoing.get(req.channel)
             if incoming is not None:
                 incoming.restart_sequence()  # before the request: values may follow at once
                 incoming.relink(self._conn.link)
-            elif (outgoing := self._outgoing.get(req.channel)) is not None:
+            elif outgoing is not None:
                 outgoing.relink(self._conn.link)
+                outgoing.restart_sequence()  # the new binding numbers (and credits) from 0
             try:
-                self._conn.request_topic(req)
+                credit = self._conn.request_topic(req).credit
+                if outgoing is not None and credit is not None:
+                    outgoing.on_credit(credit)
             except RemoteError as exc:
                 log.warning("channel %d (%s) not bound again: %s", req.channel, req.topic, exc)
                 with self._lock:
@@ -398,3 +376,14 @@ class Bridge:
     def __exit__(self, et: type[BaseException] | None, e: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+
+def _flow(flow: bool | None, transport: Transport, latest: bool, blocking: bool) -> bool:
+    """Whether a channel is flow-controlled: asked for, else TCP every-value by default."""
+    promises_every_value = transport == "tcp" and not latest
+    if flow is None:
+        return promises_every_value and blocking
+    if flow and not promises_every_value:
+        raise ValueError("flow control needs a TCP channel that is not latest: UDP and "
+                         "latest channels drop instead of waiting (docs/policies.md)")
+    return flow

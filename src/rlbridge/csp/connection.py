@@ -27,6 +27,7 @@ from collections.abc import Callable
 
 from rlbridge.csp import handshake
 from rlbridge.csp.auth import ClientAuth
+from rlbridge.csp.idle import PARK, IdleStrategy
 from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
@@ -38,6 +39,7 @@ from rlbridge.wire import (
     Disconnect,
     Error,
     Hello,
+    LossReport,
     Malformed,
     Packet,
     PacketCodec,
@@ -79,6 +81,12 @@ class Connection:
         self.on_values: ValuesHandler | None = None
         self.on_link_change: LinkHandler | None = None
         self.on_error: Callable[[Error], None] | None = None
+        #: ``(channel, limit)``: the server granted a publish channel credit (receive thread).
+        self.on_credit: Callable[[int, int], None] | None = None
+        #: The server's first-hop loss report for publish channels (receive thread).
+        self.on_loss: Callable[[LossReport], None] | None = None
+        #: How the receive thread waits for a readable socket (csp/idle.py).
+        self.idle: IdleStrategy = PARK
         #: Called with the reason when a session ends (before any reconnect), and once more,
         #: with ``final=True``, when the connection is closed for good.
         self.on_session_end: Callable[[str, bool], None] | None = None

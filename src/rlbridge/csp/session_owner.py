@@ -17,11 +17,21 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
 
-from rlbridge.wire import ConnectAck, Error, Packet, PacketCodec, Stats, TopicAck, TopicError
+from rlbridge.wire import (
+    ConnectAck,
+    Error,
+    LossReport,
+    Packet,
+    PacketCodec,
+    Stats,
+    TopicAck,
+    TopicError,
+)
 from rlbridge.wire.link import LinkMonitor, LinkState
 
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
+    from rlbridge.csp.idle import IdleStrategy
 
 __all__ = ["Answers", "Control", "LinkHandler", "SessionOwner", "ValuesHandler"]
 
@@ -61,6 +71,8 @@ class SessionOwner(Protocol):
     # -- the session's state (the receive thread reads and counts)
     datagrams_dropped: collections.Counter[str]
     reported_link: LinkState
+    #: How the receive thread waits for a readable socket.
+    idle: IdleStrategy
 
     @property
     def auth(self) -> ClientAuth | None: ...
@@ -76,6 +88,12 @@ class SessionOwner(Protocol):
 
     @property
     def on_error(self) -> Callable[[Error], None] | None: ...
+
+    @property
+    def on_credit(self) -> Callable[[int, int], None] | None: ...
+
+    @property
+    def on_loss(self) -> Callable[[LossReport], None] | None: ...
 
     @property
     def requests(self) -> Answers: ...

@@ -15,6 +15,7 @@ from typing import Any
 from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
+from rlbridge.server.flow import FlowTable
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.ledger import Ledger
 from rlbridge.server.notices import Notices
@@ -43,6 +44,8 @@ class ServerContext:
         default_factory=lambda: Notices(logging.getLogger("rlbridge.server")))
     #: Counters of closed sessions and channels by client and topic (the metrics' labels).
     ledger: Ledger = field(default_factory=Ledger)
+    #: Flow-controlled bindings by topic (server/flow.py): credit crosses sessions here.
+    flows: FlowTable = field(default_factory=FlowTable)
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""

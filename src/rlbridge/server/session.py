@@ -28,10 +28,13 @@ from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
     Batch,
+    ChannelLoss,
+    Credit,
     Disconnect,
     Error,
     ErrorCode,
     Heartbeat,
+    LossReport,
     Packet,
     PacketCodec,
     RemoteProtocolError,
@@ -52,6 +55,8 @@ log = logging.getLogger("rlbridge.server")
 CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values")
 
 TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
+#: Channels per LossReport packet: a report of 64 fits one 1400-byte datagram.
+REPORT_CHANNELS = 64
 
 
 class Session:
@@ -91,6 +96,10 @@ class Session:
         self.codec: PacketCodec = ctx.codec
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
+        #: What the last LossReport said per publish channel (only changes are sent), and
+        #: the channels whose last change is sent once more (a lost datagram is made good).
+        self._reported: dict[int, ChannelLoss] = {}
+        self._repeat: set[int] = set()
         self._watchdog = SessionWatchdog(self)
 
     # -- transports ------------------------------------------------------------------------
@@ -160,6 +169,13 @@ class Session:
                 self._data(ch, packet, sink)
             case Heartbeat():
                 self.link.on_heartbeat(packet, time.monotonic_ns(), time.time_ns())
+            case Credit(channel=ch):
+                out = self.outbound.get(ch)
+                if out is None or out.credit is None:
+                    self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not a "
+                               "flow-controlled subscription; credit ignored", ch, sink)
+                else:
+                    out.on_credit(packet.limit)
             case TopicConnect():
                 self._connect(packet, sink)
             case TopicClose(channel=ch):
@@ -195,7 +211,7 @@ class Session:
             self.error(code, f"channel {channel} {what}; cannot publish on it", channel, via)
             return
         if self.rate is not None:
-            admitted = self._limit(packet, via)
+            admitted = self._limit(packet, via, binding)
             if admitted is None:
                 return
             packet = admitted
@@ -210,13 +226,15 @@ class Session:
                        f"{binding.spec.field or '<whole message>'}): {exc.reason}", channel, via,
                        values=exc.count)
 
-    def _limit(self, packet: Value | Batch, via: PacketSink | None) -> Value | Batch | None:
+    def _limit(self, packet: Value | Batch, via: PacketSink | None,
+               binding: Inbound) -> Value | Batch | None:
         """The values ``--max-rate`` lets through (a batch's first ones); the rest counted."""
         assert self.rate is not None
         now = time.monotonic_ns()
         n = 1 if isinstance(packet, Value) else len(packet.values)
         ok = self.rate.admit(n, now)
         if ok < n:
+            binding.refused += n - ok
             self.ctx.count("rate_dropped", n - ok)
             if self.rate.should_warn(now):
                 self.error(ErrorCode.LIMIT, f"over the server's limit of {self.rate.rate:g} "
@@ -254,6 +272,29 @@ class Session:
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
         self.send_control(_ack(binding), via)
 
+    def loss_reports(self) -> list[LossReport]:
+        """The first hop of every publish channel whose counts moved since the last report.
+
+        Sent by the watchdog every heartbeat period (server/watchdog.py); counts are
+        cumulative, so a report lost on UDP is made good by the next one, and the last
+        counts of a channel that stopped changing are sent twice, in two periods.
+        """
+        changed = []
+        reported, repeat = self._reported, self._repeat
+        for ch, binding in self.inbound.items():
+            if not binding.request.loss_report:
+                continue
+            loss = binding.loss()
+            if reported.get(ch) != loss:
+                reported[ch] = loss
+                repeat.add(ch)
+                changed.append(loss)
+            elif ch in repeat:
+                repeat.discard(ch)
+                changed.append(loss)
+        return [LossReport(changed[i : i + REPORT_CHANNELS])
+                for i in range(0, len(changed), REPORT_CHANNELS)]
+
     def _close_channel(self, ch: int) -> None:
         binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
             ch, None)
@@ -261,7 +302,10 @@ class Session:
             self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
         self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
+        self._reported.pop(ch, None)
+        self._repeat.discard(ch)
         binding.close()
+        self.ctx.flows.release(binding.request.topic)
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self, reason: str, *, notify: bool = True, code: int = 0) -> None:
@@ -279,6 +323,7 @@ class Session:
                 binding.close()
             except Exception:  # a middleware failing to release must not stop the others
                 log.exception("closing channel %d of session %d", binding.channel, self.id)
+            self.ctx.flows.release(binding.request.topic)
         self.inbound.clear()
         self.outbound.clear()
         if self._close_tcp is not None:
@@ -340,7 +385,11 @@ class Session:
 
 
 def _ack(binding: Inbound | Outbound) -> TopicAck:
-    """A binding's TopicAck: a publish channel's carries the schema its values must match."""
+    """A binding's TopicAck: a publish channel's carries the schema its values must match,
+    and a flow-controlled one its first credit (server/flow.py)."""
     spec = binding.spec
-    schema = binding.schema if isinstance(binding, Inbound) else None
-    return TopicAck(binding.channel, spec.msg_type, spec.default, schema)
+    if not isinstance(binding, Inbound):
+        return TopicAck(binding.channel, spec.msg_type, spec.default)
+    credit = binding.credit
+    first = None if credit is None else credit.first(binding.tracker.highest + 1)
+    return TopicAck(binding.channel, spec.msg_type, spec.default, binding.schema, first)

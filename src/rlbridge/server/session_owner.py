@@ -15,6 +15,7 @@ from typing import Protocol
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.context import ServerContext
 from rlbridge.server.sinks import PacketSink, UdpSink
+from rlbridge.wire import LossReport, Packet
 from rlbridge.wire.link import LinkMonitor
 
 __all__ = ["SessionOwner"]
@@ -33,3 +34,7 @@ class SessionOwner(Protocol):
     closed: bool
 
     def close(self, reason: str, *, notify: bool = True) -> None: ...
+
+    def send_control(self, packet: Packet, via: PacketSink | None = None) -> None: ...
+
+    def loss_reports(self) -> list[LossReport]: ...
