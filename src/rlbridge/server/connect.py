@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from rlbridge.adapters.base import QoS, Reliability
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.flow import SOCKET_SHARE, InboundCredit, OutboundCredit, wants_flow
-from rlbridge.wire import ErrorCode, Packet, TopicConnect
+from rlbridge.wire import ErrorCode, Packet, TopicAck, TopicConnect
 
 if TYPE_CHECKING:
     from rlbridge.server.session_owner import SessionOwner
@@ -104,3 +104,14 @@ class ChannelSink:
             self._dropped += 1
             return False
         return True
+
+
+def ack_for(binding: Inbound | Outbound) -> TopicAck:
+    """A binding's TopicAck: a publish channel's carries the schema its values must match,
+    and a flow-controlled one its first credit (server/flow.py)."""
+    spec = binding.spec
+    if not isinstance(binding, Inbound):
+        return TopicAck(binding.channel, spec.msg_type, spec.default)
+    credit = binding.credit
+    first = None if credit is None else credit.first(binding.tracker.highest + 1)
+    return TopicAck(binding.channel, spec.msg_type, spec.default, binding.schema, first)

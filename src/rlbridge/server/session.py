@@ -20,7 +20,7 @@ from typing import Any
 from rlbridge.adapters.base import BindingError
 from rlbridge.server.admission import ValuesRefused
 from rlbridge.server.bindings import Inbound, Outbound
-from rlbridge.server.connect import bind, refusal
+from rlbridge.server.connect import ack_for, bind, refusal
 from rlbridge.server.context import ServerContext
 from rlbridge.server.loss_reports import LossReporter
 from rlbridge.server.notices import session_level
@@ -40,7 +40,6 @@ from rlbridge.wire import (
     PacketCodec,
     RemoteProtocolError,
     Stats,
-    TopicAck,
     TopicClose,
     TopicConnect,
     TopicError,
@@ -173,9 +172,7 @@ class Session:
             self._bundle(packet, sink)
             return
         match packet:
-            case Value(channel=ch):
-                self._data(ch, packet, sink)
-            case Batch(channel=ch):
+            case Value(channel=ch) | Batch(channel=ch):
                 self._data(ch, packet, sink)
             case Heartbeat():
                 self.link.on_heartbeat(packet, time.monotonic_ns(), time.time_ns())
@@ -280,7 +277,7 @@ class Session:
         existing = self.inbound.get(ch) or self.outbound.get(ch)
         if existing is not None and existing.request == req:
             # A retransmitted request (its ack was lost on UDP): answer it again.
-            self.send_control(_ack(existing), via)
+            self.send_control(ack_for(existing), via)
             return
         refuse = refusal(self, req)
         if refuse is not None:
@@ -299,7 +296,7 @@ class Session:
         spec = binding.spec
         log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
-        self.send_control(_ack(binding), via)
+        self.send_control(ack_for(binding), via)
 
     def loss_reports(self) -> list[LossReport]:
         """The first hop of every publish channel whose counts moved since the last report.
@@ -401,13 +398,3 @@ class Session:
             "channels": channels,
         }
 
-
-def _ack(binding: Inbound | Outbound) -> TopicAck:
-    """A binding's TopicAck: a publish channel's carries the schema its values must match,
-    and a flow-controlled one its first credit (server/flow.py)."""
-    spec = binding.spec
-    if not isinstance(binding, Inbound):
-        return TopicAck(binding.channel, spec.msg_type, spec.default)
-    credit = binding.credit
-    first = None if credit is None else credit.first(binding.tracker.highest + 1)
-    return TopicAck(binding.channel, spec.msg_type, spec.default, binding.schema, first)
