@@ -24,9 +24,9 @@ with instrumented(__name__ == "__main__"):
     from rlbridge.adapters.inproc import InProcessBus
     from rlbridge.server.access import AllowList, KeyStore
     from rlbridge.server.config import ServerConfig
+    from rlbridge.server.context import ServerContext
     from rlbridge.server.handoff import LoopHandoff
     from rlbridge.server.registry import SessionRegistry
-    from rlbridge.server.session import ServerContext
     from rlbridge.server.tcp import TcpConnection
     from rlbridge.server.udp import UdpEndpoint
     from rlbridge.wire import (

@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import functools
-import itertools
 import json
-import math
-import statistics
-import time
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
@@ -16,11 +12,19 @@ from rlbridge._version import __version__
 from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.cli_options import (
     LOG_LEVEL_HELP,
+    CaOpt,
+    FingerprintOpt,
+    Host,
+    Port,
+    PskFileOpt,
+    TlsOpt,
+    TransportOpt,
     check_log_level,
-    check_transport,
+    checked_transport,
     configure_logging,
     option,
 )
+from rlbridge.cli_topic import topic_app
 
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
@@ -28,33 +32,11 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
-topic_app = typer.Typer(help="Publish, echo, measure and list topics through a running server.",
-                        no_args_is_help=True)
 app.add_typer(topic_app, name="topic")
 
-Host = Annotated[str, option("--host", "Bridge server address.")]
-Port = Annotated[int, option("--port", "Bridge server port.")]
-Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
-TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=check_transport)]
-TlsOpt = Annotated[bool, typer.Option("--tls", help="Connect with TLS, trusting the system's "
-                                      "CAs (or --ca / --fingerprint).")]
-CaOpt = Annotated[str | None, typer.Option("--ca", help="CA file the server's TLS certificate "
-                                           "must be signed by (implies --tls).")]
-FingerprintOpt = Annotated[str | None, typer.Option(
-    "--fingerprint", help="SHA-256 fingerprint of the server's TLS certificate to pin, as "
-    "`rlbridge tls init` prints it (implies --tls).")]
-PskFileOpt = Annotated[str | None, typer.Option(
-    "--psk-file", help="Key file in the server's format (this command's line, else the "
-    "default line); without it $RLBRIDGE_PSK.")]
 LogLevel = Annotated[str | None, typer.Option(
     "--log-level", callback=check_log_level, show_default=False,
     help=f"{LOG_LEVEL_HELP} [default: warning; serve: info]")]
-
-
-def _transport(value: str) -> str:
-    if value not in ("udp", "tcp"):
-        raise fail(f"--transport must be 'udp' or 'tcp', not '{value}'", 2)
-    return value
 
 
 def _version(value: bool) -> None:
@@ -150,200 +132,6 @@ def serve(
     Server(config).run()
 
 
-def _parse_value(text: str) -> Any:
-    """JSON when it parses (numbers, true, objects), the raw text otherwise (strings)."""
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
-@topic_app.command("pub")
-@one_line_errors
-def topic_pub(
-    topic: str,
-    msg_type: Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_msgs/msg/Float64")],
-    value: Annotated[str, typer.Argument(help="JSON value: 1.5, true, \"text\", {\"x\": 1}")],
-    field: Field = "data",
-    rate: Annotated[float, typer.Option(help="Publish at this rate (Hz); 0 = once.")] = 0.0,
-    count: Annotated[int, typer.Option(help="Number of messages (with --rate).")] = 1,
-    transport: TransportOpt = "udp",
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
-) -> None:
-    """Publish VALUE on TOPIC through the bridge.
-
-    Exits 0 only once the server has counted every value; a value it refuses (not the
-    channel's type, over its --max-rate) or a datagram that never arrives makes it exit 1,
-    saying how many of how many the server took.
-    """
-    from rlbridge.cli_delivery import confirm_delivery
-    from rlbridge.csp.bridge import Bridge
-
-    parsed = _parse_value(value)
-    with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
-        out = bridge.publish(topic, msg_type, field or None, transport=_transport(transport))  # type: ignore[arg-type]
-        n = max(1, count) if rate > 0 else 1
-        period = 1.0 / rate if rate > 0 else 0.0
-        start = time.monotonic()
-        for i in range(n):
-            try:
-                out.write(parsed)
-            except TypeError as exc:  # the SDK checks the value against the field's type
-                raise fail(str(exc), 2) from None
-            if i + 1 < n:
-                time.sleep(max(0.0, start + (i + 1) * period - time.monotonic()))
-        bridge.send(wait=True)
-        confirm_delivery(bridge, out, n)
-    typer.echo(f"published {n} message(s) on {topic}")
-
-
-@topic_app.command("echo")
-@one_line_errors
-def topic_echo(
-    topic: str,
-    msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
-    field: Field = "data",
-    count: Annotated[int, typer.Option(help="Exit after this many values (0 = never).")] = 0,
-    transport: TransportOpt = "udp",
-    timeout: Annotated[float, typer.Option(help="Exit with an error after this many seconds "
-                                                "without a value (0 = wait forever).")] = 0.0,
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
-) -> None:
-    """Print each value published on TOPIC, one JSON document per line."""
-    from rlbridge.csp.bridge import Bridge
-
-    with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
-        ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
-                              blocking=True, buffer_size=4096)
-        seen = 0
-        while count == 0 or seen < count:
-            try:
-                v = _read_while_open(bridge, ch, timeout or None)
-            except TimeoutError:
-                raise fail(f"no value on {topic} within {timeout} s") from None
-            typer.echo(json.dumps(v))
-            seen += 1
-
-
-def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
-    """A blocking read that gives up once the session ends (the server stopped or closed it).
-
-    Waits in short slices for ``--timeout``; the end of the session (the tools do not
-    reconnect) closes the channel, which ends the read with ``ChannelClosed``.
-    """
-    from rlbridge.csp.connection import ConnectionClosed
-    from rlbridge.csp.errors import ChannelClosed
-
-    deadline = None if timeout is None else time.monotonic() + timeout
-    while True:
-        left = 0.25 if deadline is None else min(0.25, deadline - time.monotonic())
-        if left <= 0:
-            raise TimeoutError
-        try:
-            return ch.read(timeout=left)
-        except ChannelClosed:
-            raise ConnectionClosed(bridge.close_reason) from None
-        except TimeoutError:
-            if bridge.closed:
-                raise ConnectionClosed(bridge.close_reason) from None
-
-
-@topic_app.command("hz")
-@one_line_errors
-def topic_hz(
-    topic: str,
-    msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
-    field: Field = "data",
-    window: Annotated[int, typer.Option(help="Messages in the rate window.")] = 10000,
-    duration: Annotated[float, typer.Option(help="Stop after this many seconds (0 = never).")]
-    = 0.0,
-    transport: TransportOpt = "udp",
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
-) -> None:
-    """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
-
-    With --duration, exits 1 if no value arrived in that time (like echo's --timeout).
-    """
-    from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.errors import ChannelClosed
-
-    with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
-        ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
-                              blocking=True, buffer_size=65536)
-        arrivals: list[float] = []
-        end = time.monotonic() + duration if duration > 0 else math.inf
-        next_report = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            try:
-                ch.read(timeout=min(1.0, max(0.01, end - time.monotonic())))
-            except (TimeoutError, ChannelClosed):
-                if bridge.closed:
-                    from rlbridge.csp.connection import ConnectionClosed
-
-                    raise ConnectionClosed(bridge.close_reason) from None
-            else:
-                arrivals.append(time.monotonic())
-                arrivals.extend(time.monotonic() for _ in ch.read_many(1 << 16))
-                del arrivals[:-window]
-            if time.monotonic() >= next_report:
-                next_report += 1.0
-                typer.echo(format_rate(arrivals))
-        typer.echo(format_rate(arrivals))
-        if not arrivals:
-            raise fail(f"no value on {topic} within {duration:g} s")
-
-
-def format_rate(arrivals: list[float]) -> str:
-    """rostopic-hz-style line from arrival times."""
-    if len(arrivals) < 2:
-        return "no new messages"
-    gaps = [b - a for a, b in itertools.pairwise(arrivals)]
-    mean = statistics.fmean(gaps)
-    rate = 1.0 / mean if mean > 0 else math.inf
-    std = statistics.pstdev(gaps)
-    return (f"average rate: {rate:.3f}\n\tmin: {min(gaps):.6f}s max: {max(gaps):.6f}s "
-            f"std dev: {std:.6f}s window: {len(arrivals)}")
-
-
-@topic_app.command("list")
-@one_line_errors
-def topic_list(
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
-    show_types: Annotated[bool, option("--show-types", "Print types too.")]
-    = False,
-) -> None:
-    """List the topics the server's middleware knows."""
-    from rlbridge.csp.bridge import Bridge
-
-    with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
-        for name, msg_type in bridge.server_stats()["topics"]:
-            typer.echo(f"{name} [{msg_type}]" if show_types else name)
-
-
 @app.command()
 @one_line_errors
 def stats(
@@ -381,7 +169,7 @@ def ping(
     """
     from rlbridge.ping import ping as probe
 
-    answer = probe(host, port, _transport(transport), timeout)
+    answer = probe(host, port, checked_transport(transport), timeout)
     typer.echo(f"rlbridge server at {host}:{port} ({answer.transport.upper()}) "
                f"{answer.said} in {answer.seconds * 1e3:.1f} ms")
 

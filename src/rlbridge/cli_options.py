@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import re
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -73,3 +73,27 @@ def config_error(exc: ValidationError) -> str:
                      lambda m: "--" + m.group(1).replace("_", "-"), message)
     where = ", ".join("--" + f.replace("_", "-") for f in fields)
     return f"{where}: {message}" if where else message
+
+
+# -- the options of every command that talks to a running server ------------------------
+Host = Annotated[str, option("--host", "Bridge server address.")]
+Port = Annotated[int, option("--port", "Bridge server port.")]
+Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
+TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=check_transport)]
+TlsOpt = Annotated[bool, typer.Option("--tls", help="Connect with TLS, trusting the system's "
+                                      "CAs (or --ca / --fingerprint).")]
+CaOpt = Annotated[str | None, typer.Option("--ca", help="CA file the server's TLS certificate "
+                                           "must be signed by (implies --tls).")]
+FingerprintOpt = Annotated[str | None, typer.Option(
+    "--fingerprint", help="SHA-256 fingerprint of the server's TLS certificate to pin, as "
+    "`rlbridge tls init` prints it (implies --tls).")]
+PskFileOpt = Annotated[str | None, typer.Option(
+    "--psk-file", help="Key file in the server's format (this command's line, else the "
+    "default line); without it $RLBRIDGE_PSK.")]
+
+
+def checked_transport(value: str) -> str:
+    """``udp`` or ``tcp``, else a one-line usage error (exit 2)."""
+    if value not in ("udp", "tcp"):
+        raise fail(f"--transport must be 'udp' or 'tcp', not '{value}'", 2)
+    return value

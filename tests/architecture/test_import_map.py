@@ -45,7 +45,7 @@ def read_map(text: str) -> list[Row]:
     body = body.split("<!-- import-map:end -->", maxsplit=1)[0]
     rows = []
     for line in body.strip().splitlines()[2:]:
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        cells = [c.strip() for c in re.split(r"(?<!\\)\|", line.strip().strip("|"))]
         assert len(cells) == 4, f"docs/design.md import map: a row needs 4 cells: {line}"
         rows.append(Row(tuple(TICKED.findall(cells[0])), tuple(TICKED.findall(cells[2])),
                         tuple(TICKED.findall(cells[3]))))

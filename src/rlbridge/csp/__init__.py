@@ -4,7 +4,7 @@
 the hard-real-time side. The network side of the SDK is :class:`rlbridge.Bridge`.
 """
 
-from rlbridge.csp.channel import Channel, ChannelStatistics, Doorbell
+from rlbridge.csp.channel import Channel, Doorbell
 from rlbridge.csp.errors import (
     ChannelClosed,
     ChannelError,
@@ -22,6 +22,7 @@ from rlbridge.csp.process import (
     Sequential,
 )
 from rlbridge.csp.ring import EMPTY, MpscRing, SpscRing
+from rlbridge.csp.statistics import ChannelStatistics
 from rlbridge.csp.timer import PeriodicTimer, Timed
 
 __all__ = [

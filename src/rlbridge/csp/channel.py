@@ -50,7 +50,7 @@ from rlbridge.csp.rendezvous import Rendezvous
 from rlbridge.csp.ring import EMPTY, SpscRing
 from rlbridge.csp.statistics import ChannelStatistics
 
-__all__ = ["Channel", "ChannelStatistics", "Doorbell"]  # ChannelStatistics: re-exported
+__all__ = ["Channel", "Doorbell"]
 
 T = TypeVar("T")
 

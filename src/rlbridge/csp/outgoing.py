@@ -23,11 +23,12 @@ from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
-from rlbridge.csp.channel import ChannelStatistics, Doorbell
+from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.errors import ChannelClosed, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.pacing import Pacing
 from rlbridge.csp.stamped_ring import StampedRing
+from rlbridge.csp.statistics import ChannelStatistics
 from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
 from rlbridge.wire import TopicAck
 from rlbridge.wire.clock import ClockOffset

@@ -22,12 +22,12 @@ from rlbridge.server.access import AllowList
 from rlbridge.server.access import load as load_keys
 from rlbridge.server.authz import Access
 from rlbridge.server.config import ServerConfig
+from rlbridge.server.context import ServerContext
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
 from rlbridge.server.notices import bind_failure, listening_line
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.runner import run_on_loop
-from rlbridge.server.session import ServerContext
 from rlbridge.server.tcp import TcpConnection
 from rlbridge.server.udp import UdpEndpoint
 from rlbridge.tls import TlsError, server_context

@@ -6,7 +6,8 @@ import secrets
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from rlbridge.server.session import CHANNEL_TOTALS, ServerContext, Session
+from rlbridge.server.context import ServerContext
+from rlbridge.server.session import CHANNEL_TOTALS, Session
 from rlbridge.wire import PROTOCOL_VERSION, ConnectAck, ConnectError, ErrorCode, Hello, Limits
 
 #: Per-session counters the server also reports summed over all sessions, closed ones too.

@@ -49,7 +49,7 @@ from rlbridge.wire.codec import PartlyMalformed
 from rlbridge.wire.link import LinkMonitor
 from rlbridge.wire.seal import SessionKeys
 
-__all__ = ["CHANNEL_TOTALS", "ServerContext", "Session"]
+__all__ = ["CHANNEL_TOTALS", "Session"]
 
 log = logging.getLogger("rlbridge.server")
 
