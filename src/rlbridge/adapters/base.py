@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
 Reliability = Literal["reliable", "best_effort"]
+Durability = Literal["volatile", "transient_local", "match"]
 
 #: Called with a batch of values, in order. Adapters may call it from any thread (the ROS 2
 #: adapter calls it from its executor thread); the server hops to its event loop itself.
@@ -29,6 +30,10 @@ class QoS:
 
     reliability: Reliability = "reliable"
     depth: int = 10
+    #: ``transient_local``: a publisher keeps its last ``depth`` values for late subscribers
+    #: (a latched topic) and a subscription asks for them. ``match``: a subscription takes
+    #: the durability and reliability of the publishers already on the topic.
+    durability: Durability = "volatile"
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,6 +83,33 @@ class Subscription(Protocol):
         """Stop delivering; after it returns the callback is not called again."""
 
 
+class ServiceReply(Protocol):
+    """How a provided service answers one request: exactly once, from any thread.
+
+    ``send`` raises :class:`BindingError` (``BAD_VALUE``) for a response that does not fit
+    the service's response type; the request then stays open for another answer or ``fail``.
+    """
+
+    def send(self, response: dict[str, Any]) -> None:
+        """Answer with ``response`` (a dict of the response type's fields)."""
+
+    def fail(self, reason: str) -> None:
+        """The provider could not answer; the caller gets ``SERVICE_FAILED`` (or, on ROS 2,
+        which has no error reply, no answer: its own timeout)."""
+
+
+#: Called with a request (a dict) and its reply; may run on any thread and must not block.
+ServiceHandler = Callable[[dict[str, Any], ServiceReply], None]
+
+
+@runtime_checkable
+class ServiceServer(Protocol):
+    """A service provided through the middleware, until closed."""
+
+    def close(self) -> None:
+        """Stop serving; requests not answered yet fail (or, on ROS 2, go unanswered)."""
+
+
 @runtime_checkable
 class MiddlewareAdapter(Protocol):
     """What the server needs from a middleware; see the module docstring."""
@@ -104,6 +136,25 @@ class MiddlewareAdapter(Protocol):
 
     def topics(self) -> list[tuple[str, str]]:
         """The topics the middleware knows now, as ``(name, msg_type)`` sorted by name."""
+
+    def call_service(
+        self, service: str, srv_type: str, request: dict[str, Any], timeout: float
+    ) -> dict[str, Any]:
+        """Call ``service`` and wait (at most ``timeout`` s) for the response; blocking.
+
+        Raises :class:`BindingError`: ``UNKNOWN_TYPE`` (no such service type), ``BAD_VALUE``
+        (the request does not fit it), ``BAD_TOPIC`` (not a service name), ``NO_SERVICE``
+        (no server within the timeout), ``TIMEOUT`` (a server, but no answer) or
+        ``SERVICE_FAILED`` (the server said it failed).
+        """
+
+    def serve_service(
+        self, service: str, srv_type: str, handler: ServiceHandler
+    ) -> ServiceServer:
+        """Provide ``service``: ``handler`` gets each request; raise ``BindingError`` if not."""
+
+    def services(self) -> list[tuple[str, str]]:
+        """The services the middleware knows now, as ``(name, srv_type)`` sorted by name."""
 
     def close(self) -> None:
         """Close every publisher and subscription and release the middleware."""

@@ -30,6 +30,7 @@ try:
     from rclpy.node import Node
     from rclpy.publisher import Publisher as RclpyPublisher
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.service import Service as RclpyService
     from rclpy.subscription import Subscription as RclpySubscription
     from rclpy.validate_full_topic_name import validate_full_topic_name
 except ImportError as exc:  # pragma: no cover - exercised only where rclpy is missing
@@ -40,6 +41,6 @@ except ImportError as exc:  # pragma: no cover - exercised only where rclpy is m
 __all__ = [
     "Context", "DurabilityPolicy", "ExternalShutdownException", "HistoryPolicy", "InvalidHandle",
     "InvalidTopicNameException", "Node", "QoSProfile", "RCLError", "RclpyPublisher",
-    "RclpySubscription", "ReliabilityPolicy", "SingleThreadedExecutor", "expand_topic_name",
-    "validate_full_topic_name",
+    "RclpyService", "RclpySubscription", "ReliabilityPolicy", "SingleThreadedExecutor",
+    "expand_topic_name", "validate_full_topic_name",
 ]

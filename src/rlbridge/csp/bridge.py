@@ -28,6 +28,7 @@ from typing import Any, Literal
 
 from rlbridge.csp.auth import resolve_key
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
+from rlbridge.csp.bridge_services import ServiceMethods
 from rlbridge.csp.channel import _MISSING, Channel
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
 from rlbridge.csp.failsafe import GuardedChannel, OnLost, fail_safe
@@ -37,7 +38,7 @@ from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
 from rlbridge.wire import RemoteError, TopicClose, TopicConnect
 from rlbridge.wire.link import LinkState
-from rlbridge.wire.packets import Reliability
+from rlbridge.wire.packets import Durability, Reliability
 
 log = logging.getLogger("rlbridge.client")
 
@@ -49,7 +50,7 @@ DEFAULT_SWITCH_INTERVAL: float | None = None
 holds a short one while it runs (``rlbridge.csp.gil``); measured in docs/gil.md."""
 
 
-class Bridge:
+class Bridge(ServiceMethods):
     """A session with a bridge server. Thread-safe for SRT code; see the module docstring."""
 
     def __init__(self, conn: Connection, send_loop: SendLoop,
@@ -139,6 +140,7 @@ class Bridge:
         max_age_ms: int = 0,
         reliability: Reliability | None = None,
         depth: int = 10,
+        durability: Durability = "volatile",
         on_lost: OnLost = "hold",
     ) -> IncomingChannel:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
@@ -146,9 +148,11 @@ class Bridge:
         Policies (docs/policies.md): ``redundancy=k`` (UDP) repeats the previous k values in
         each datagram; ``latest=True`` delivers the newest value instead of a backlog;
         ``max_age_ms`` drops values older than that on arrival (``health().expired``).
-        ``reliability`` (``"reliable"`` / ``"best_effort"``) and ``depth`` are the middleware
-        QoS of the server's subscription (ROS 2); ``None`` picks by transport: best effort
-        for UDP channels, reliable for TCP ones.
+        ``reliability`` (``"reliable"`` / ``"best_effort"``), ``depth`` and ``durability``
+        are the middleware QoS of the server's subscription (ROS 2); ``reliability=None``
+        picks by transport (best effort for UDP, reliable for TCP); ``durability=
+        "transient_local"`` receives a latched topic's last values, ``"match"`` copies the
+        QoS of the topic's publishers (as ``ros2 topic echo`` does).
 
         Non-blocking channels return the latest value on every read (or ``initial`` before the
         first one; with neither, ``NoValueYet``); blocking channels wait for a new value.
@@ -163,10 +167,9 @@ class Bridge:
                 "arrive from the network whether or not a reader waits")
         ch_id = next(self._ids)
         kind = IncomingChannel if guard is None else GuardedChannel
-        channel = kind(ch_id, topic, msg_type, field, transport=transport,
-                                  blocking=blocking, buffer_size=buffer_size,
-                                  initial=initial if not blocking else _MISSING,
-                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
+        channel = kind(ch_id, topic, msg_type, field, transport=transport, blocking=blocking,
+                       buffer_size=buffer_size, initial=initial if not blocking else _MISSING,
+                       latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
         if isinstance(channel, GuardedChannel):
             channel.failsafe = guard
         with self._lock:
@@ -175,7 +178,7 @@ class Bridge:
             ack = self._conn.request_topic(TopicConnect(
                 ch_id, "subscribe", topic, msg_type, field, transport, buffer_size,
                 max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-                reliability=reliability, depth=depth))
+                reliability=reliability, depth=depth, durability=durability))
         except BaseException:
             with self._lock:
                 self._incoming.pop(ch_id, None)
@@ -197,6 +200,7 @@ class Bridge:
         max_age_ms: int = 0,
         reliability: Reliability | None = None,
         depth: int = 10,
+        durability: Durability = "volatile",
     ) -> OutgoingChannel:
         """A channel whose values are published on ``topic``.
 
@@ -205,8 +209,9 @@ class Bridge:
         Either way ``write`` never blocks and never touches a socket; a full buffer drops its
         oldest value and counts it (``statistics().overwritten``). Policies as in
         :meth:`subscribe`; ``max_age_ms`` is enforced here before sending and by the server
-        before publishing. ``reliability`` and ``depth``: the publisher's middleware QoS,
-        as in :meth:`subscribe`.
+        before publishing. ``reliability``, ``depth`` and ``durability`` (``transient_local``:
+        a latched topic, its last ``depth`` values kept for late subscribers): the
+        publisher's middleware QoS, as in :meth:`subscribe`.
         """
         ch_id = next(self._ids)
         channel = OutgoingChannel(ch_id, topic, msg_type, field, transport=transport,
@@ -216,7 +221,7 @@ class Bridge:
         ack = self._conn.request_topic(TopicConnect(
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
             max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-                reliability=reliability, depth=depth))
+            reliability=reliability, depth=depth, durability=durability))
         channel.msg_type = ack.msg_type
         with self._lock:
             self._outgoing[ch_id] = channel
@@ -314,16 +319,6 @@ class Bridge:
         """The current session's local TCP and UDP ports (they change with every reconnect)."""
         return self._conn.local_ports()
 
-    def server_stats(self) -> dict[str, Any]:
-        """The server's counters for this session, its totals, and the topics it knows."""
-        return dict(self._conn.request_stats())
-
-    @property
-    def session_id(self) -> int:
-        """The number the server gave this session: it names it in logs and ``rlbridge stats``."""
-        assert self._conn.ack is not None
-        return self._conn.ack.session
-
     def _on_values(self, ch: int, first_seq: int, stamps: list[int], values: list[Any]) -> None:
         channel = self._incoming.get(ch)
         if channel is not None:
@@ -352,7 +347,8 @@ class Bridge:
             try:
                 self._conn.request_topic(req)
             except RemoteError as exc:
-                log.warning("channel %d (%s) not bound again: %s", req.channel, req.topic, exc)
+                name = req.topic if isinstance(req, TopicConnect) else req.service
+                log.warning("channel %d (%s) not bound again: %s", req.channel, name, exc)
                 with self._lock:
                     # Not ``a or b``: an empty channel is falsy (``len`` is its buffered count).
                     channel: IncomingChannel | OutgoingChannel | None = self._incoming.pop(

@@ -30,6 +30,7 @@ from rlbridge.csp import handshake
 from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import MAX_DRAIN, RUN_DATAGRAMS, Receiver
 from rlbridge.csp.reconnect import ClientState
+from rlbridge.csp.services import ServiceCalls
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.wire import (
     PROTOCOL_VERSION,
@@ -40,6 +41,7 @@ from rlbridge.wire import (
     Malformed,
     Packet,
     PacketCodec,
+    ServiceOffer,
     TopicAck,
     TopicConnect,
 )
@@ -102,6 +104,8 @@ class Connection:
         self._generation = 0
         #: Control requests waiting for answers, and the bindings a new session makes again.
         self.requests = Requests(self)
+        #: Service calls in flight and the channels of provided services.
+        self.services = ServiceCalls(self)
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = socket.socketpair()
         #: The link state last reported through ``on_link_change``.
@@ -250,7 +254,7 @@ class Connection:
         assert self.ack is not None
         self.send_udp(self.codec.encode_datagram(packet, self.ack.token))
 
-    def request_topic(self, req: TopicConnect) -> TopicAck:
+    def request_topic(self, req: TopicConnect | ServiceOffer) -> TopicAck:
         """Send a topic-connect and wait for its answer; retransmit while the control is UDP.
 
         While the connection is reconnecting, waits for the next session (within ``timeout``);
@@ -267,7 +271,7 @@ class Connection:
                     ports[name] = sock.getsockname()[1]
         return ports
 
-    def bindings(self) -> list[TopicConnect]:
+    def bindings(self) -> list[TopicConnect | ServiceOffer]:
         """The acknowledged bindings, oldest first (to bind again after a reconnect)."""
         return self.requests.bindings()
 
@@ -281,9 +285,10 @@ class Connection:
             return self._state_changed.wait_for(lambda: self.up or self.closed.is_set(),
                                                 timeout) and self.up
 
-    def request_stats(self) -> dict[str, object]:
-        """Ask the server for its counters and topic list (``rlbridge stats``, ``topic list``)."""
-        return self.requests.stats()
+    def request_stats(self, ask: dict[str, object] | None = None) -> dict[str, object]:
+        """Ask the server for its counters and topic list (``rlbridge stats``, ``topic list``);
+        ``ask={"services": True}`` adds the service list."""
+        return self.requests.stats(ask)
 
     @property
     def link_state(self) -> LinkState:
@@ -325,6 +330,7 @@ class Connection:
         if self.on_session_end is not None:
             self.on_session_end(reason, final)
         self.requests.session_ended()
+        self.services.session_ended(final)
 
     def close(self) -> None:
         """Say goodbye, stop the receive thread, close the sockets; idempotent.

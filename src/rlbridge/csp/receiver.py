@@ -29,6 +29,8 @@ from rlbridge.wire import (
     Malformed,
     Packet,
     RemoteProtocolError,
+    ServiceRequest,
+    ServiceResult,
     Stats,
     TopicAck,
     TopicError,
@@ -188,6 +190,12 @@ class Receiver:
                     conn.on_error(packet)
             case Stats():
                 conn.requests.answer_stats(packet)
+            case ServiceResult():
+                link.on_receive(now)
+                conn.services.on_result(packet)
+            case ServiceRequest():
+                link.on_receive(now)
+                conn.services.on_request(packet)
             case ConnectError():
                 conn.end_session(f"server ended the session: {packet.reason}", conn.generation)
             case Disconnect():

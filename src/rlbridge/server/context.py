@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,6 +36,9 @@ class ServerContext:
     allow: AllowList = field(default_factory=lambda: AllowList(()))
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
+    #: Threads for blocking middleware work: service calls (server/services.py).
+    workers: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(
+        max_workers=32, thread_name_prefix="rlbridge-call"))
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""

@@ -24,6 +24,7 @@ from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import bind, refusal
 from rlbridge.server.context import ServerContext
 from rlbridge.server.ratelimit import RateLimiter
+from rlbridge.server.services import SessionServices
 from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
@@ -35,6 +36,9 @@ from rlbridge.wire import (
     Packet,
     PacketCodec,
     RemoteProtocolError,
+    ServiceCall,
+    ServiceOffer,
+    ServiceReply,
     Stats,
     TopicAck,
     TopicClose,
@@ -92,6 +96,8 @@ class Session:
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
         self._watchdog = SessionWatchdog(self)
+        #: Service calls in flight and services this client provides.
+        self.services = SessionServices(self)
 
     # -- transports ------------------------------------------------------------------------
     def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
@@ -152,7 +158,13 @@ class Session:
             case TopicClose(channel=ch):
                 self._close_channel(ch)
             case Stats():
-                self._send_stats(sink)
+                self._send_stats(sink, packet)
+            case ServiceCall():
+                self.services.call(packet, sink)
+            case ServiceOffer(channel=ch):
+                self.services.offer(packet, sink, ch in self.inbound or ch in self.outbound)
+            case ServiceReply():
+                self.services.reply(packet, sink)
             case Disconnect():
                 self.close("client said goodbye", notify=False)
             case _:
@@ -218,6 +230,10 @@ class Session:
     def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
         ch = req.channel
         existing = self.inbound.get(ch) or self.outbound.get(ch)
+        if ch in self.services.offers:
+            self.send_control(TopicError(ch, int(ErrorCode.CHANNEL_IN_USE),
+                                         f"channel {ch} already offers a service"), via)
+            return
         if existing is not None and existing.request == req:
             # A retransmitted request (its ack was lost on UDP): answer it again.
             self.send_control(TopicAck(ch, existing.spec.msg_type, existing.spec.default), via)
@@ -245,7 +261,8 @@ class Session:
         binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
             ch, None)
         if binding is None:
-            self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
+            if self.services.withdraw(ch) is None:
+                self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
         self._retire(binding.stats())
         binding.close()
@@ -268,13 +285,14 @@ class Session:
                 log.exception("closing channel %d of session %d", binding.channel, self.id)
         self.inbound.clear()
         self.outbound.clear()
+        self.services.close()
         if self._close_tcp is not None:
             self._close_tcp()
         log.info("session %d (%s) closed: %s", self.id, self.name, reason)
         self._on_closed(self)
 
     # -- counters --------------------------------------------------------------------------
-    def _send_stats(self, sink: PacketSink | None) -> None:
+    def _send_stats(self, sink: PacketSink | None, ask: Stats | None = None) -> None:
         """Answer ``Stats``: this session, and over TCP every session and the server totals.
 
         A datagram cannot hold a thousand channels' counters, so a UDP control path gets this
@@ -282,6 +300,8 @@ class Session:
         """
         body: dict[str, Any] = {"session": self.stats(), "server": dict(self.ctx.counters),
                                 "topics": [list(t) for t in self.ctx.adapter.topics()]}
+        if ask is not None and ask.body.get("services"):
+            body["services"] = [list(t) for t in self.ctx.adapter.services()]
         if self.ctx.report is not None:
             report = self.ctx.report()
             body["server"] = report["server"]
@@ -297,7 +317,8 @@ class Session:
         """One dict per channel id (as a string: JSON keys); other counters go into these."""
         rtt = self.link.rtt_ns
         return {**{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.inbound.items()},
-                **{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.outbound.items()}}
+                **{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.outbound.items()},
+                **self.services.channel_stats()}
 
     def stats(self) -> dict[str, Any]:
         """This session's counters; value totals include channels already closed."""
@@ -320,6 +341,7 @@ class Session:
             "malformed": self.malformed,
             "errors_sent": self.errors_sent,
             **totals,
+            **self.services.stats(),
             "channels": channels,
         }
 
