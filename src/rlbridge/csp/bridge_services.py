@@ -58,6 +58,7 @@ class ServiceClient:
                                                       name=f"{service} responses")
         self._methods = methods
         self._timeout = timeout
+        methods._conn.services.clients.append(self.requests)  # closed with the bridge
         self._thread = threading.Thread(target=self._run, name=f"rlbridge-call {service}",
                                         daemon=True)
         self._thread.start()

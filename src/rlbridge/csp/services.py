@@ -108,6 +108,8 @@ class ServiceCalls:
         self._ids = itertools.count(1)
         self._calls: dict[int, _Call] = {}
         self._served: dict[int, ServiceRequests] = {}
+        #: Channels of service clients (``Bridge.service_client``): closed with the bridge.
+        self.clients: list[Channel[Any]] = []
         self._lock = threading.Lock()
 
     def call(self, service: str, srv_type: str, request: dict[str, Any],
@@ -174,10 +176,11 @@ class ServiceCalls:
         """Wake every call in flight (it fails); for good, close the request channels."""
         with self._lock:
             calls = list(self._calls.values())
-            served = list(self._served.values()) if final else []
+            served: list[Channel[Any]] = [*self._served.values(), *self.clients] if final else []
             if final:
                 self._served.clear()
+                self.clients.clear()
         for pending in calls:
             pending.done.set()
-        for requests in served:
-            requests.close()
+        for channel in served:
+            channel.close()

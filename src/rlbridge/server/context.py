@@ -38,7 +38,7 @@ class ServerContext:
     report: Callable[[], dict[str, Any]] | None = None
     #: Threads for blocking middleware work: service calls (server/services.py).
     workers: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(
-        max_workers=32, thread_name_prefix="rlbridge-call"))
+        max_workers=32, thread_name_prefix="server-call"))
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""
