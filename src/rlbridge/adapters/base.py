@@ -110,6 +110,21 @@ class ServiceServer(Protocol):
         """Stop serving; requests not answered yet fail (or, on ROS 2, go unanswered)."""
 
 
+#: Called with each feedback message of a goal (a dict), on any thread.
+GoalFeedback = Callable[[dict[str, Any]], None]
+#: Called once when a goal ends: its final status (``GoalStatus``: 4 succeeded, 5 canceled,
+#: 6 aborted) and its result (a dict), on any thread.
+GoalDone = Callable[[int, dict[str, Any]], None]
+
+
+@runtime_checkable
+class GoalHandle(Protocol):
+    """An accepted action goal."""
+
+    def cancel(self) -> None:
+        """Ask the action server to cancel it; the result then says whether it did."""
+
+
 @runtime_checkable
 class MiddlewareAdapter(Protocol):
     """What the server needs from a middleware; see the module docstring."""
@@ -155,6 +170,17 @@ class MiddlewareAdapter(Protocol):
 
     def services(self) -> list[tuple[str, str]]:
         """The services the middleware knows now, as ``(name, srv_type)`` sorted by name."""
+
+    def send_goal(
+        self, action: str, action_type: str, goal: dict[str, Any], feedback: GoalFeedback,
+        done: GoalDone, timeout: float,
+    ) -> GoalHandle:
+        """Send an action goal; blocks until it is accepted (at most ``timeout`` s).
+
+        Raises :class:`BindingError`: ``UNKNOWN_TYPE``, ``BAD_VALUE``, ``NO_SERVICE`` (no
+        action server), ``TIMEOUT``, ``GOAL_REJECTED``. Feedback and the end come through
+        the callbacks.
+        """
 
     def close(self) -> None:
         """Close every publisher and subscription and release the middleware."""

@@ -19,6 +19,9 @@ from typing import Any
 
 from rlbridge.adapters.base import (
     BindingError,
+    GoalDone,
+    GoalFeedback,
+    GoalHandle,
     QoS,
     ServiceHandler,
     ServiceServer,
@@ -209,6 +212,13 @@ class InProcessBus:
 
     def services(self) -> list[tuple[str, str]]:
         return self.service_table.listing()
+
+    def send_goal(
+        self, action: str, action_type: str, goal: dict[str, Any], feedback: GoalFeedback,
+        done: GoalDone, timeout: float,
+    ) -> GoalHandle:
+        raise BindingError("NO_SERVICE", f"no action server for '{action}': the in-process "
+                           "bus has no actions (serve with --adapter ros2)")
 
     def forget_if_unused(self, topic: _Topic) -> None:
         """Drop a topic nobody uses any more (ROS forgets it too); the caller holds the lock."""

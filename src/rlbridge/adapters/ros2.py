@@ -31,12 +31,16 @@ from typing import Any
 
 from rlbridge.adapters.base import (
     BindingError,
+    GoalDone,
+    GoalFeedback,
+    GoalHandle,
     QoS,
     ServiceHandler,
     ServiceServer,
     ValuesCallback,
     ValueSpec,
 )
+from rlbridge.adapters.ros2_actions import Ros2Actions
 from rlbridge.adapters.ros2_endpoints import MAX_BATCH, Ros2Publisher, Ros2Subscription
 from rlbridge.adapters.ros2_rclpy import (
     Context,
@@ -98,6 +102,7 @@ class Ros2Adapter:
             self._declare(parameters or {})
             self._claims = TopicClaims(self.node)
             self._services = Ros2Services(self)
+            self._actions = Ros2Actions(self)
             self._executor = SingleThreadedExecutor(context=self._context)
             self._executor.add_node(self.node)
         except BaseException:
@@ -198,6 +203,12 @@ class Ros2Adapter:
         with self.lock:
             return [] if self._closed else self._services.listing()
 
+    def send_goal(
+        self, action: str, action_type: str, goal: dict[str, Any], feedback: GoalFeedback,
+        done: GoalDone, timeout: float,
+    ) -> GoalHandle:
+        return self._actions.send_goal(action, action_type, goal, feedback, done, timeout)
+
     def close(self) -> None:
         """Stop every endpoint, stop and join the executor thread, destroy node and context."""
         with self.lock:
@@ -209,6 +220,7 @@ class Ros2Adapter:
             self._publishers.clear()
             self._claims.clear()
             self._services.clear()
+            self._actions.clear()
         for sub in subscriptions:
             sub.stop()
         for pub in publishers:

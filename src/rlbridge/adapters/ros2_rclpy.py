@@ -23,6 +23,7 @@ try:
         importlib.import_module("rosidl_generator_py")  # untyped; only its side effect counts
 
     from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.action.client import ActionClient as RclpyActionClient
     from rclpy.context import Context
     from rclpy.exceptions import InvalidHandle, InvalidTopicNameException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -40,7 +41,8 @@ except ImportError as exc:  # pragma: no cover - exercised only where rclpy is m
 
 __all__ = [
     "Context", "DurabilityPolicy", "ExternalShutdownException", "HistoryPolicy", "InvalidHandle",
-    "InvalidTopicNameException", "Node", "QoSProfile", "RCLError", "RclpyPublisher",
+    "InvalidTopicNameException", "Node", "QoSProfile", "RCLError", "RclpyActionClient",
+    "RclpyPublisher",
     "RclpyService", "RclpySubscription", "ReliabilityPolicy", "SingleThreadedExecutor",
     "expand_topic_name", "validate_full_topic_name",
 ]

@@ -347,7 +347,7 @@ class Bridge(ServiceMethods):
             try:
                 self._conn.request_topic(req)
             except RemoteError as exc:
-                name = req.topic if isinstance(req, TopicConnect) else req.service
+                name = req.topic if isinstance(req, TopicConnect) else getattr(req, "service", "")
                 log.warning("channel %d (%s) not bound again: %s", req.channel, name, exc)
                 with self._lock:
                     # Not ``a or b``: an empty channel is falsy (``len`` is its buffered count).

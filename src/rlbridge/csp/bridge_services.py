@@ -16,11 +16,13 @@ import threading
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from rlbridge.csp import parameters
+from rlbridge.csp.actions import Goal
+from rlbridge.csp.bridge_channels import IncomingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.errors import ChannelClosed
 from rlbridge.csp.services import IncomingRequest, ServiceRequests
 from rlbridge.csp.session_errors import ConnectionClosed
-from rlbridge.wire import RlbridgeError, ServiceOffer, TopicClose
+from rlbridge.wire import GoalSend, RlbridgeError, ServiceOffer, TopicClose
 
 if TYPE_CHECKING:
     from rlbridge.csp.connection import Connection
@@ -96,6 +98,8 @@ class ServiceMethods:
 
     _conn: Connection
     _ids: itertools.count[int]
+    _lock: threading.Lock
+    _incoming: dict[int, IncomingChannel]
 
     # -- services ------------------------------------------------------------------------
     def call(self, service: str, srv_type: str, request: dict[str, Any] | None = None, *,
@@ -149,6 +153,45 @@ class ServiceMethods:
         body = self._conn.request_stats({"services": True})
         found: Any = body.get("services", [])
         return [(str(n), str(t)) for n, t in found]
+
+    # -- actions -----------------------------------------------------------------------
+    def send_goal(self, action: str, action_type: str, goal: dict[str, Any] | None = None, *,
+                  feedback_buffer: int = 1024, timeout: float = DEFAULT_TIMEOUT) -> Goal:
+        """Send an action goal; returns once the action server accepted it.
+
+        ``goal.feedback`` is a channel of feedback dicts, ``goal.result(timeout=...)`` waits
+        for the result dict (``goal.status``: ``succeeded``, ``canceled``, ``aborted``),
+        ``goal.cancel()`` asks for a cancel. Raises ``NoServiceError`` (no action server),
+        ``GoalRejected``, ``UnknownTypeError``, ``BadValueError``, ``ServiceTimeout``.
+        """
+        conn = self._conn
+        ch_id = next(self._ids)
+        feedback = IncomingChannel(ch_id, action, action_type, None, transport="tcp",
+                                   blocking=True, buffer_size=feedback_buffer,
+                                   link=conn.link)
+        handle = Goal(conn, ch_id, action, feedback)
+
+        def forget() -> None:
+            with self._lock:
+                self._incoming.pop(ch_id, None)
+
+        handle.on_finish = forget
+        with self._lock:
+            self._incoming[ch_id] = feedback
+        with conn.services.lock:
+            conn.services.goals[ch_id] = handle
+        try:
+            conn.request_topic(GoalSend(ch_id, action, action_type, goal or {},
+                                        max(1, round(timeout * 1000))))
+        except BaseException:
+            with conn.services.lock:
+                conn.services.goals.pop(ch_id, None)
+            with self._lock:
+                self._incoming.pop(ch_id, None)
+            raise
+        finally:
+            conn.forget_topic(ch_id)  # a goal is not sent again after a reconnect
+        return handle
 
     # -- the server's own answers ---------------------------------------------------------
     def server_stats(self) -> dict[str, Any]:

@@ -37,6 +37,7 @@ from rlbridge.wire import (
     ConnectAck,
     Disconnect,
     Error,
+    GoalSend,
     Hello,
     Malformed,
     Packet,
@@ -254,7 +255,7 @@ class Connection:
         assert self.ack is not None
         self.send_udp(self.codec.encode_datagram(packet, self.ack.token))
 
-    def request_topic(self, req: TopicConnect | ServiceOffer) -> TopicAck:
+    def request_topic(self, req: TopicConnect | ServiceOffer | GoalSend) -> TopicAck:
         """Send a topic-connect and wait for its answer; retransmit while the control is UDP.
 
         While the connection is reconnecting, waits for the next session (within ``timeout``);
@@ -271,7 +272,7 @@ class Connection:
                     ports[name] = sock.getsockname()[1]
         return ports
 
-    def bindings(self) -> list[TopicConnect | ServiceOffer]:
+    def bindings(self) -> list[TopicConnect | ServiceOffer | GoalSend]:
         """The acknowledged bindings, oldest first (to bind again after a reconnect)."""
         return self.requests.bindings()
 

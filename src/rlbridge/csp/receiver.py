@@ -25,6 +25,7 @@ from rlbridge.wire import (
     Disconnect,
     Error,
     FrameDecoder,
+    GoalResult,
     Heartbeat,
     Malformed,
     Packet,
@@ -196,6 +197,10 @@ class Receiver:
             case ServiceRequest():
                 link.on_receive(now)
                 conn.services.on_request(packet)
+            case GoalResult():
+                link.on_receive(now)
+                self._flush_values()  # the feedback before it first
+                conn.services.on_goal_result(packet)
             case ConnectError():
                 conn.end_session(f"server ended the session: {packet.reason}", conn.generation)
             case Disconnect():

@@ -25,6 +25,7 @@ from rlbridge.csp.channel import Channel
 from rlbridge.csp.session_errors import ConnectionClosed
 from rlbridge.wire import (
     ErrorCode,
+    GoalResult,
     LocalProtocolError,
     ServiceCall,
     ServiceReply,
@@ -34,6 +35,7 @@ from rlbridge.wire import (
 )
 
 if TYPE_CHECKING:
+    from rlbridge.csp.actions import Goal
     from rlbridge.csp.connection import Connection
 
 #: Requests a provided service's channel holds before the oldest is overwritten (and
@@ -110,7 +112,9 @@ class ServiceCalls:
         self._served: dict[int, ServiceRequests] = {}
         #: Channels of service clients (``Bridge.service_client``): closed with the bridge.
         self.clients: list[Channel[Any]] = []
-        self._lock = threading.Lock()
+        #: Action goals running, by channel (``Bridge.send_goal``).
+        self.goals: dict[int, Goal] = {}
+        self.lock = threading.Lock()
 
     def call(self, service: str, srv_type: str, request: dict[str, Any],
              timeout: float) -> dict[str, Any]:
@@ -122,7 +126,7 @@ class ServiceCalls:
             raise TypeError(f"a service request is a dict of fields, not {type(request).__name__}")
         call_id = next(self._ids) & 0xFFFF_FFFF
         pending = _Call()
-        with self._lock:
+        with self.lock:
             self._calls[call_id] = pending
         try:
             if not conn.wait_up(conn.timeout):
@@ -132,7 +136,7 @@ class ServiceCalls:
             if not pending.done.wait(timeout + conn.timeout):
                 raise ConnectionClosed(f"no answer from the server to the call of {service}")
         finally:
-            with self._lock:
+            with self.lock:
                 self._calls.pop(call_id, None)
         answer = pending.answer
         if answer is None:
@@ -144,26 +148,33 @@ class ServiceCalls:
 
     def on_result(self, packet: ServiceResult) -> None:
         """Receive thread: the answer to a call; wake its caller."""
-        with self._lock:
+        with self.lock:
             pending = self._calls.get(packet.call)
         if pending is not None:
             pending.answer = packet
             pending.done.set()
 
     def add_served(self, requests: ServiceRequests) -> None:
-        with self._lock:
+        with self.lock:
             self._served[requests.channel_id] = requests
 
     def forget_served(self, channel: int) -> None:
-        with self._lock:
+        with self.lock:
             self._served.pop(channel, None)
 
     def on_request(self, packet: ServiceRequest) -> None:
         """Receive thread: a request to a provided service; into its channel."""
-        with self._lock:
+        with self.lock:
             requests = self._served.get(packet.channel)
         if requests is not None and not requests.closed:
             requests.write(IncomingRequest(self, packet.channel, self._conn.generation, packet))
+
+    def on_goal_result(self, packet: GoalResult) -> None:
+        """Receive thread: a goal ended."""
+        with self.lock:
+            goal = self.goals.pop(packet.channel, None)
+        if goal is not None:
+            goal.finish(packet)
 
     def send_reply(self, packet: ServiceReply, generation: int) -> None:
         conn = self._conn
@@ -174,13 +185,16 @@ class ServiceCalls:
 
     def session_ended(self, final: bool) -> None:
         """Wake every call in flight (it fails); for good, close the request channels."""
-        with self._lock:
+        with self.lock:
             calls = list(self._calls.values())
+            goals, self.goals = list(self.goals.values()), {}
             served: list[Channel[Any]] = [*self._served.values(), *self.clients] if final else []
             if final:
                 self._served.clear()
                 self.clients.clear()
         for pending in calls:
             pending.done.set()
+        for goal in goals:
+            goal.finish(None)
         for channel in served:
             channel.close()

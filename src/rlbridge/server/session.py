@@ -20,6 +20,7 @@ from typing import Any
 import msgspec
 
 from rlbridge.adapters.base import BindingError
+from rlbridge.server.actions import SessionGoals
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import bind, refusal
 from rlbridge.server.context import ServerContext
@@ -32,6 +33,8 @@ from rlbridge.wire import (
     Disconnect,
     Error,
     ErrorCode,
+    GoalCancel,
+    GoalSend,
     Heartbeat,
     Packet,
     PacketCodec,
@@ -98,6 +101,7 @@ class Session:
         self._watchdog = SessionWatchdog(self)
         #: Service calls in flight and services this client provides.
         self.services = SessionServices(self)
+        self.goals = SessionGoals(self)
 
     # -- transports ------------------------------------------------------------------------
     def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
@@ -162,9 +166,13 @@ class Session:
             case ServiceCall():
                 self.services.call(packet, sink)
             case ServiceOffer(channel=ch):
-                self.services.offer(packet, sink, ch in self.inbound or ch in self.outbound)
+                self.services.offer(packet, sink, self._in_use(ch))
             case ServiceReply():
                 self.services.reply(packet, sink)
+            case GoalSend(channel=ch):
+                self.goals.send(packet, sink, self._in_use(ch))
+            case GoalCancel(channel=ch):
+                self.goals.cancel(ch, sink)
             case Disconnect():
                 self.close("client said goodbye", notify=False)
             case _:
@@ -230,9 +238,9 @@ class Session:
     def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
         ch = req.channel
         existing = self.inbound.get(ch) or self.outbound.get(ch)
-        if ch in self.services.offers:
+        if ch in self.services.offers or ch in self.goals.goals:
             self.send_control(TopicError(ch, int(ErrorCode.CHANNEL_IN_USE),
-                                         f"channel {ch} already offers a service"), via)
+                                         f"channel {ch} is already connected"), via)
             return
         if existing is not None and existing.request == req:
             # A retransmitted request (its ack was lost on UDP): answer it again.
@@ -256,6 +264,10 @@ class Session:
         log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
         self.send_control(TopicAck(ch, spec.msg_type, spec.default), via)
+
+    def _in_use(self, ch: int) -> bool:
+        return (ch in self.inbound or ch in self.outbound or ch in self.services.offers
+                or ch in self.goals.goals)
 
     def _close_channel(self, ch: int) -> None:
         binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
@@ -286,6 +298,7 @@ class Session:
         self.inbound.clear()
         self.outbound.clear()
         self.services.close()
+        self.goals.close()
         if self._close_tcp is not None:
             self._close_tcp()
         log.info("session %d (%s) closed: %s", self.id, self.name, reason)
@@ -318,7 +331,7 @@ class Session:
         rtt = self.link.rtt_ns
         return {**{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.inbound.items()},
                 **{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.outbound.items()},
-                **self.services.channel_stats()}
+                **self.services.channel_stats(), **self.goals.channel_stats()}
 
     def stats(self) -> dict[str, Any]:
         """This session's counters; value totals include channels already closed."""

@@ -34,6 +34,7 @@ class ErrorCode(IntEnum):
     NO_SERVICE = 40
     TIMEOUT = 41
     SERVICE_FAILED = 42
+    GOAL_REJECTED = 43
 
 
 class RlbridgeError(Exception):
@@ -127,6 +128,10 @@ class ServiceFailed(ServiceError):
     """The server failed to answer (it said so, or its answer did not fit the type)."""
 
 
+class GoalRejected(ServiceError):
+    """The action server rejected the goal."""
+
+
 _BY_CODE: dict[int, type[RemoteError]] = {
     ErrorCode.UNKNOWN_TYPE: UnknownTypeError,
     ErrorCode.PACKAGE_MISSING: UnknownTypeError,
@@ -143,6 +148,7 @@ _BY_CODE: dict[int, type[RemoteError]] = {
     ErrorCode.NO_SERVICE: NoServiceError,
     ErrorCode.TIMEOUT: ServiceTimeout,
     ErrorCode.SERVICE_FAILED: ServiceFailed,
+    ErrorCode.GOAL_REJECTED: GoalRejected,
 }
 
 

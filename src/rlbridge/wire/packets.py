@@ -245,6 +245,34 @@ class ServiceReply(_Packet, tag=24, frozen=True):
     reason: Reason = ""
 
 
+class GoalSend(_Packet, tag=25, frozen=True):
+    """Client -> server: send an action goal; channel ``channel`` then carries its feedback
+    (``Value`` packets of dicts). Answered with ``TopicAck`` (accepted) or ``TopicError``
+    (``NO_SERVICE``, ``GOAL_REJECTED``, ...); the end comes as ``GoalResult``."""
+
+    channel: U32
+    action: ServiceName
+    action_type: TypeName
+    goal: dict[str, Any]
+    timeout_ms: U32 = 5000
+
+
+class GoalCancel(_Packet, tag=26, frozen=True):
+    """Client -> server: ask the action server to cancel the goal on ``channel``."""
+
+    channel: U32
+
+
+class GoalResult(_Packet, tag=27, frozen=True):
+    """Server -> client: the goal on ``channel`` ended: ``status`` as ROS 2's GoalStatus
+    (4 succeeded, 5 canceled, 6 aborted; 0 with ``reason``: lost) and its ``result``."""
+
+    channel: U32
+    status: U16
+    result: dict[str, Any] | None = None
+    reason: Reason = ""
+
+
 # Tags of new packet kinds are allocated per line of work, so that parallel branches never
 # reuse a number (tags are the wire format): 16-19 security (TLS/AEAD/authorization),
 # 20-29 ROS 2 services/actions/parameters, 30-31 value rejection, 32-33 UDP bundles,
@@ -253,6 +281,7 @@ Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
     | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
     | ServiceCall | ServiceResult | ServiceOffer | ServiceRequest | ServiceReply
+    | GoalSend | GoalCancel | GoalResult
 )
 
 #: Packets a value path carries; everything else is control.

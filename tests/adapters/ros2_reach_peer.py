@@ -1,0 +1,125 @@
+#!/usr/bin/env python3
+"""A plain rclpy node for the services/actions/parameters/latched-topic tests.
+
+Imports nothing from rlbridge. Modes:
+
+``serve``
+    Node ``reach_peer``: services ``/reach/set_bool`` (std_srvs/SetBool: success = data,
+    message "set to <data>") and ``/reach/basic`` (test_msgs/BasicTypes: the request echoed,
+    ``string_value`` reversed), action ``/reach/fibonacci`` (test_msgs/Fibonacci: one feedback
+    message per step, ``STEP_S`` apart, cancellable), parameters ``gain`` (1.5), ``mode``
+    ("auto"), ``enabled`` (true), and a transient-local (latched) ``/reach/map``
+    std_msgs/String published once, at start. Prints ``ready`` when all is up; runs until
+    stdin closes.
+``call SERVICE``
+    Call std_srvs/SetBool ``SERVICE`` (provided by an rlbridge client) with data=true, print
+    the response as JSON, exit.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+import threading
+import time
+import warnings
+
+with warnings.catch_warnings():
+    warnings.filterwarnings("ignore", category=DeprecationWarning)
+    importlib.import_module("rosidl_generator_py")
+
+import contextlib
+
+import rclpy
+from rclpy.action import ActionServer, CancelResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import SetBool
+from test_msgs.action import Fibonacci
+from test_msgs.srv import BasicTypes
+
+STEP_S = 0.05
+
+
+def serve() -> None:
+    rclpy.init(args=[])
+    node = Node("reach_peer")
+    group = ReentrantCallbackGroup()
+
+    def set_bool(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        response.success = request.data
+        response.message = f"set to {request.data}"
+        return response
+
+    def basic(request: BasicTypes.Request, response: BasicTypes.Response) -> BasicTypes.Response:
+        for name in request.get_fields_and_field_types():
+            setattr(response, name, getattr(request, name))
+        response.string_value = request.string_value[::-1]
+        return response
+
+    def fibonacci(handle: object) -> Fibonacci.Result:
+        goal = handle.request  # type: ignore[attr-defined]
+        sequence = [0, 1]
+        feedback = Fibonacci.Feedback()
+        for _ in range(1, goal.order):
+            if handle.is_cancel_requested:  # type: ignore[attr-defined]
+                handle.canceled()  # type: ignore[attr-defined]
+                return Fibonacci.Result(sequence=sequence)
+            sequence.append(sequence[-1] + sequence[-2])
+            feedback.sequence = sequence
+            handle.publish_feedback(feedback)  # type: ignore[attr-defined]
+            time.sleep(STEP_S)
+        handle.succeed()  # type: ignore[attr-defined]
+        return Fibonacci.Result(sequence=sequence)
+
+    node.create_service(SetBool, "/reach/set_bool", set_bool, callback_group=group)
+    node.create_service(BasicTypes, "/reach/basic", basic, callback_group=group)
+    ActionServer(node, Fibonacci, "/reach/fibonacci", fibonacci, callback_group=group,
+                 cancel_callback=lambda _h: CancelResponse.ACCEPT)
+    node.declare_parameter("gain", 1.5)
+    node.declare_parameter("mode", "auto")
+    node.declare_parameter("enabled", True)
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         reliability=ReliabilityPolicy.RELIABLE)
+    node.create_publisher(String, "/reach/map", latched).publish(String(data="map v1"))
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    spinner = threading.Thread(target=_spin, args=(executor,), daemon=True)
+    spinner.start()
+    print("ready", flush=True)
+    sys.stdin.read()  # until the test closes our stdin
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def _spin(executor: MultiThreadedExecutor) -> None:
+    with contextlib.suppress(ExternalShutdownException):
+        executor.spin()
+
+
+def call(service: str) -> None:
+    rclpy.init(args=[])
+    node = Node("reach_caller")
+    client = node.create_client(SetBool, service)
+    if not client.wait_for_service(timeout_sec=20.0):
+        print(json.dumps({"error": "no service"}), flush=True)
+        sys.exit(1)
+    future = client.call_async(SetBool.Request(data=True))
+    rclpy.spin_until_future_complete(node, future, timeout_sec=20.0)
+    result = future.result()
+    print(json.dumps({"success": result.success, "message": result.message}
+                     if result is not None else {"error": "no answer"}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["call"]:
+        call(sys.argv[2])
+    else:
+        serve()
