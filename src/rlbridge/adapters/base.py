@@ -74,6 +74,10 @@ class Publisher(Protocol):
     def close(self) -> None:
         """Release the publisher; further publishes are a programming error."""
 
+    #: Values the middleware refused to take (the ROS 2 adapter's rmw errors); the server
+    #: reports them per channel as ``ros_lost``.
+    failed: int
+
 
 @runtime_checkable
 class Subscription(Protocol):
@@ -81,6 +85,10 @@ class Subscription(Protocol):
 
     def close(self) -> None:
         """Stop delivering; after it returns the callback is not called again."""
+
+    #: Messages the middleware lost before delivering them (ROS 2: a full subscription
+    #: queue, counted from sequence gaps); the server reports them per channel as ``ros_lost``.
+    lost: int
 
 
 class ServiceReply(Protocol):

@@ -60,6 +60,8 @@ class _Subscriber:
     callback: ValuesCallback
     topic: _Topic
     closed: bool = False
+    #: Synchronous delivery loses nothing (the Subscription Protocol's counter).
+    lost: int = 0
 
     def close(self) -> None:
         self.topic.remove_subscriber(self)
@@ -70,6 +72,8 @@ class _Publisher:
     spec: ValueSpec
     topic: _Topic
     closed: bool = False
+    #: The bus refuses nothing it validated (the Publisher Protocol's counter).
+    failed: int = 0
     #: ``transient_local`` publishers keep their last ``depth`` values for late subscribers.
     latched: deque[Any] | None = None
 

@@ -67,6 +67,7 @@ class Bridge(ServiceMethods):
             conn, backoff, self._bind_again)
         conn.keep_alive = self._supervisor is not None
         conn.on_values = self._on_values
+        conn.on_loss = self._on_loss
         conn.on_link_change = self._events.emit
         conn.on_session_end = self._on_session_end
 

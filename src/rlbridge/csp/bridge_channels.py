@@ -56,7 +56,7 @@ class IncomingChannel(Channel[Any]):
 
     __slots__ = ("_clock", "_delivered", "_jitter", "_link", "_max_age_ns", "_one_way",
                  "_overtaken", "_tracker", "channel_id", "expired", "field", "last_stamp_ns",
-                 "latest", "msg_type", "topic", "transport")  # fmt: skip
+                 "latest", "msg_type", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, blocking: bool, buffer_size: int,
@@ -68,6 +68,8 @@ class IncomingChannel(Channel[Any]):
                          initial=_MISSING if initial is _MISSING else (0, initial),
                          name=f"{topic} [{msg_type} {field or '<message>'}] in")
         self.channel_id = channel_id
+        #: The server's count of this channel's values lost on the ROS side (-1: none yet).
+        self.ros_lost = -1
         self.topic = topic
         self.msg_type = msg_type
         self.field = field
@@ -189,6 +191,7 @@ class IncomingChannel(Channel[Any]):
             values=self._delivered,
             clock_error_ns=self._clock.error_bound_ns,
             clock_offset_ns=self._clock.offset_ns,
+            ros_lost=self.ros_lost,
         )
 
 
@@ -213,7 +216,7 @@ class OutgoingChannel:
     __slots__ = ("_bell", "_clock", "_closed", "_discarded", "_expired", "_held", "_history",
                  "_link", "_max_age_ns", "_next_seq", "_overtaken", "_ring", "_writer",
                  "channel_id", "field", "immediate", "latest", "msg_type", "redundancy",
-                 "topic", "transport")  # fmt: skip
+                 "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
@@ -226,6 +229,8 @@ class OutgoingChannel:
         if max_age_ms < 0:
             raise ValueError(f"max_age_ms must be >= 0 (0: no limit), got {max_age_ms}")
         self.channel_id = channel_id
+        #: The server's count of this channel's values lost on the ROS side (-1: none yet).
+        self.ros_lost = -1
         self.topic = topic
         self.msg_type = msg_type
         self.field = field
@@ -361,7 +366,8 @@ class OutgoingChannel:
             rtt_ns=rtt, one_way_ns=rtt // 2 if rtt >= 0 else -1, jitter_ns=-1, lost=-1,
             duplicates=0, overwritten=ring.overwritten, overtaken=self._overtaken,
             expired=self._expired, values=ring.written,
-            clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns)
+            clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns,
+            ros_lost=self.ros_lost)
 
     @property
     def closed(self) -> bool:

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 from rlbridge.csp import parameters
 from rlbridge.csp.actions import Goal
-from rlbridge.csp.bridge_channels import IncomingChannel
+from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.errors import ChannelClosed
 from rlbridge.csp.services import IncomingRequest, ServiceRequests
@@ -100,6 +100,7 @@ class ServiceMethods:
     _ids: itertools.count[int]
     _lock: threading.Lock
     _incoming: dict[int, IncomingChannel]
+    _outgoing: dict[int, OutgoingChannel]
 
     # -- services ------------------------------------------------------------------------
     def call(self, service: str, srv_type: str, request: dict[str, Any] | None = None, *,
@@ -194,6 +195,13 @@ class ServiceMethods:
         return handle
 
     # -- the server's own answers ---------------------------------------------------------
+    def _on_loss(self, channel: int, ros_lost: int) -> None:
+        """Receive thread: the server counted ROS-side loss of a channel (``health()``)."""
+        found: IncomingChannel | OutgoingChannel | None = self._incoming.get(channel)
+        if found is None:  # not ``or``: an empty channel is falsy
+            found = self._outgoing.get(channel)
+        if found is not None:
+            found.ros_lost = ros_lost
     def server_stats(self) -> dict[str, Any]:
         """The server's counters for this session, its totals, and the topics it knows."""
         return dict(self._conn.request_stats())

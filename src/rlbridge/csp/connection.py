@@ -90,6 +90,8 @@ class Connection:
         self.on_values: ValuesHandler | None = None
         self.on_link_change: LinkHandler | None = None
         self.on_error: Callable[[Error], None] | None = None
+        #: ``(channel, ros_lost)``: the server's count of a channel's ROS-side loss.
+        self.on_loss: Callable[[int, int], None] | None = None
         #: Called with the reason when a session ends (before any reconnect), and once more,
         #: with ``final=True``, when the connection is closed for good.
         self.on_session_end: Callable[[str, bool], None] | None = None

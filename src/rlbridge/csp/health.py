@@ -43,3 +43,7 @@ class ChannelHealth(msgspec.Struct, frozen=True, gc=False):
     clock_error_ns: int = -1
     #: The server's clock minus this host's, as estimated from heartbeats (0: not yet).
     clock_offset_ns: int = 0
+    #: Values lost on the middleware side of the server, as the server reports them
+    #: (``ChannelLoss``, every heartbeat period): incoming, messages its ROS subscription's
+    #: full queue dropped; outgoing, accepted values ROS refused. ``-1``: none reported yet.
+    ros_lost: int = -1

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 from rlbridge.wire import (
     Batch,
+    ChannelLoss,
     ConnectError,
     Disconnect,
     Error,
@@ -197,6 +198,10 @@ class Receiver:
             case ServiceRequest():
                 link.on_receive(now)
                 conn.services.on_request(packet)
+            case ChannelLoss():
+                link.on_receive(now)
+                if conn.on_loss is not None:
+                    conn.on_loss(packet.channel, packet.ros_lost)
             case GoalResult():
                 link.on_receive(now)
                 self._flush_values()  # the feedback before it first

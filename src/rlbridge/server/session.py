@@ -30,6 +30,7 @@ from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
     Batch,
+    ChannelLoss,
     Disconnect,
     Error,
     ErrorCode,
@@ -56,7 +57,7 @@ __all__ = ["CHANNEL_TOTALS", "ServerContext", "Session"]
 log = logging.getLogger("rlbridge.server")
 
 #: Per-channel counters a session (and the server) also reports as totals.
-CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values")
+CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values", "ros_lost")
 
 TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
 
@@ -102,6 +103,7 @@ class Session:
         #: Service calls in flight and services this client provides.
         self.services = SessionServices(self)
         self.goals = SessionGoals(self)
+        self._loss_reported: dict[int, int] = {}
 
     # -- transports ------------------------------------------------------------------------
     def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
@@ -264,6 +266,17 @@ class Session:
         log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
         self.send_control(TopicAck(ch, spec.msg_type, spec.default), via)
+
+    def report_loss(self) -> None:
+        """Tell the client of each channel whose ROS-side loss grew since the last report
+        (``ChannelLoss``; the watchdog calls this every heartbeat period)."""
+        bindings: list[tuple[int, Inbound | Outbound]] = [*self.inbound.items(),
+                                                          *self.outbound.items()]
+        for ch, binding in bindings:
+            lost = binding.ros_lost
+            if lost != self._loss_reported.get(ch, 0):
+                self._loss_reported[ch] = lost
+                self.send_control(ChannelLoss(ch, lost))
 
     def _in_use(self, ch: int) -> bool:
         return (ch in self.inbound or ch in self.outbound or ch in self.services.offers

@@ -54,6 +54,7 @@ class SessionWatchdog:
             for sink in self._heartbeat_sinks():
                 sink.send(hb)
             self._tcp_bytes_at_heartbeat = self._tcp_traffic()
+            s.report_loss()
         self._arm()
 
     def _tcp_traffic(self) -> tuple[int, int]:

@@ -27,6 +27,7 @@ from rlbridge.wire.packets import (
     AuthChallenge,
     AuthProof,
     Batch,
+    ChannelLoss,
     ConnectAck,
     ConnectError,
     Disconnect,
@@ -54,7 +55,7 @@ from rlbridge.wire.packets import (
 __all__ = [
     "DATAGRAM_HEADER", "DEFAULT_MAX_PACKET", "FRAME_HEADER", "MAGIC", "MAX_DATAGRAM",
     "PROTOCOL_VERSION", "AuthChallenge", "AuthProof",
-    "Batch", "ConnectAck", "ConnectError", "Disconnect", "Error",
+    "Batch", "ChannelLoss", "ConnectAck", "ConnectError", "Disconnect", "Error",
     "ErrorCode", "FrameDecoder", "GoalCancel", "GoalResult", "GoalSend", "Heartbeat", "Hello",
     "Limits", "LocalProtocolError",
     "Malformed", "Packet", "PacketCodec", "RemoteError", "RemoteProtocolError",

@@ -273,6 +273,15 @@ class GoalResult(_Packet, tag=27, frozen=True):
     reason: Reason = ""
 
 
+class ChannelLoss(_Packet, tag=28, frozen=True):
+    """Server -> client: the total of values of ``channel`` lost on the middleware side so
+    far (a ROS subscription's full queue, values rmw refused); sent when it grows, at most
+    once per heartbeat period. The client shows it as ``health().ros_lost``."""
+
+    channel: U32
+    ros_lost: U64
+
+
 # Tags of new packet kinds are allocated per line of work, so that parallel branches never
 # reuse a number (tags are the wire format): 16-19 security (TLS/AEAD/authorization),
 # 20-29 ROS 2 services/actions/parameters, 30-31 value rejection, 32-33 UDP bundles,
@@ -281,7 +290,7 @@ Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
     | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
     | ServiceCall | ServiceResult | ServiceOffer | ServiceRequest | ServiceReply
-    | GoalSend | GoalCancel | GoalResult
+    | GoalSend | GoalCancel | GoalResult | ChannelLoss
 )
 
 #: Packets a value path carries; everything else is control.
