@@ -8,6 +8,7 @@ namespace for its sockets only (:func:`rlbridge.netem.netns.call_in_namespace`).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import secrets
@@ -93,7 +94,8 @@ class LoggedProcess:
     def stop(self) -> int:
         if self.proc.poll() is None:
             if self.proc.stdin is not None:
-                self.proc.stdin.close()
+                with contextlib.suppress(BrokenPipeError):
+                    self.proc.stdin.close()
             else:
                 self.proc.send_signal(signal.SIGTERM)
             try:
@@ -102,8 +104,10 @@ class LoggedProcess:
                 self.proc.kill()
                 self.proc.wait(5.0)
         self._reader.join(5.0)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
+        for pipe in (self.proc.stdin, self.proc.stdout):
+            if pipe is not None and not pipe.closed:
+                with contextlib.suppress(BrokenPipeError):
+                    pipe.close()
         return self.proc.returncode
 
     @property

@@ -11,6 +11,14 @@ Imports nothing from rlbridge. Modes:
     ("auto"), ``enabled`` (true), and a transient-local (latched) ``/reach/map``
     std_msgs/String published once, at start. Prints ``ready`` when all is up; runs until
     stdin closes.
+``flood TOPIC N``
+    Publish std_msgs/Int64 probes ``-1, -2, ...`` every 50 ms until a line arrives on stdin,
+    then ``0 .. N-1`` as fast as rclpy goes (reliable, depth 1000); print ``probes P``.
+``count TOPIC DEPTH``
+    Subscribe to std_msgs/Int64 with a reliable KEEP_LAST(DEPTH) queue and a slow callback
+    (1 ms a message); count messages and the gaps in their publication sequence numbers (from
+    the first message on, printed as ``first DATA``); print ``{"received": R, "gaps": G,
+    "last": L}`` after 2 s of quiet.
 ``call SERVICE``
     Call std_srvs/SetBool ``SERVICE`` (provided by an rlbridge client) with data=true, print
     the response as JSON, exit.
@@ -37,7 +45,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
+from std_msgs.msg import Int64, String
 from std_srvs.srv import SetBool
 from test_msgs.action import Fibonacci
 from test_msgs.srv import BasicTypes
@@ -118,8 +126,58 @@ def call(service: str) -> None:
     rclpy.try_shutdown()
 
 
+def flood(topic: str, count: int) -> None:
+    rclpy.init(args=[])
+    node = Node("reach_flood")
+    pub = node.create_publisher(Int64, topic, QoSProfile(depth=1000))
+    go = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.readline(), go.set()), daemon=True).start()
+    probes = 0
+    while not go.wait(0.05):
+        probes += 1
+        pub.publish(Int64(data=-probes))
+    for i in range(count):
+        pub.publish(Int64(data=i))
+    print(f"probes {probes}", flush=True)
+    sys.stdin.read()
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def count_gaps(topic: str, depth: int) -> None:
+    rclpy.init(args=[])
+    node = Node("reach_count")
+    state = {"received": 0, "gaps": 0, "last": None, "seq": None, "at": time.monotonic()}
+
+    def on_message(msg: Int64, info: object) -> None:
+        seq = info["publication_sequence_number"]  # type: ignore[index]
+        if state["seq"] is None:
+            print(f"first {msg.data}", flush=True)
+        if state["seq"] is not None and seq > state["seq"] + 1:
+            state["gaps"] += seq - state["seq"] - 1
+        state["seq"] = seq
+        state["received"] += 1
+        state["last"] = msg.data
+        state["at"] = time.monotonic()
+        time.sleep(0.001)
+
+    node.create_subscription(Int64, topic, on_message, QoSProfile(depth=depth))
+    print("ready", flush=True)
+    executor = MultiThreadedExecutor(num_threads=1)
+    executor.add_node(node)
+    while state["received"] == 0 or time.monotonic() - state["at"] < 2.0:
+        executor.spin_once(timeout_sec=0.1)
+    print(json.dumps({k: state[k] for k in ("received", "gaps", "last")}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
 if __name__ == "__main__":
     if sys.argv[1:2] == ["call"]:
         call(sys.argv[2])
+    elif sys.argv[1:2] == ["flood"]:
+        flood(sys.argv[2], int(sys.argv[3]))
+    elif sys.argv[1:2] == ["count"]:
+        count_gaps(sys.argv[2], int(sys.argv[3]))
     else:
         serve()

@@ -9,6 +9,7 @@ the module.
 from __future__ import annotations
 
 import json
+import re
 import sys
 import threading
 from collections.abc import Iterator
@@ -65,7 +66,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
     peer = server = None
     try:
         peer = LoggedProcess(in_namespace(namespace, [sys.executable, str(PEER), "serve"]),
-                             env, stdin=True, watch=__import__("re").compile(r"^ready"))
+                             env, stdin=True, watch=re.compile(r"^ready"))
         peer.wait_ready()
         server, port = start_server(namespace, env, "h16a_bridge")
         yield World(namespace, env, port)
