@@ -117,7 +117,7 @@ def test_node_to_client_flood_every_loss_counted(world: World, sdk: Bridge) -> N
     deadline = time.monotonic() + 10  # the ChannelLoss report, once per heartbeat period
     while ch.health().ros_lost != lost and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert ch.health().ros_lost == (lost if lost else ch.health().ros_lost)
+    assert ch.health().ros_lost == lost if lost else ch.health().ros_lost in (-1, 0)
     totals = sdk.server_stats()["server"]
     assert totals["ros_lost"] >= lost
 

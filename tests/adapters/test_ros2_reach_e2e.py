@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
 import sys
 import threading
 from collections.abc import Iterator
@@ -24,6 +25,7 @@ from reach_netns import (
     remove_namespace,
     require_netns,
     ros_env,
+    run_cli,
     start_server,
 )
 
@@ -184,3 +186,64 @@ def test_latched_topic_published_before_the_client_connected(
                        durability=durability)
     assert ch.read(timeout=30) == "map v1"
     sdk.unsubscribe(ch)
+
+
+# -- the CLI, as processes in the namespace ----------------------------------------------------
+
+
+def cli(world: World, *args: str) -> subprocess.CompletedProcess[str]:
+    return run_cli(world.namespace, world.env, *args, "--port", str(world.port))
+
+
+def test_cli_service_call_and_list(world: World) -> None:
+    done = cli(world, "service", "call", "/reach/set_bool", SET_BOOL, "{data: true}",
+               "--timeout", "20")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == {"success": True, "message": "set to True"}
+    done = cli(world, "service", "call", "/reach/basic", BASIC,
+               '{"int32_value": -7, "string_value": "abc", "float64_value": 2.5}')
+    assert done.returncode == 0, done.stderr
+    response = json.loads(done.stdout)
+    assert (response["int32_value"], response["string_value"], response["float64_value"]) == (
+        -7, "cba", 2.5)
+    done = cli(world, "service", "list", "-t")
+    assert done.returncode == 0, done.stderr
+    assert f"/reach/set_bool [{SET_BOOL}]" in done.stdout.splitlines()
+
+
+def test_cli_service_errors_are_one_line(world: World) -> None:
+    for args, phrase in [
+        (("/reach/nobody", SET_BOOL, "{data: true}", "--timeout", "0.5"), "no server"),
+        (("/reach/set_bool", SET_BOOL, "{data: [}"), "neither JSON nor YAML"),
+        (("/reach/set_bool", SET_BOOL, "[1, 2]"), "mapping of fields"),
+        (("/reach/set_bool", SET_BOOL, "{data: 5}"), "bool"),
+    ]:
+        done = cli(world, "service", "call", *args)
+        assert done.returncode != 0
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1, done.stderr
+        assert phrase in lines[0]
+
+
+def test_cli_param_get_set_list(world: World) -> None:
+    done = cli(world, "param", "list", "reach_peer", "--timeout", "20")
+    assert done.returncode == 0, done.stderr
+    assert {"gain", "mode", "enabled"} <= set(done.stdout.split())
+    done = cli(world, "param", "set", "reach_peer", "mode", "manual")
+    assert done.returncode == 0, done.stderr
+    done = cli(world, "param", "get", "reach_peer", "mode")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == "manual"
+    done = cli(world, "param", "set", "reach_peer", "enabled", "3")
+    assert done.returncode == 1
+    assert "refused" in done.stderr
+
+
+def test_cli_action_send_shows_feedback(world: World) -> None:
+    done = cli(world, "action", "send", "/reach/fibonacci", FIBONACCI, "{order: 4}",
+               "--timeout", "30")
+    assert done.returncode == 0, done.stderr
+    lines = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [line["feedback"]["sequence"] for line in lines[:-1]] == [
+        [0, 1, 1], [0, 1, 1, 2], [0, 1, 1, 2, 3]]
+    assert lines[-1] == {"result": {"sequence": [0, 1, 1, 2, 3]}, "status": "succeeded"}
