@@ -140,6 +140,9 @@ class InProcessServices:
     def service_type(self, srv_type: str) -> ServiceType:
         name = normalize_service_type(srv_type)
         found = self._types.get(name)
+        if found is None and name.startswith("rcl_interfaces/"):
+            raise BindingError("UNKNOWN_TYPE", f"the in-process bus has no ROS nodes and no "
+                               f"parameters ({name}); serve with --adapter ros2")
         if found is None:
             raise BindingError(
                 "UNKNOWN_TYPE",
