@@ -23,15 +23,24 @@ from rlbridge.wire import (
     AuthChallenge,
     AuthProof,
     Batch,
+    ChannelLoss,
     ConnectAck,
     ConnectError,
     Disconnect,
     Error,
+    GoalCancel,
+    GoalResult,
+    GoalSend,
     Heartbeat,
     Hello,
     Limits,
     Packet,
     PacketCodec,
+    ServiceCall,
+    ServiceOffer,
+    ServiceReply,
+    ServiceRequest,
+    ServiceResult,
     Stats,
     TopicAck,
     TopicClose,
@@ -43,6 +52,7 @@ from rlbridge.wire.auth import SealedCodec
 
 HERE = Path(__file__).parent / "corpus"
 F64 = "std_msgs/msg/Float64"
+SET_BOOL = "std_srvs/srv/SetBool"
 CODEC = PacketCodec()
 
 EVERY_TYPE: list[Packet] = [
@@ -61,6 +71,15 @@ EVERY_TYPE: list[Packet] = [
     Stats(),
     AuthChallenge(b"n" * 16, b"p" * 32),
     AuthProof(b"p" * 32),
+    ServiceCall(1, "/s", SET_BOOL, {"data": True}, 50),
+    ServiceResult(1, 0, {"success": True, "message": ""}),
+    ServiceOffer(4, "/s", SET_BOOL),
+    ServiceRequest(4, 1, {"data": True}),
+    ServiceReply(4, 1, 0, {"success": True}),
+    GoalSend(5, "/fib", "test_msgs/action/Fibonacci", {"order": 3}, 50),
+    GoalCancel(5),
+    GoalResult(5, 4, {"sequence": [0, 1]}),
+    ChannelLoss(2, 3),
 ]
 
 #: A session's life as a client drives it: publish and subscribe on both transports.
@@ -73,6 +92,13 @@ SESSION: list[Packet] = [
     Value(3, 0, 0, {"linear": {"x": 1.0}}),
     Heartbeat(5, 0),
     Stats(),
+    ServiceOffer(4, "/s", SET_BOOL),
+    ServiceCall(1, "/nobody", SET_BOOL, {"data": True}, 20),
+    ServiceCall(2, "/s", "std_srvs/srv/Nope", {}, 20),
+    ServiceReply(4, 99, 0, {"success": True}),  # no such request
+    GoalSend(5, "/fib", "test_msgs/action/Fibonacci", {"order": 3}, 20),
+    GoalCancel(9),
+    TopicClose(4),
     TopicClose(2),
     Disconnect(0, "bye"),
 ]
@@ -107,6 +133,12 @@ BAD: list[bytes] = [
     b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
     frame(body(15, b"x" * 31)),  # proof of the wrong size
     frame(body(13, {"k" * 10: [1] * 1000})),  # stats with a big body
+    frame(body(20, 1, "/s", SET_BOOL, [1, 2])),  # a service request that is not a map
+    frame(body(20, 1, "", SET_BOOL, {})),  # empty service name
+    frame(body(24, 4, 1, 0, {"success": "very"})),  # a reply that does not fit
+    frame(body(25, 5, "/fib", "x", {"order": 1}, -1)),  # negative timeout
+    frame(body(27, 5, 4, {})),  # a server-only packet from a client
+    frame(body(28, 2, -3)),  # negative loss
 ]
 
 
