@@ -17,11 +17,12 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import pytest
 
+from rlbridge.csp.bridge import Bridge
 from rlbridge.netem import netns
 
 SERVING = re.compile(r"rlbridge serving on [^ ]+:(\d+) ")
@@ -126,3 +127,48 @@ def run_cli(namespace: str, env: dict[str, str], *args: str,
             timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run(in_namespace(namespace, [*rlbridge_argv(), *args]), env=env,
                           capture_output=True, text=True, timeout=timeout, check=False)
+
+
+PEER = Path(__file__).with_name("ros2_reach_peer.py")
+
+
+class World:
+    """One namespace with a bridge server (and maybe a peer node) in it; see :func:`world`."""
+
+    def __init__(self, namespace: str, env: dict[str, str], port: int) -> None:
+        self.namespace, self.env, self.port = namespace, env, port
+
+    def peer(self, *args: str, watch: str | None = None) -> LoggedProcess:
+        """``ros2_reach_peer.py ARGS`` in the namespace (stdin open: closing it ends it)."""
+        return LoggedProcess(in_namespace(self.namespace, [sys.executable, str(PEER), *args]),
+                             self.env, stdin=True,
+                             watch=None if watch is None else re.compile(watch))
+
+    def connect(self, name: str) -> Bridge:
+        """An SDK session with the namespace's server (its sockets live in the namespace)."""
+        return netns.call_in_namespace(self.namespace, lambda: Bridge.connect(
+            "127.0.0.1", self.port, name=name, timeout=20.0, reconnect=False))
+
+
+@contextlib.contextmanager
+def world(role: str, log_dir: Path, *, serve_peer: bool = False) -> Iterator[World]:
+    """A namespace, ``rlbridge serve --adapter ros2`` in it (after the peer node in ``serve``
+    mode, if asked); everything stopped and the namespace removed afterwards."""
+    require_netns()
+    namespace = new_namespace(role)
+    env = ros_env(log_dir)
+    processes: list[LoggedProcess] = []
+    try:
+        if serve_peer:
+            peer = World(namespace, env, 0).peer("serve", watch=r"^ready")
+            processes.append(peer)
+            peer.wait_ready()
+        server, port = start_server(namespace, env, f"h16a_{role}_bridge")
+        processes.append(server)
+        yield World(namespace, env, port)
+    finally:
+        for proc in reversed(processes):
+            proc.stop()
+        remove_namespace(namespace)
+    log = processes[-1].log if processes else ""
+    assert "Traceback" not in log, log

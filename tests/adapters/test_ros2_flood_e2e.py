@@ -16,61 +16,29 @@ The assertions are sums that must hold whatever the timing; how much was lost is
 from __future__ import annotations
 
 import json
-import re
-import sys
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
-from reach_netns import (
-    LoggedProcess,
-    in_namespace,
-    new_namespace,
-    remove_namespace,
-    require_netns,
-    ros_env,
-    start_server,
-)
+from reach_netns import World, world
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.netem.netns import call_in_namespace
 
 pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(240)]
 
-PEER = Path(__file__).with_name("ros2_reach_peer.py")
 INT64 = "std_msgs/msg/Int64"
 N = 20_000
 
 
-class World:
-    def __init__(self, namespace: str, env: dict[str, str], port: int) -> None:
-        self.namespace, self.env, self.port = namespace, env, port
-
-    def peer(self, *args: str, watch: str) -> LoggedProcess:
-        return LoggedProcess(in_namespace(self.namespace, [sys.executable, str(PEER), *args]),
-                             self.env, stdin=True, watch=re.compile(watch))
-
-
 @pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
-    require_netns()
-    namespace = new_namespace("flood")
-    env = ros_env(tmp_path_factory.mktemp("ros_log"))
-    server = None
-    try:
-        server, port = start_server(namespace, env, "h16a_flood_bridge")
-        yield World(namespace, env, port)
-    finally:
-        if server is not None:
-            server.stop()
-        remove_namespace(namespace)
+def flood_world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
+    with world("flood", tmp_path_factory.mktemp("ros_log")) as made:
+        yield made
 
 
 @pytest.fixture
-def sdk(world: World) -> Iterator[Bridge]:
-    bridge = call_in_namespace(world.namespace, lambda: Bridge.connect(
-        "127.0.0.1", world.port, name="flood-sdk", timeout=20.0, reconnect=False))
+def sdk(flood_world: World) -> Iterator[Bridge]:
+    bridge = flood_world.connect("flood-sdk")
     try:
         yield bridge
     finally:
@@ -81,10 +49,10 @@ def channel_stats(bridge: Bridge, channel: int) -> dict[str, int]:
     return bridge.server_stats()["session"]["channels"][str(channel)]
 
 
-def test_node_to_client_flood_every_loss_counted(world: World, sdk: Bridge) -> None:
+def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
     ch = sdk.subscribe("/flood/down", INT64, transport="tcp", blocking=True,
                        buffer_size=4 * N)
-    peer = world.peer("flood", "/flood/down", str(N), watch=r"^probes (\d+)")
+    peer = flood_world.peer("flood", "/flood/down", str(N), watch=r"^probes (\d+)")
     try:
         first = ch.read(timeout=60)  # a probe: the server's subscription is matched
         assert first < 0
@@ -122,8 +90,8 @@ def test_node_to_client_flood_every_loss_counted(world: World, sdk: Bridge) -> N
     assert totals["ros_lost"] >= lost
 
 
-def test_client_to_node_flood_every_loss_counted(world: World, sdk: Bridge) -> None:
-    node = world.peer("count", "/flood/up", "10", watch=r"^first (-?\d+)")
+def test_client_to_node_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
+    node = flood_world.peer("count", "/flood/up", "10", watch=r"^first (-?\d+)")
     out = sdk.publish("/flood/up", INT64, transport="tcp", buffer_size=4 * N)
     try:
         probes = 0

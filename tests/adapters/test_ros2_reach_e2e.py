@@ -9,32 +9,20 @@ the module.
 from __future__ import annotations
 
 import json
-import re
 import subprocess
 import sys
 import threading
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
-from reach_netns import (
-    LoggedProcess,
-    in_namespace,
-    new_namespace,
-    remove_namespace,
-    require_netns,
-    ros_env,
-    run_cli,
-    start_server,
-)
+from reach_netns import PEER, LoggedProcess, World, in_namespace, run_cli, world
 
 pytest.importorskip("test_msgs.action", reason="needs ros-test-msgs")
 pytest.importorskip("std_srvs.srv", reason="needs ros-std-srvs")
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.parameters import ParameterError
-from rlbridge.netem.netns import call_in_namespace
 from rlbridge.wire.errors import (
     BadValueError,
     NoServiceError,
@@ -43,47 +31,20 @@ from rlbridge.wire.errors import (
 
 pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(180)]
 
-PEER = Path(__file__).with_name("ros2_reach_peer.py")
 SET_BOOL = "std_srvs/srv/SetBool"
 BASIC = "test_msgs/srv/BasicTypes"
 FIBONACCI = "test_msgs/action/Fibonacci"
 
 
-class World:
-    def __init__(self, namespace: str, env: dict[str, str], port: int) -> None:
-        self.namespace = namespace
-        self.env = env
-        self.port = port
-
-    def connect(self, name: str) -> Bridge:
-        return call_in_namespace(self.namespace, lambda: Bridge.connect(
-            "127.0.0.1", self.port, name=name, timeout=20.0, reconnect=False))
+@pytest.fixture(scope="module")
+def reach(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
+    with world("reach", tmp_path_factory.mktemp("ros_log"), serve_peer=True) as made:
+        yield made
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
-    require_netns()
-    namespace = new_namespace("reach")
-    env = ros_env(tmp_path_factory.mktemp("ros_log"))
-    peer = server = None
-    try:
-        peer = LoggedProcess(in_namespace(namespace, [sys.executable, str(PEER), "serve"]),
-                             env, stdin=True, watch=re.compile(r"^ready"))
-        peer.wait_ready()
-        server, port = start_server(namespace, env, "h16a_bridge")
-        yield World(namespace, env, port)
-    finally:
-        for proc in (server, peer):
-            if proc is not None:
-                proc.stop()
-        remove_namespace(namespace)
-    assert server is not None
-    assert "Traceback" not in server.log, server.log
-
-
-@pytest.fixture(scope="module")
-def sdk(world: World) -> Iterator[Bridge]:
-    bridge = world.connect("reach-sdk")
+def sdk(reach: World) -> Iterator[Bridge]:
+    bridge = reach.connect("reach-sdk")
     try:
         yield bridge
     finally:
@@ -118,7 +79,7 @@ def test_service_errors(sdk: Bridge) -> None:
         sdk.call("/reach/basic", BASIC, {"int8_value": 300})
 
 
-def test_a_service_the_sdk_provides_called_by_rclpy(world: World, sdk: Bridge) -> None:
+def test_a_service_the_sdk_provides_called_by_rclpy(reach: World, sdk: Bridge) -> None:
     requests = sdk.serve_service("/reach/sdk_arm", SET_BOOL)
     seen: list[dict[str, Any]] = []
 
@@ -129,8 +90,8 @@ def test_a_service_the_sdk_provides_called_by_rclpy(world: World, sdk: Bridge) -
 
     thread = threading.Thread(target=provide, daemon=True)
     thread.start()
-    caller = LoggedProcess(in_namespace(world.namespace, [
-        sys.executable, str(PEER), "call", "/reach/sdk_arm"]), world.env)
+    caller = LoggedProcess(in_namespace(reach.namespace, [
+        sys.executable, str(PEER), "call", "/reach/sdk_arm"]), reach.env)
     assert caller.proc.wait(90) == 0, caller.log
     caller.stop()
     thread.join(10)
@@ -191,56 +152,56 @@ def test_latched_topic_published_before_the_client_connected(
 # -- the CLI, as processes in the namespace ----------------------------------------------------
 
 
-def cli(world: World, *args: str) -> subprocess.CompletedProcess[str]:
-    return run_cli(world.namespace, world.env, *args, "--port", str(world.port))
+def cli(w: World, *args: str) -> subprocess.CompletedProcess[str]:
+    return run_cli(w.namespace, w.env, *args, "--port", str(w.port))
 
 
-def test_cli_service_call_and_list(world: World) -> None:
-    done = cli(world, "service", "call", "/reach/set_bool", SET_BOOL, "{data: true}",
+def test_cli_service_call_and_list(reach: World) -> None:
+    done = cli(reach, "service", "call", "/reach/set_bool", SET_BOOL, "{data: true}",
                "--timeout", "20")
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout) == {"success": True, "message": "set to True"}
-    done = cli(world, "service", "call", "/reach/basic", BASIC,
+    done = cli(reach, "service", "call", "/reach/basic", BASIC,
                '{"int32_value": -7, "string_value": "abc", "float64_value": 2.5}')
     assert done.returncode == 0, done.stderr
     response = json.loads(done.stdout)
     assert (response["int32_value"], response["string_value"], response["float64_value"]) == (
         -7, "cba", 2.5)
-    done = cli(world, "service", "list", "-t")
+    done = cli(reach, "service", "list", "-t")
     assert done.returncode == 0, done.stderr
     assert f"/reach/set_bool [{SET_BOOL}]" in done.stdout.splitlines()
 
 
-def test_cli_service_errors_are_one_line(world: World) -> None:
+def test_cli_service_errors_are_one_line(reach: World) -> None:
     for args, phrase in [
         (("/reach/nobody", SET_BOOL, "{data: true}", "--timeout", "0.5"), "no server"),
         (("/reach/set_bool", SET_BOOL, "{data: [}"), "neither JSON nor YAML"),
         (("/reach/set_bool", SET_BOOL, "[1, 2]"), "mapping of fields"),
         (("/reach/set_bool", SET_BOOL, "{data: 5}"), "bool"),
     ]:
-        done = cli(world, "service", "call", *args)
+        done = cli(reach, "service", "call", *args)
         assert done.returncode != 0
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1, done.stderr
         assert phrase in lines[0]
 
 
-def test_cli_param_get_set_list(world: World) -> None:
-    done = cli(world, "param", "list", "reach_peer", "--timeout", "20")
+def test_cli_param_get_set_list(reach: World) -> None:
+    done = cli(reach, "param", "list", "reach_peer", "--timeout", "20")
     assert done.returncode == 0, done.stderr
     assert {"gain", "mode", "enabled"} <= set(done.stdout.split())
-    done = cli(world, "param", "set", "reach_peer", "mode", "manual")
+    done = cli(reach, "param", "set", "reach_peer", "mode", "manual")
     assert done.returncode == 0, done.stderr
-    done = cli(world, "param", "get", "reach_peer", "mode")
+    done = cli(reach, "param", "get", "reach_peer", "mode")
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout) == "manual"
-    done = cli(world, "param", "set", "reach_peer", "enabled", "3")
+    done = cli(reach, "param", "set", "reach_peer", "enabled", "3")
     assert done.returncode == 1
     assert "refused" in done.stderr
 
 
-def test_cli_action_send_shows_feedback(world: World) -> None:
-    done = cli(world, "action", "send", "/reach/fibonacci", FIBONACCI, "{order: 4}",
+def test_cli_action_send_shows_feedback(reach: World) -> None:
+    done = cli(reach, "action", "send", "/reach/fibonacci", FIBONACCI, "{order: 4}",
                "--timeout", "30")
     assert done.returncode == 0, done.stderr
     lines = [json.loads(line) for line in done.stdout.splitlines()]
