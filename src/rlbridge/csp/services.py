@@ -33,6 +33,7 @@ from rlbridge.wire import (
     ServiceResult,
     error_from_code,
 )
+from rlbridge.wire.errors import ServiceTimeout
 
 if TYPE_CHECKING:
     from rlbridge.csp.actions import Goal
@@ -133,8 +134,9 @@ class ServiceCalls:
                 raise ConnectionClosed(f"no session with the server: {conn.close_reason}")
             conn.send_control(ServiceCall(call_id, service, srv_type, request,
                                           max(1, round(timeout * 1000))))
-            if not pending.done.wait(timeout + conn.timeout):
-                raise ConnectionClosed(f"no answer from the server to the call of {service}")
+            if not pending.done.wait(timeout + conn.timeout):  # the answer itself was lost
+                raise ServiceTimeout(int(ErrorCode.TIMEOUT), f"no answer from the server to "
+                                     f"the call of {service} within {timeout + conn.timeout:g} s")
         finally:
             with self.lock:
                 self._calls.pop(call_id, None)
