@@ -8,10 +8,11 @@ thread -> the bus -> ``ServiceRequest`` to the providing client -> its ``Service
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from test_reconnect import Serve, bridges, lost, reconnected, serve, wait_for
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_services import CallResult
@@ -29,6 +30,8 @@ from rlbridge.wire.errors import (
     TypeClashError,
     UnknownTypeError,
 )
+
+__all__ = ["bridges", "serve"]  # the reconnect tests' fixtures, used here too
 
 SET_BOOL = "std_srvs/srv/SetBool"
 TRIGGER = "std_srvs/srv/Trigger"
@@ -175,3 +178,19 @@ def test_closing_the_bridge_ends_calls_and_offers(server: ServerThread) -> None:
         client.request({})
     with pytest.raises(ConnectionClosed):
         provider.call("/bye", TRIGGER)
+
+
+def test_a_provided_service_is_offered_again_after_a_reconnect(
+        serve: Serve, bridges: Callable[..., Bridge]) -> None:
+    caller, provider = bridges(), bridges()
+    requests = provider.serve_service("/re/offer", SET_BOOL)
+    thread = answer(requests, lambda req: req.reply({"success": req.data["data"]}), 2)
+    assert caller.call("/re/offer", SET_BOOL, {"data": True})["success"] is True
+    serve.kill()
+    wait_for(lost(caller, provider), "the link lost")
+    with pytest.raises(ConnectionClosed):  # no session to call through (within its timeout)
+        caller.call("/re/offer", SET_BOOL, {"data": True}, timeout=0.1)
+    serve.start()
+    wait_for(reconnected(caller, provider), "the reconnect")
+    assert caller.call("/re/offer", SET_BOOL, {"data": False})["success"] is False
+    thread.join(10)

@@ -130,7 +130,7 @@ class ServiceCalls:
         with self.lock:
             self._calls[call_id] = pending
         try:
-            if not conn.wait_up(conn.timeout):
+            if not conn.wait_up(min(timeout, conn.timeout)):  # reconnecting: wait a little
                 raise ConnectionClosed(f"no session with the server: {conn.close_reason}")
             conn.send_control(ServiceCall(call_id, service, srv_type, request,
                                           max(1, round(timeout * 1000))))
