@@ -140,6 +140,9 @@ def test_one_provider_per_service_and_withdrawing(pair: tuple[Bridge, Bridge]) -
     requests.close()
     with pytest.raises(ChannelClosed):
         requests.read(timeout=0.1)
+    # The withdrawal travels on the provider's connection: until the server has it, a call
+    # on another connection may still reach the offer.
+    wait_for(lambda: not caller.service_list(), "the withdrawal to reach the server")
     with pytest.raises(NoServiceError):
         caller.call("/single", TRIGGER, timeout=0.5)
     again = caller.serve_service("/single", TRIGGER)  # free again
