@@ -25,10 +25,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--reads", type=int, default=200_000)
     args = parser.parse_args()
-    opts = {"transport": "udp", "blocking": False, "buffer_size": 1, "initial": 0.0}
     plain: Channel[float] = Channel(1, blocking=False, initial=0.0)
-    hold = IncomingChannel(1, "/t", "std_msgs/msg/Float64", "data", **opts)
-    guarded = GuardedChannel(2, "/t", "std_msgs/msg/Float64", "data", **opts)
+    hold = IncomingChannel(1, "/t", "std_msgs/msg/Float64", "data", transport="udp",
+                           blocking=False, buffer_size=1, initial=0.0)
+    guarded = GuardedChannel(2, "/t", "std_msgs/msg/Float64", "data", transport="udp",
+                             blocking=False, buffer_size=1, initial=0.0)
     guarded.failsafe = fail_safe(SafeValue(0.0), LinkEvents())
     cases = {"Channel.read": plain, "IncomingChannel.read (on_lost='hold')": hold,
              "GuardedChannel.read (SafeValue, link up)": guarded}

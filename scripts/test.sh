@@ -20,7 +20,7 @@ python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".[test,ros2,compare]"
 
-.venv/bin/ruff check src tests scripts
-.venv/bin/mypy --strict src
+.venv/bin/ruff check src tests scripts benchmarks examples
+.venv/bin/mypy --strict src benchmarks
 # pytest exits 5 when it collected no test: with `set -e` that fails the run, as it should.
 .venv/bin/python -m pytest "$@"

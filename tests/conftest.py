@@ -19,18 +19,16 @@ from __future__ import annotations
 
 import contextlib
 import os
-import shutil
 import signal
 import socket
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import pytest
 
+from localhost import free_port, rlbridge_command
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
 from rlbridge.wire import (
@@ -226,34 +224,37 @@ class RawUdp:
         self.sock.close()
 
 
-@pytest.fixture
-def raw_tcp(server: ServerThread) -> Iterator[Callable[..., RawTcp]]:
-    """``raw_tcp(port=None)``: a connected :class:`RawTcp` (to ``server`` by default)."""
-    clients: list[RawTcp] = []
+class _Closes(Protocol):
+    def close(self) -> None: ...
 
-    def make(port: int | None = None) -> RawTcp:
-        client = RawTcp(server.port if port is None else port)
+
+C = TypeVar("C", bound=_Closes)
+
+
+def _clients(make: Callable[[int], C], server: ServerThread) -> Iterator[Callable[..., C]]:
+    """A factory of test clients aimed at ``server`` (or a port given), closed at teardown."""
+    clients: list[C] = []
+
+    def factory(port: int | None = None) -> C:
+        client = make(server.port if port is None else port)
         clients.append(client)
         return client
 
-    yield make
+    yield factory
     for client in clients:
         client.close()
+
+
+@pytest.fixture
+def raw_tcp(server: ServerThread) -> Iterator[Callable[..., RawTcp]]:
+    """``raw_tcp(port=None)``: a connected :class:`RawTcp` (to ``server`` by default)."""
+    yield from _clients(RawTcp, server)
 
 
 @pytest.fixture
 def raw_udp(server: ServerThread) -> Iterator[Callable[..., RawUdp]]:
     """``raw_udp(port=None)``: a :class:`RawUdp` aimed at ``server`` (or ``port``)."""
-    clients: list[RawUdp] = []
-
-    def make(port: int | None = None) -> RawUdp:
-        client = RawUdp(server.port if port is None else port)
-        clients.append(client)
-        return client
-
-    yield make
-    for client in clients:
-        client.close()
+    yield from _clients(RawUdp, server)
 
 
 # -- SDK -----------------------------------------------------------------------------------
@@ -298,14 +299,6 @@ def wait_until_fixture() -> Callable[..., Any]:
 # -- CLI -----------------------------------------------------------------------------------
 
 
-def _cli_command() -> list[str]:
-    """The installed ``rlbridge`` console script next to this interpreter, else ``-m``."""
-    script = shutil.which("rlbridge", path=str(Path(sys.executable).parent))
-    if script is not None:
-        return [script]
-    return [sys.executable, "-m", "rlbridge.cli"]
-
-
 def _cli_env() -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
@@ -313,21 +306,6 @@ def _cli_env() -> dict[str, str]:
     env["COLUMNS"] = "200"  # typer/rich would wrap messages at 80 columns
     env["NO_COLOR"] = "1"
     return env
-
-
-def free_port() -> int:
-    """A port that is free for both TCP and UDP on loopback right now."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as t:
-            t.bind(("127.0.0.1", 0))
-            port: int = t.getsockname()[1]
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
-                try:
-                    u.bind(("127.0.0.1", port))
-                except OSError:
-                    continue
-        return port
-    raise RuntimeError("no free port found")
 
 
 @pytest.fixture(name="free_port")
@@ -343,7 +321,7 @@ class CliProcesses:
 
     def popen(self, *args: str) -> subprocess.Popen[str]:
         proc = subprocess.Popen(
-            [*_cli_command(), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            [*rlbridge_command(), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             text=True, env=_cli_env(),
         )
         self.procs.append(proc)
@@ -351,7 +329,7 @@ class CliProcesses:
 
     def run(self, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
-            [*_cli_command(), *args], capture_output=True, text=True, timeout=timeout,
+            [*rlbridge_command(), *args], capture_output=True, text=True, timeout=timeout,
             env=_cli_env(), check=False,
         )
 

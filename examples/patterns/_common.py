@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 from rlbridge.csp.bridge import Bridge
@@ -40,17 +41,25 @@ def parser(description: str, *, layouts: bool = True) -> argparse.ArgumentParser
     return p
 
 
+_ROOT = Path(__file__).resolve().parents[2]
+"""The repository's root, where ``benchmarks`` is found."""
+
+
 @contextlib.contextmanager
 def publisher(host: str, port: int, seconds: float, enabled: bool = True,
               rate: float = 100.0) -> Iterator[None]:
-    """A sine on SETPOINT at ``rate`` from a separate process, killed on exit."""
+    """A sine on SETPOINT at ``rate`` from a separate process, killed on exit.
+
+    The process is the jitter benchmark's publisher (``python -m benchmarks.jitter publisher``,
+    run from the repository's root, where the examples live too).
+    """
     if not enabled:
         yield
         return
     proc = subprocess.Popen(
-        [sys.executable, "-m", "rlbridge.bench.jitter", "publisher", "--host", host,
+        [sys.executable, "-m", "benchmarks.jitter", "publisher", "--host", host,
          "--port", str(port), "--topic", SETPOINT, "--rate", str(rate),
-         "--seconds", str(seconds)], start_new_session=True)
+         "--seconds", str(seconds)], start_new_session=True, cwd=_ROOT)
     try:
         yield
     finally:

@@ -10,12 +10,12 @@ import math
 import statistics
 import sys
 import time
-from collections.abc import Callable
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 import typer
 
 from rlbridge._version import __version__
+from rlbridge.cli_errors import fail, one_line_errors
 
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
@@ -27,43 +27,11 @@ topic_app = typer.Typer(help="Publish, echo, measure and list topics through a r
                         no_args_is_help=True)
 app.add_typer(topic_app, name="topic")
 
-F = TypeVar("F", bound=Callable[..., Any])
-
 Host = Annotated[str, typer.Option("--host", "-H", help="Bridge server address.")]
 Port = Annotated[int, typer.Option("--port", "-p", help="Bridge server port.")]
 Field = Annotated[str, typer.Option("--field", "-f",
                                     help="Field path ('data', 'linear.x'); '' = whole message.")]
 TransportOpt = Annotated[str, typer.Option("--transport", "-t", help="udp or tcp.")]
-
-
-def fail(message: str, code: int = 1) -> typer.Exit:
-    """Print one line on stderr and exit non-zero: the CLI's only way to report an error."""
-    typer.echo(f"rlbridge: error: {message}", err=True)
-    return typer.Exit(code)
-
-
-def one_line_errors(fn: F) -> F:
-    """Known failures become one line on stderr; only real bugs keep their traceback."""
-    from rlbridge.adapters import AdapterUnavailable, BindingError
-    from rlbridge.server import ServerError
-    from rlbridge.wire import RlbridgeError
-
-    @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        try:
-            return fn(*args, **kwargs)
-        except (RlbridgeError, ServerError, AdapterUnavailable) as exc:
-            raise fail(str(exc)) from None
-        except BindingError as exc:
-            raise fail(exc.reason) from None
-        except OSError as exc:
-            raise fail(exc.strerror or str(exc)) from None
-        except ValueError as exc:
-            raise fail(str(exc)) from None
-        except KeyboardInterrupt:
-            raise typer.Exit(130) from None
-
-    return wrapper  # type: ignore[return-value]
 
 
 def _transport(value: str) -> str:

@@ -13,7 +13,12 @@ from typing import Annotated, Any
 
 import typer
 
-from rlbridge.cli import Host, Port, fail, one_line_errors
+from rlbridge.cli_errors import fail, one_line_errors
+
+# The same options as ``topic`` (rlbridge.cli), spelled here so this group need not import the
+# app that imports it.
+Host = Annotated[str, typer.Option("--host", "-H", help="Bridge server address.")]
+Port = Annotated[int, typer.Option("--port", "-p", help="Bridge server port.")]
 
 service_app = typer.Typer(help="Call and list services through a running server.",
                           no_args_is_help=True)

@@ -16,18 +16,16 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from localhost import rlbridge_command
 from rlbridge.csp.bridge import Bridge
 from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
 
@@ -50,8 +48,7 @@ class CliServer:
     """``rlbridge serve --adapter ros2 --port 0`` in a subprocess; its stderr kept in a list."""
 
     def __init__(self, node_name: str) -> None:
-        script = shutil.which("rlbridge", path=str(Path(sys.executable).parent))
-        command = [script] if script else [sys.executable, "-m", "rlbridge.cli"]
+        command = rlbridge_command()
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         env.pop("PYTHONWARNINGS", None)
         self.proc = subprocess.Popen(

@@ -1,9 +1,9 @@
-"""Smoke test of ``rlbridge bench load`` and ``soak``: tiny runs, report shape only.
+"""Smoke test of ``rlbridge bench load``: tiny runs, report shape only.
 
 Nothing is timed or compared (the figures of a shared CI machine mean nothing). Checked: both
 kinds of client (protocol-level and SDK) run end to end in real processes against a real server
-process, every phase has its row, the slow consumer's counters are reported, the soak has one
-row per interval, ``--out`` gets the section, and no process is left behind.
+process, every phase has its row, the slow consumer's counters are reported, ``--out`` gets the
+section, and no process is left behind.
 """
 
 from __future__ import annotations
@@ -45,19 +45,4 @@ def test_load_runs_every_phase(tmp_path: Path, client: str) -> None:
     assert "Whole run: " in result.output
     assert re.search(r"of which [\d,]+ never reached the server", result.output), result.output
     assert "<!-- bench:load begin -->" in out.read_text()
-    assert children() <= before
-
-
-def test_soak_has_a_row_per_interval(tmp_path: Path) -> None:
-    out = tmp_path / "load.md"
-    before = children()
-    result = CliRunner().invoke(bench_app, [
-        "soak", "--minutes", "0.05", "--interval-s", "1", "--clients", "2", "--channels", "2",
-        "--rate", "20", "--processes", "1", "--out", str(out)])
-    assert result.exit_code == 0, result.output
-    rows = [line for line in result.output.splitlines()
-            if line.startswith("| ") and "t (min)" not in line and "---" not in line]
-    assert len(rows) == 3, result.output
-    assert "Server RSS from the end of the first interval" in result.output
-    assert "<!-- bench:soak begin -->" in out.read_text()
     assert children() <= before

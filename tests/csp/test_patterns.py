@@ -2,7 +2,7 @@
 
 These check behaviour, not timing: values arrive, the HRT loop keeps running while nothing
 arrives (or, for the naive receive, visibly does not and is reported). Jitter figures are the
-benchmark's job (``rlbridge bench jitter``), not a test's: this box may be loaded.
+benchmark's job (``python -m benchmarks.jitter run``), not a test's: this box may be loaded.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from rlbridge.bench.redundancy import redundancy_cost
+from benchmarks.redundancy import redundancy_cost
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel, SecondWriterError
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.errors import ChannelMisuseError

@@ -21,7 +21,6 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -30,6 +29,8 @@ from typing import Any
 
 import pytest
 import yaml
+
+from localhost import rlbridge_command
 
 REPO = Path(__file__).resolve().parents[2]
 COMPOSE = REPO / "docker-compose.yml"
@@ -87,16 +88,11 @@ def _option(command: list[Any], name: str) -> str:
     return str(command[command.index(name) + 1])
 
 
-def _rlbridge() -> list[str]:
-    script = shutil.which("rlbridge", path=str(Path(sys.executable).parent))
-    return [script] if script else [sys.executable, "-m", "rlbridge.cli"]
-
-
 def localize(command: list[Any], port: int, out: Path) -> list[str]:
     """A compose ``command`` for this machine (see the module docstring)."""
     args = [str(a) for a in command]
     assert args[0] == "rlbridge"
-    local = _rlbridge()
+    local = rlbridge_command()
     for previous, arg in itertools.pairwise(args):
         if previous == "--host":
             local.append("127.0.0.1")  # "bridge" (the service name) or "0.0.0.0"

@@ -22,8 +22,6 @@ import importlib.util
 import json
 import math
 import os
-import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -33,6 +31,7 @@ from typing import Any
 
 import pytest
 
+from localhost import free_port, rlbridge_command
 from rlbridge.demo.controller import PanTiltController
 from rlbridge.demo.loop import NO_SETPOINT, ControllerState, PanTiltLoop, SetpointSample
 from rlbridge.demo.metrics import Reference, tracking_metrics
@@ -141,30 +140,10 @@ HAS_RCLPY = importlib.util.find_spec("rclpy") is not None
 DEMO_SECONDS = 4
 
 
-def _cli() -> list[str]:
-    script = shutil.which("rlbridge", path=str(Path(sys.executable).parent))
-    return [script] if script else [sys.executable, "-m", "rlbridge.cli"]
-
-
 def _env(**extra: str) -> dict[str, str]:
     env = dict(os.environ, PYTHONUNBUFFERED="1", **extra)
     env.pop("PYTHONWARNINGS", None)
     return env
-
-
-def _free_port() -> int:
-    """A port free for TCP and UDP on loopback (module scope cannot use the fixture)."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
-            tcp.bind(("127.0.0.1", 0))
-            port: int = tcp.getsockname()[1]
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-                try:
-                    udp.bind(("127.0.0.1", port))
-                except OSError:
-                    continue
-            return port
-    raise RuntimeError("no free port")
 
 
 class Processes:
@@ -204,17 +183,17 @@ def scenarios(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Processes]:
     procs = Processes(tmp_path_factory.mktemp("demo"))
     tmp = procs.tmp
     try:
-        procs.start("demo", [*_cli(), "demo", "--seconds", str(DEMO_SECONDS), "--no-dashboard",
-                             "--plot", str(tmp / "plot.png"), "--report",
+        procs.start("demo", [*rlbridge_command(), "demo", "--seconds", str(DEMO_SECONDS),
+                             "--no-dashboard", "--plot", str(tmp / "plot.png"), "--report",
                              str(tmp / "report.json")], _env())
         if HAS_RCLPY:
-            port = str(_free_port())
+            port = str(free_port())
             # Discovery on this machine only, on a domain of this test run (see tests/adapters).
             env = _env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                        ROS_DOMAIN_ID=str(101 + os.getpid() % 100))
             env.pop("ROS_STATIC_PEERS", None)
-            procs.start("ros2-server", [*_cli(), "serve", "--adapter", "ros2", "--nodelay",
-                                        "--port", port], env)
+            procs.start("ros2-server", [*rlbridge_command(), "serve", "--adapter", "ros2",
+                                        "--nodelay", "--port", port], env)
             # The controller runs until SIGTERM; the vision node for a fixed time (its first
             # second or two go to DDS discovery, more on a loaded machine).
             procs.start("ros2-controller", [

@@ -137,5 +137,5 @@ def test_context_leaves_out_the_heavy_and_the_local(
         rules: list[tuple[bool, re.Pattern[str]]]) -> None:
     for path in (".venv/bin/python", ".git/HEAD", "out/pan_tilt.png", "pan_tilt.png",
                  "src/rlbridge/__pycache__/cli.cpython-311.pyc", ".mypy_cache/x",
-                 ".pytest_cache/v", "docs/jitter.png", "src/rlbridge.egg-info/PKG-INFO"):
+                 ".pytest_cache/v", "docs/figures/jitter.png", "src/rlbridge.egg-info/PKG-INFO"):
         assert excluded(path, rules), f"{path} would be sent to the Docker daemon"

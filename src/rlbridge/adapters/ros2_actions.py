@@ -10,14 +10,11 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rlbridge.adapters.base import BindingError, GoalDone, GoalFeedback
 from rlbridge.adapters.ros2_rclpy import RclpyActionClient
-from rlbridge.adapters.ros2_services import half, interface_class
-
-if TYPE_CHECKING:
-    from rlbridge.adapters.ros2 import Ros2Adapter
+from rlbridge.adapters.ros2_services import ServiceOwner, half, interface_class
 
 
 class _Goal:
@@ -33,7 +30,7 @@ class _Goal:
 class Ros2Actions:
     """The adapter's action clients (the adapter's lock guards the table)."""
 
-    def __init__(self, adapter: Ros2Adapter) -> None:
+    def __init__(self, adapter: ServiceOwner) -> None:
         self._adapter = adapter
         self._clients: dict[tuple[str, str], Any] = {}
 

@@ -15,27 +15,7 @@ from typing import Any
 import msgspec
 
 from rlbridge.adapters.base import BindingError, ValueSpec
-from rlbridge.adapters.ros2_fields import FieldCodec, msgspec_checker
-
-
-@dataclass(frozen=True, slots=True)
-class MessageCodec:
-    """A message class with everything needed to move it to and from plain Python."""
-
-    name: str
-    cls: type[Any]
-    fields: tuple[FieldCodec, ...]
-    struct: type[msgspec.Struct]
-    default: dict[str, Any]
-    from_struct: Callable[[Any], Any]
-    to_plain: Callable[[Any], dict[str, Any]]
-
-    def field(self, name: str) -> FieldCodec | None:
-        """The field called ``name``, or None (the caller names the fields there are)."""
-        for f in self.fields:
-            if f.name == name:
-                return f
-        return None
+from rlbridge.adapters.ros2_fields import FieldCodec, MessageCodec, msgspec_checker
 
 
 @dataclass(frozen=True, slots=True)

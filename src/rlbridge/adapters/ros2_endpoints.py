@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from rlbridge.adapters.base import ValuesCallback, ValueSpec
 from rlbridge.adapters.ros2_codecs import ChannelCodec
@@ -37,9 +37,6 @@ from rlbridge.adapters.ros2_rclpy import (
     RclpySubscription,
 )
 
-if TYPE_CHECKING:
-    from rlbridge.adapters.ros2 import Ros2Adapter
-
 # The adapter's logger: one name for everything the ROS 2 adapter logs.
 log = logging.getLogger("rlbridge.adapters.ros2")
 
@@ -48,11 +45,22 @@ log = logging.getLogger("rlbridge.adapters.ros2")
 MAX_BATCH = 1000
 
 
+class EndpointOwner(Protocol):
+    """Who destroys a closed endpoint: the adapter that created it (and owns the node).
+
+    A Protocol, so this module needs no import of :mod:`.ros2` (which imports this one).
+    """
+
+    def release_publisher(self, pub: Ros2Publisher) -> None: ...
+
+    def release_subscription(self, sub: Ros2Subscription) -> None: ...
+
+
 class Ros2Publisher:
     """A run-time-bound publisher (the thesis's RTBPublisher) on one ROS 2 topic."""
 
     def __init__(
-        self, adapter: Ros2Adapter, topic: str, codec: ChannelCodec, ros: RclpyPublisher[Any]
+        self, adapter: EndpointOwner, topic: str, codec: ChannelCodec, ros: RclpyPublisher[Any]
     ) -> None:
         self.topic = topic
         self.spec: ValueSpec = codec.spec
@@ -111,7 +119,7 @@ class Ros2Subscription:
     """A topic listener: ROS 2 messages to the adapter callback, in batches, until closed."""
 
     def __init__(
-        self, adapter: Ros2Adapter, topic: str, codec: ChannelCodec, callback: ValuesCallback
+        self, adapter: EndpointOwner, topic: str, codec: ChannelCodec, callback: ValuesCallback
     ) -> None:
         self.topic = topic
         self.spec: ValueSpec = codec.spec

@@ -19,6 +19,10 @@ nested message               a ``msgspec.Struct`` (plain ``dict`` on the wire)
 T[N], sequence<T>[, N]       ``list[T]`` with its length limits
 ===========================  ==========================================================
 
+A message is its fields (:class:`MessageCodec`, a nested field holds one), so both live here;
+:mod:`.ros2_codecs` builds them and compiles the per-value converters, importing this module,
+never the other way round.
+
 Like :mod:`.ros2_types`, this module imports no rclpy, only ``rosidl_parser.definition``.
 """
 
@@ -26,15 +30,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated, Any
 
 import msgspec
 from rosidl_parser import definition as idl
 
 from rlbridge.adapters.base import BindingError
-
-if TYPE_CHECKING:
-    from rlbridge.adapters.ros2_codecs import MessageCodec
 
 #: Plain value -> ROS field value (``None`` where the plain value is already what ROS wants).
 _ToRos = Callable[[Any], Any] | None
@@ -151,6 +152,26 @@ class FieldCodec:
     to_ros: _ToRos
     to_plain: _ToPlain
     message: MessageCodec | None  # set when the field is a nested message
+
+
+@dataclass(frozen=True, slots=True)
+class MessageCodec:
+    """A message class with everything needed to move it to and from plain Python."""
+
+    name: str
+    cls: type[Any]
+    fields: tuple[FieldCodec, ...]
+    struct: type[msgspec.Struct]
+    default: dict[str, Any]
+    from_struct: Callable[[Any], Any]
+    to_plain: Callable[[Any], dict[str, Any]]
+
+    def field(self, name: str) -> FieldCodec | None:
+        """The field called ``name``, or None (the caller names the fields there are)."""
+        for f in self.fields:
+            if f.name == name:
+                return f
+        return None
 
 
 def field_codec(

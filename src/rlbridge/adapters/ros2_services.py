@@ -26,21 +26,35 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from rlbridge.adapters.base import BindingError, ServiceHandler
 from rlbridge.adapters.inproc_services import normalize_service_type
 from rlbridge.adapters.ros2_codecs import whole_encoder
-from rlbridge.adapters.ros2_rclpy import RclpyService
+from rlbridge.adapters.ros2_rclpy import Node, RclpyService
 from rlbridge.adapters.ros2_types import MessageCatalog, pip_package
-
-if TYPE_CHECKING:
-    from rlbridge.adapters.ros2 import Ros2Adapter
 
 log = logging.getLogger("rlbridge.adapters.ros2")
 
 _PACKAGE_RE = re.compile(r"[a-z][a-z0-9_]*\Z")
 _TYPE_RE = re.compile(r"[A-Z][A-Za-z0-9]*\Z")
+
+
+class ServiceOwner(Protocol):
+    """What services and actions use of the adapter that owns the node.
+
+    A Protocol, so this module needs no import of :mod:`.ros2` (which imports this one).
+    """
+
+    catalog: MessageCatalog
+    lock: threading.RLock
+    node: Node
+
+    def check_open(self) -> None: ...
+
+    def full_topic_name(self, topic: str) -> str: ...
+
+    def release_service(self, provider: Any) -> None: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,7 +145,7 @@ class _Reply:
 class _DeferredService:
     """A provided service whose responses are sent when the client answers; see module doc."""
 
-    def __init__(self, adapter: Ros2Adapter, name: str, codec: ServiceCodec,
+    def __init__(self, adapter: ServiceOwner, name: str, codec: ServiceCodec,
                  handler: ServiceHandler) -> None:
         self.name = name
         self.codec = codec
@@ -201,7 +215,7 @@ class _DeferredService:
 class Ros2Services:
     """The adapter's service clients and providers (the adapter's lock guards the tables)."""
 
-    def __init__(self, adapter: Ros2Adapter) -> None:
+    def __init__(self, adapter: ServiceOwner) -> None:
         self._adapter = adapter
         self._clients: dict[tuple[str, str], Any] = {}
         self.providers: set[_DeferredService] = set()

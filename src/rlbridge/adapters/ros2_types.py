@@ -36,7 +36,6 @@ from rlbridge.adapters.base import BindingError, ValueSpec
 from rlbridge.adapters.msgtypes import normalize_type_name, split_path
 from rlbridge.adapters.ros2_codecs import (
     ChannelCodec,
-    MessageCodec,
     compile_from_struct,
     compile_to_plain,
     field_decoder,
@@ -44,7 +43,7 @@ from rlbridge.adapters.ros2_codecs import (
     struct_default,
     whole_encoder,
 )
-from rlbridge.adapters.ros2_fields import FieldCodec, field_codec
+from rlbridge.adapters.ros2_fields import FieldCodec, MessageCodec, field_codec
 
 __all__ = ["ChannelCodec", "FieldCodec", "MessageCatalog", "MessageCodec", "pip_package"]
 

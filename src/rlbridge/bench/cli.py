@@ -14,72 +14,6 @@ bench_app = typer.Typer(help="Measure rlbridge next to a baseline from the same 
 Out = Annotated[Path, typer.Option("--out", help="Markdown file the figures are written to.")]
 
 
-@bench_app.command("jitter")
-def jitter(
-    suite: Annotated[str, typer.Option(help="patterns (thesis 5.3) or gil (docs/gil.md).")]
-    = "patterns",
-    cycles: Annotated[int, typer.Option(help="Deadlines per run.")] = 5000,
-    period_us: Annotated[int, typer.Option("--period-us", help="Loop period.")] = 1000,
-    repeats: Annotated[int, typer.Option(help="Rounds; figures are medians over them.")] = 5,
-    stress: Annotated[bool, typer.Option(help="Run `stress --cpu 2 --io 2 --hdd 1` meanwhile.")]
-    = False,
-    publish_hz: Annotated[float, typer.Option(help="Rate of the set-point publisher.")] = 100.0,
-    only: Annotated[str, typer.Option(help="Comma-separated scenarios (plus the reference).")]
-    = "",
-    priority: Annotated[bool, typer.Option("--rt/--no-rt",
-                                           help="PriParallel priorities for the loop.")] = True,
-    cpu: Annotated[int | None, typer.Option(
-        help="Pin every loop (the reference's too) to this CPU; default the last, -1 none.")]
-    = None,
-    isolate: Annotated[bool, typer.Option(
-        help="Keep server, publishers and SDK threads off the loops' CPU.")] = True,
-    mlock: Annotated[bool, typer.Option(help="mlockall in every loop process.")] = True,
-    interleave: Annotated[bool, typer.Option(
-        help="Patterns suite: run the reference between every two scenarios and compare each "
-             "with its neighbours (about twice the time per round).")] = True,
-    out: Out = Path("docs/jitter.md"),
-    plot: Annotated[Path, typer.Option(help="PNG of the jitter per cycle.")]
-    = Path("docs/jitter.png"),
-) -> None:
-    """HRT loop jitter per coupling pattern, next to a reference loop from the same run."""
-    import os
-    import sys
-
-    from rlbridge.bench.jitter import JitterConfig, command_line, run
-
-    if suite not in ("patterns", "gil"):
-        raise typer.BadParameter("--suite must be 'patterns' or 'gil'")
-    if cpu is None:
-        cpu = (os.cpu_count() or 1) - 1
-    run(JitterConfig(suite=suite, cycles=cycles, period=period_us / 1e6,  # type: ignore[arg-type]
-                     repeats=repeats, stress=stress, publish_hz=publish_hz,
-                     only=tuple(s for s in only.split(",") if s), priority=priority,
-                     cpu=None if cpu < 0 else cpu, isolate=isolate, mlock=mlock,
-                     interleave=interleave, out=out, plot=plot,
-                     command=command_line(sys.argv[1:])), typer.echo)
-
-
-@bench_app.command("channels")
-def channels(
-    n: Annotated[int, typer.Option(help="Operations per measurement.")] = 200_000,
-    repeats: Annotated[int, typer.Option(help="Repeats; figures are medians.")] = 5,
-    out: Out = Path("docs/bench-channels.md"),
-) -> None:
-    """ns per channel write/read/hand-off, next to queue.Queue and deque from the same run."""
-    import datetime
-    import sys
-
-    from rlbridge.bench.channels import format_markdown, run_channel_bench
-
-    text = format_markdown(run_channel_bench(n, repeats))
-    header = "# CSP layer micro-benchmark\n"
-    command = "rlbridge " + " ".join(sys.argv[1:])
-    stamp = f"\nCommand: `{command}` ({datetime.date.today().isoformat()}).\n"
-    text = text.replace(header, header + stamp, 1) if text.startswith(header) else text
-    out.write_text(text)
-    typer.echo(text)
-
-
 @bench_app.command("ros2")
 def ros2(
     ctx: typer.Context,
@@ -199,7 +133,7 @@ def latency(
                                        _command(ctx)), out)
 
 
-# -- load and soak (rlbridge.bench.load, .soak) ------------------------------------------------
+# -- load (rlbridge.bench.load) ------------------------------------------------
 Clients = Annotated[int, typer.Option(help="Concurrent client sessions.")]
 Channels = Annotated[int, typer.Option(help="Channels per session (published and subscribed).")]
 RateHz = Annotated[float, typer.Option("--rate", help="Values/s per channel.")]
@@ -237,25 +171,6 @@ def load(
     _run("load", lambda: ld.report(ld.run(s, ld.load_plan(s), progress), _command(ctx)), out)
 
 
-@bench_app.command("soak")
-def soak(
-    ctx: typer.Context, minutes: Annotated[float, typer.Option(help="Length of the soak.")] = 5,
-    interval_s: Annotated[float, typer.Option(help="Seconds per report row.")] = 30.0,
-    clients: Clients = 50, channels: Channels = 10, rate: RateHz = 100.0, processes: Procs = 2,
-    transport: Via = "udp", client: Client = "raw", out: Out = Path("docs/load.md"),
-) -> None:
-    """Load held for MINUTES: server RSS and latency per interval (a leak shows as a trend)."""
-    from rlbridge.bench import soak as sk
-    from rlbridge.bench.common import progress
-    from rlbridge.bench.load import Settings
-
-    _check_client(client, transport)
-    s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
-                 transport=transport, client=client, warmup_s=min(10.0, interval_s))
-    _run("soak", lambda: sk.report(sk.measure(s, minutes, interval_s, progress),
-                                   _command(ctx)), out)
-
-
 def _latency_link(transport: str, delay: float, loss: float, rate: float, count: int,
                   direction: str, csv: Path | None) -> None:
     from rlbridge.bench import latency_link
@@ -269,37 +184,3 @@ def _latency_link(transport: str, delay: float, loss: float, rate: float, count:
     except (BenchError, ValueError) as exc:
         typer.echo(f"rlbridge bench latency: error: {exc}", err=True)
         raise typer.Exit(1) from None
-
-
-@bench_app.command("evaluation")
-def evaluation(
-    out: Out = Path("docs/evaluation.md"),
-    quick: Annotated[bool, typer.Option(
-        help="Fewer scenarios and samples (about 3 minutes instead of ~12).")] = False,
-    count: Annotated[int | None, typer.Option(
-        help="Samples per latency row (default 1000, --quick 200).")] = None,
-    rt_priority: Annotated[int, typer.Option(
-        help="SCHED_FIFO priority of the measured processes in latency rows (0: off).")] = 5,
-) -> None:
-    """Every network scenario of the thesis (appendix A, fig. 4.2-4.4, tables 3.1/3.2).
-
-    Needs root (the network emulator). Writes --out, its PNGs and raw summaries under
-    <out dir>/evaluation/.
-    """
-    from rlbridge.bench import evaluation as ev_mod
-    from rlbridge.bench import evaluation_report
-    from rlbridge.bench.common import BenchError, progress
-
-    settings = ev_mod.EvalSettings(count=count or (200 if quick else 1000), quick=quick,
-                                   rt_priority=rt_priority)
-    try:
-        result = ev_mod.run(settings, progress)
-    except BenchError as exc:
-        typer.echo(f"rlbridge bench evaluation: error: {exc}", err=True)
-        raise typer.Exit(1) from None
-    command = ["rlbridge", "bench", "evaluation", "--out", str(out)]
-    command += ["--quick"] if quick else []
-    command += ["--count", str(count)] if count else []
-    command += ["--rt-priority", str(rt_priority)] if rt_priority != 5 else []
-    evaluation_report.write(result, settings, command, out)
-    typer.echo(f"wrote {out} and {out.parent / 'evaluation'}/")

@@ -17,7 +17,7 @@ import socket
 import time
 
 from rlbridge.bench.common import Params
-from rlbridge.bench.load_roles import F64, Book, topic
+from rlbridge.bench.load_book import F64, Book, topic
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     Batch,

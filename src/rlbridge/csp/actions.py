@@ -19,7 +19,7 @@ from rlbridge.wire import GoalCancel, GoalResult
 
 if TYPE_CHECKING:
     from rlbridge.csp.bridge_channels import IncomingChannel
-    from rlbridge.csp.connection import Connection
+    from rlbridge.csp.session_owner import SessionOwner
 
 #: ROS 2 ``action_msgs/msg/GoalStatus`` codes of a goal's end.
 STATUS_NAMES = {0: "unknown", 1: "accepted", 2: "executing", 3: "canceling", 4: "succeeded",
@@ -29,7 +29,7 @@ STATUS_NAMES = {0: "unknown", 1: "accepted", 2: "executing", 3: "canceling", 4: 
 class Goal:
     """An accepted goal: ``feedback`` (a channel of dicts), ``result()``, ``cancel()``."""
 
-    def __init__(self, conn: Connection, channel: int, action: str,
+    def __init__(self, conn: SessionOwner, channel: int, action: str,
                  feedback: IncomingChannel) -> None:
         self._conn = conn
         self._generation = conn.generation

@@ -17,7 +17,7 @@ import socket
 from collections.abc import Mapping
 from pathlib import Path
 
-from rlbridge.csp.connection import ConnectionFailed
+from rlbridge.csp.session_errors import ConnectionFailed
 from rlbridge.wire import (
     AuthChallenge,
     AuthProof,

@@ -24,14 +24,15 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Literal
 
 from rlbridge.csp import handshake
+from rlbridge.csp.auth import ClientAuth
 from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import MAX_DRAIN, RUN_DATAGRAMS, Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.services import ServiceCalls
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
+from rlbridge.csp.session_owner import Control, LinkHandler, ValuesHandler
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     ConnectAck,
@@ -48,20 +49,10 @@ from rlbridge.wire import (
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
 
-if TYPE_CHECKING:
-    from rlbridge.csp.auth import ClientAuth
-
 __all__ = ["Connection", "ConnectionClosed", "ConnectionFailed", "Control", "LinkHandler",
            "MAX_DRAIN", "RUN_DATAGRAMS", "ValuesHandler"]
 
 log = logging.getLogger("rlbridge.client")
-
-Control = Literal["tcp", "udp"]
-
-#: ``(channel, first_seq, stamps, values)``: how the receive thread hands values to channels.
-ValuesHandler = Callable[[int, int, list[int], list[object]], None]
-#: ``(state, reason)``: called from the receive thread when the link state changes.
-LinkHandler = Callable[[LinkState, str], None]
 
 
 class Connection:
@@ -153,8 +144,6 @@ class Connection:
             if self.closed.is_set():
                 raise ConnectionClosed(f"connection closed: {self.close_reason}")
             self._handshaking = True
-        from rlbridge.csp.auth import ClientAuth
-
         self.auth = ClientAuth(self.psk, self.name) if self.psk else None
         self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
         hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")

@@ -18,6 +18,7 @@ import socket
 import time
 from typing import TYPE_CHECKING
 
+from rlbridge.csp.auth import refused
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.wire import (
     AuthChallenge,
@@ -32,7 +33,7 @@ from rlbridge.wire import (
 )
 
 if TYPE_CHECKING:
-    from rlbridge.csp.connection import Connection
+    from rlbridge.csp.session_owner import SessionOwner
 
 #: Bytes of queued datagrams the client's UDP socket asks the kernel for.
 UDP_RECEIVE_BUFFER = 4 << 20
@@ -41,7 +42,7 @@ UDP_RECEIVE_BUFFER = 4 << 20
 Leftover = list[Packet | Malformed]
 
 
-def open_tcp(conn: Connection, hello: Hello,
+def open_tcp(conn: SessionOwner, hello: Hello,
              wake: socket.socket) -> tuple[ConnectAck, Leftover]:
     """Handshake over TCP (control) and then the UDP socket for the values sent by UDP."""
     conn.tcp = sock = connect_tcp(conn, wake)
@@ -75,7 +76,7 @@ def open_tcp(conn: Connection, hello: Hello,
     return ack, leftover
 
 
-def open_udp(conn: Connection, hello: Hello) -> tuple[ConnectAck, Leftover]:
+def open_udp(conn: SessionOwner, hello: Hello) -> tuple[ConnectAck, Leftover]:
     """Handshake over UDP only: the hello is repeated until an answer or the deadline."""
     conn.udp = sock = udp_socket(conn.host, conn.port)
     datagram = conn.codec.encode_datagram(hello, 0)
@@ -100,7 +101,7 @@ def open_udp(conn: Connection, hello: Hello) -> tuple[ConnectAck, Leftover]:
         f"no answer over UDP from {conn.host}:{conn.port} within {conn.timeout} s")
 
 
-def connect_tcp(conn: Connection, wake: socket.socket) -> socket.socket:
+def connect_tcp(conn: SessionOwner, wake: socket.socket) -> socket.socket:
     """``connect`` that ``close`` can interrupt through ``wake`` (a dropped SYN would wait
     ``timeout``)."""
     family, kind, proto, _name, address = socket.getaddrinfo(
@@ -144,7 +145,5 @@ def expect_ack(packet: Packet) -> ConnectAck:
     if isinstance(packet, ConnectAck):
         return packet
     if isinstance(packet, ConnectError):
-        from rlbridge.csp.auth import refused
-
         raise refused(packet)
     raise ConnectionFailed(f"server answered the hello with {type(packet).__name__}")

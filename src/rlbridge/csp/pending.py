@@ -30,7 +30,7 @@ from rlbridge.wire import (
 )
 
 if TYPE_CHECKING:
-    from rlbridge.csp.connection import Connection
+    from rlbridge.csp.session_owner import SessionOwner
 
 
 @dataclass
@@ -44,7 +44,7 @@ class _Pending:
 class Requests:
     """The requests of one connection that wait for answers, across its sessions."""
 
-    def __init__(self, conn: Connection) -> None:
+    def __init__(self, conn: SessionOwner) -> None:
         self._conn = conn
         self._pending: dict[int, _Pending] = {}
         #: Every binding the server acknowledged, by channel: what a new session binds again.

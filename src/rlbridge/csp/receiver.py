@@ -41,7 +41,7 @@ from rlbridge.wire import (
 from rlbridge.wire.link import LinkMonitor, LinkState
 
 if TYPE_CHECKING:
-    from rlbridge.csp.connection import Connection
+    from rlbridge.csp.session_owner import SessionOwner
 
 log = logging.getLogger("rlbridge.client")
 
@@ -54,7 +54,7 @@ MAX_DRAIN = 256
 class Receiver:
     """Reading for session ``generation`` of ``conn``; see the module docstring."""
 
-    def __init__(self, conn: Connection, generation: int,
+    def __init__(self, conn: SessionOwner, generation: int,
                  leftover: list[Packet | Malformed], wake: socket.socket) -> None:
         self._conn = conn
         self._generation = generation

@@ -37,7 +37,7 @@ from rlbridge.wire.errors import ServiceTimeout
 
 if TYPE_CHECKING:
     from rlbridge.csp.actions import Goal
-    from rlbridge.csp.connection import Connection
+    from rlbridge.csp.session_owner import SessionOwner
 
 #: Requests a provided service's channel holds before the oldest is overwritten (and
 #: counted); the server keeps at most as many waiting per service.
@@ -106,7 +106,7 @@ class ServiceRequests(Channel[IncomingRequest]):
 class ServiceCalls:
     """The connection's calls in flight and its provided services' channels."""
 
-    def __init__(self, conn: Connection) -> None:
+    def __init__(self, conn: SessionOwner) -> None:
         self._conn = conn
         self._ids = itertools.count(1)
         self._calls: dict[int, _Call] = {}

@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 
 import typer
 
+from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.demo.plot import DEFAULT_NAME
 
 ROLES = ("all", "bridge", "controller")
@@ -20,7 +21,6 @@ DEFAULT_PORT = 7411
 
 def register_demo(app: typer.Typer) -> None:
     """Add the ``demo`` command to the main app."""
-    from rlbridge.cli import fail, one_line_errors
 
     @app.command()
     @one_line_errors

@@ -22,7 +22,7 @@ from rlbridge.server.sinks import PacketSink
 from rlbridge.wire import ErrorCode, GoalResult, GoalSend, TopicAck, TopicError, Value
 
 if TYPE_CHECKING:
-    from rlbridge.server.session import Session
+    from rlbridge.server.session_owner import SessionOwner
 
 log = logging.getLogger("rlbridge.server")
 
@@ -43,7 +43,7 @@ class _Goal:
 class SessionGoals:
     """Goals of one session, by channel; see the module docstring."""
 
-    def __init__(self, session: Session) -> None:
+    def __init__(self, session: SessionOwner) -> None:
         self._session = session
         self.goals: dict[int, _Goal] = {}
         self.sent = 0

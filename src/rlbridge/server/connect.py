@@ -15,10 +15,10 @@ from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.wire import ErrorCode, Packet, TopicConnect
 
 if TYPE_CHECKING:
-    from rlbridge.server.session import Session
+    from rlbridge.server.session_owner import SessionOwner
 
 
-def refusal(session: Session, req: TopicConnect) -> tuple[ErrorCode, str] | None:
+def refusal(session: SessionOwner, req: TopicConnect) -> tuple[ErrorCode, str] | None:
     """Why ``session`` may not connect ``req`` (code and reason for its TopicError), or None."""
     cfg = session.ctx.config
     ch = req.channel
@@ -40,7 +40,7 @@ def refusal(session: Session, req: TopicConnect) -> tuple[ErrorCode, str] | None
     return None
 
 
-def bind(session: Session, req: TopicConnect) -> Inbound | Outbound:
+def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
     """The middleware endpoint of an accepted ``req``; raises ``BindingError`` if it refuses.
 
     The QoS follows the transport unless the client chose: reliable over TCP, best effort
@@ -68,7 +68,7 @@ class ChannelSink:
     a client's address may change (NAT rebinding); looking the sink up per send handles both.
     """
 
-    def __init__(self, session: Session, transport: str) -> None:
+    def __init__(self, session: SessionOwner, transport: str) -> None:
         self._session = session
         self._udp = transport == "udp"
         self._dropped = 0

@@ -36,7 +36,7 @@ from rlbridge.wire import (
 )
 
 if TYPE_CHECKING:
-    from rlbridge.server.session import Session
+    from rlbridge.server.session_owner import SessionOwner
 
 log = logging.getLogger("rlbridge.server")
 
@@ -70,7 +70,7 @@ class Offer:
 class SessionServices:
     """Service calls and offers of one session; see the module docstring."""
 
-    def __init__(self, session: Session) -> None:
+    def __init__(self, session: SessionOwner) -> None:
         self._session = session
         self._calls: dict[int, Future[dict[str, Any]]] = {}
         self.offers: dict[int, Offer] = {}

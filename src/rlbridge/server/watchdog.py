@@ -15,13 +15,13 @@ from rlbridge.server.sinks import PacketSink
 from rlbridge.wire.link import LinkState
 
 if TYPE_CHECKING:
-    from rlbridge.server.session import Session
+    from rlbridge.server.session_owner import SessionOwner
 
 
 class SessionWatchdog:
     """Owned by one session: started by it, stopped by its ``close``."""
 
-    def __init__(self, session: Session) -> None:
+    def __init__(self, session: SessionOwner) -> None:
         self._session = session
         self._timer: asyncio.TimerHandle | None = None
         self._tcp_bytes_at_heartbeat = (-1, -1)

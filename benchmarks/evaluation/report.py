@@ -12,9 +12,8 @@ from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 
-from rlbridge.bench import policies
-from rlbridge.bench.common import fmt, machine_info, markdown_table
-from rlbridge.bench.evaluation import (
+from benchmarks.evaluation import policies
+from benchmarks.evaluation.sweep import (
     BASELINE_SCENARIOS,
     PERIOD_MS,
     POLICY_SCENARIOS,
@@ -23,6 +22,7 @@ from rlbridge.bench.evaluation import (
     Row,
     ThroughputPoint,
 )
+from rlbridge.bench.common import fmt, machine_info, markdown_table
 from rlbridge.bench.scenarios import SCENARIOS, TRANSPORTS, Scenario, Summary
 
 THESIS_TP = {  # tables 3.1 (native ROS port) and 3.2 (ROS-LUNA bridge), values/s
@@ -226,8 +226,9 @@ def render(ev: Evaluation, settings: EvalSettings, command: Sequence[str],
         "Every measured process (bridge, client, ZeroMQ and Zenoh alike) runs SCHED_FIFO "
         f"priority {settings.rt_priority or 'off'} below the relay's 10 (`PriorityLink`), so "
         "that other jobs on this shared machine do not pass for a slow network.", "",
-        f"Regenerate: `{shlex.join(command)}` (writes this file, every PNG and "
-        "`summary.{json,csv}` under `evaluation/` next to it).", "",
+        f"Regenerate: `{shlex.join(command)}` (writes this file, every PNG under "
+        "`figures/evaluation/` next to it and `summary.{json,csv}` under "
+        "`benchmarks/results/evaluation/`).", "",
         "## Machine", "",
         f"Date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}  ",
         *[f"{k}: {v}  " for k, v in info.items()],
@@ -297,14 +298,16 @@ def summaries(ev: Evaluation) -> tuple[str, str]:
     return json.dumps(data, indent=1) + "\n", buf.getvalue()
 
 
-def write(ev: Evaluation, settings: EvalSettings, command: Sequence[str], out: Path) -> None:
-    from rlbridge.bench.evaluation_plot import figures as make_figures
+def write(ev: Evaluation, settings: EvalSettings, command: Sequence[str], out: Path,
+          fig_dir: Path, results: Path) -> None:
+    """``out`` (markdown), its figures under ``fig_dir``, the raw summaries under ``results``."""
+    from benchmarks.evaluation.plot import figures as make_figures
 
-    fig_dir = out.parent / "evaluation"
     titles = {sc.key: sc.title for sc in SCENARIOS}
     made = make_figures(ev, titles, fig_dir)
     rel = {k: str(v.relative_to(out.parent)) for k, v in made.items()}
     out.write_text(render(ev, settings, command, rel))
     js, cs = summaries(ev)
-    (fig_dir / "summary.json").write_text(js)
-    (fig_dir / "summary.csv").write_text(cs)
+    results.mkdir(parents=True, exist_ok=True)
+    (results / "summary.json").write_text(js)
+    (results / "summary.csv").write_text(cs)

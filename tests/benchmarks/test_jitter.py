@@ -1,4 +1,4 @@
-"""``rlbridge bench jitter``: runs end to end, and its statistics say what they claim.
+"""``python -m benchmarks.jitter run``: runs end to end, and its statistics say what they claim.
 
 Timing is not asserted (this box may be loaded); what is: every scenario ran in its own
 processes with the same treatment as the reference, the report has its rows, and the paired
@@ -17,8 +17,8 @@ from typing import Any
 
 import pytest
 
-from rlbridge.bench import jitter
-from rlbridge.bench.jitter_config import RunStats, Scenario, ScenarioResult
+from benchmarks.jitter import cli as jitter
+from benchmarks.jitter.config import RunStats, Scenario, ScenarioResult
 
 
 @pytest.fixture(autouse=True)
@@ -140,7 +140,8 @@ def test_pool_reads_old_and_interleaved_runs(tmp_path: Path) -> None:
 def test_pool_refuses_a_file_that_is_not_a_run_in_one_line(tmp_path: Path) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text('{"results": [{"scenario": {"name": "reference"}}]}')
-    for path, expected in ((bad, "bad.json: not the JSON of a `rlbridge bench jitter` run"),
+    for path, expected in ((bad, "bad.json: not the JSON of a `python -m benchmarks.jitter "
+                                 "run` run"),
                            (tmp_path / "missing.json", "No such file")):
         with pytest.raises(SystemExit) as exc:
             jitter.main(["pool", str(path)])

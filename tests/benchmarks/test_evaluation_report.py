@@ -13,9 +13,10 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from rlbridge.bench import evaluation_report, policies
+from benchmarks.evaluation import policies
+from benchmarks.evaluation import report as evaluation_report
+from benchmarks.evaluation.sweep import EvalSettings, Evaluation, Row, ThroughputPoint, saturated
 from rlbridge.bench.cli import bench_app
-from rlbridge.bench.evaluation import EvalSettings, Evaluation, Row, ThroughputPoint, saturated
 from rlbridge.bench.latency_link import csv_path
 from rlbridge.bench.netpath import StreamResult, StreamSpec, _match
 from rlbridge.bench.scenarios import summarise
@@ -101,7 +102,9 @@ def _evaluation() -> Evaluation:
 def test_report_has_tables_thesis_figures_guide_and_raw_summaries(tmp_path: Path) -> None:
     ev = _evaluation()
     out = tmp_path / "evaluation.md"
-    evaluation_report.write(ev, EvalSettings(count=4), ["rlbridge", "bench", "evaluation"], out)
+    figures, results = tmp_path / "figures" / "evaluation", tmp_path / "results"
+    evaluation_report.write(ev, EvalSettings(count=4), ["python", "-m", "benchmarks.evaluation"],
+                            out, figures, results)
     text = out.read_text()
     assert "| UDP | 0.60 | " in text
     assert "| 1 / 4 |" in text
@@ -109,12 +112,12 @@ def test_report_has_tables_thesis_figures_guide_and_raw_summaries(tmp_path: Path
     assert "not available in this build" in text
     assert "figure 5.1" in text
     assert "load average during the run" in text
-    assert "(evaluation/loss.png)" in text
-    assert (tmp_path / "evaluation" / "loss.png").exists()
-    data = json.loads((tmp_path / "evaluation" / "summary.json").read_text())
+    assert "(figures/evaluation/loss.png)" in text
+    assert (figures / "loss.png").exists()
+    data = json.loads((results / "summary.json").read_text())
     assert data["latency"][0]["lost"] == 1
     assert data["throughput"][0]["offered_hz"] == 100
-    assert (tmp_path / "evaluation" / "summary.csv").read_text().startswith("scenario,")
+    assert (results / "summary.csv").read_text().startswith("scenario,")
 
 
 def test_saturation_rule_and_csv_names() -> None:

@@ -4,7 +4,7 @@ Bridge channels now carry a stamp with every value (so ``read_with_age`` is exac
 outgoing ring checks its writer thread (so a second writer is refused, not silently lossy).
 This times those calls next to the plain CSP channel operations they extend, interleaved in
 one process (``repeats`` rounds, median per call), because a loaded machine moves absolute
-figures far more than it moves the ratios. ``python -m rlbridge.bench.policy_costs``.
+figures far more than it moves the ratios. ``python -m benchmarks.policy_costs``.
 """
 
 from __future__ import annotations

@@ -1,15 +1,15 @@
-"""The processes around a ``rlbridge bench jitter`` run, and the run itself.
+"""The processes around a ``python -m benchmarks.jitter run`` run, and the run itself.
 
 * The bridge server (``rlbridge serve``) and the publishers run in **separate processes** for
   the whole run, so their work does not share a GIL with the measured loop and the reference
   loop sees the same background load as the patterns.
-* Every measurement is a fresh **worker process** (``python -m rlbridge.bench.jitter worker``,
-  :mod:`rlbridge.bench.jitter_worker`), so patterns do not inherit each other's threads,
+* Every measurement is a fresh **worker process** (``python -m benchmarks.jitter worker``,
+  :mod:`benchmarks.jitter.worker`), so patterns do not inherit each other's threads,
   sockets and heap. Every worker, the reference's included, gets the same treatment: the
   same priority (``PriParallel``), the same CPU for the loop thread (``--cpu``), the same
   memory locking and timer slack.
 * ``repeats`` rounds, each measuring every scenario in a rotated order with the reference
-  between every two of them (:meth:`~rlbridge.bench.jitter_config.JitterConfig.round_order`);
+  between every two of them (:meth:`~benchmarks.jitter.config.JitterConfig.round_order`);
   figures are compared with the reference runs next to them.
 * ``--stress`` runs ``stress --cpu 2 --io 2 --hdd 1`` (the thesis's load, scaled to this box)
   for the whole run, in its own process group, killed at the end.
@@ -33,7 +33,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from rlbridge.bench.jitter_config import (
+from benchmarks import module_argv
+from benchmarks.jitter.config import (
     TOPIC_IN,
     TOPIC_IN_FAST,
     JitterConfig,
@@ -93,8 +94,8 @@ class Children:
 
 
 def python_module(*args: str) -> list[str]:
-    """argv of a helper process of this benchmark (``python -m rlbridge.bench.jitter ...``)."""
-    return [sys.executable, "-m", "rlbridge.bench.jitter", *args]
+    """argv of a helper process of this benchmark (``python -m benchmarks.jitter ...``)."""
+    return module_argv("benchmarks.jitter", *args)
 
 
 def _wait_for_server(port: int, timeout: float = 15.0) -> None:

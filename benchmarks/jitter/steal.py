@@ -25,7 +25,7 @@ import random
 import statistics
 from collections.abc import Sequence
 
-from rlbridge.bench.jitter_config import BOOTSTRAP_RESAMPLES, RunStats, percentile_interval
+from benchmarks.jitter.config import BOOTSTRAP_RESAMPLES, RunStats, percentile_interval
 
 Measured = tuple[float, float]
 """(steal ms, p99 us) of one run."""

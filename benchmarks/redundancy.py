@@ -8,7 +8,7 @@ takes one value per send (a set-point stream), the send thread's packet builder 
 packet and the codec encodes the datagram; sizes are taken once the history is full.
 Nothing here reads a clock for timing, so the figures are exact and machine-independent.
 
-Run ``python -m rlbridge.bench.redundancy`` for the markdown table in docs/policies.md;
+Run ``python -m benchmarks.redundancy`` for the markdown table in docs/policies.md;
 :func:`redundancy_cost` returns the rows for the evaluation harness.
 """
 

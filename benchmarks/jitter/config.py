@@ -1,4 +1,4 @@
-"""What a ``rlbridge bench jitter`` run measures and how a run's figures are reduced.
+"""What a ``python -m benchmarks.jitter run`` run measures and how a run's figures are reduced.
 
 Scenarios (the rows), the run's configuration (built by the CLI), and the statistics: per run
 p50 / p99 / max of the absolute jitter; per scenario the median over the rounds, and the
@@ -122,6 +122,8 @@ class JitterConfig:
     interleave: bool = True
     out: Path | None = None
     plot: Path | None = None
+    results: Path | None = None
+    """Directory of the raw runs' JSON (the CLI: benchmarks/results/); None: next to ``out``."""
     command: str = ""
 
     @property

@@ -1,4 +1,4 @@
-"""``rlbridge bench evaluation``: every network scenario of the thesis in one run.
+"""``python -m benchmarks.evaluation``: every network scenario of the thesis in one run.
 
 One :class:`~rlbridge.netem.EmulatedLink` carries every latency run: for each scenario the
 link is re-impaired (data direction only, as the thesis's port filter did), then each row runs
@@ -17,7 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from rlbridge.bench import baselines, policies
+from benchmarks.evaluation import policies
+from rlbridge.bench import baselines
 from rlbridge.bench.common import BenchError, Link, LoopbackLink, ProcessGroup, Skipped, run_flow
 from rlbridge.bench.netpath import PriorityLink, StreamResult, StreamSpec, measure_stream
 from rlbridge.bench.scenarios import (

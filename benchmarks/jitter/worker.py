@@ -1,4 +1,4 @@
-"""A ``rlbridge bench jitter`` worker: one scenario in this process, lateness to JSON.
+"""A ``python -m benchmarks.jitter run`` worker: one scenario in this process, lateness to JSON.
 
 Also the GIL study's extra threads (pure-Python work, a ``sendto`` loop), the set-point
 publisher process, and :func:`prepare_process`, the conditions every loop process gets.
@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from rlbridge.bench.jitter_config import (
+from benchmarks.jitter.config import (
     F64,
     PROCESS_SUFFIX,
     TOPIC_IN,
@@ -158,15 +158,12 @@ def _extra_threads(name: str, stop: threading.Event) -> list[threading.Thread]:
 
 
 def worker_main(args: argparse.Namespace) -> None:
-    """Run one scenario in this process and write its lateness samples as JSON."""
-    if args.switch_interval is not None:
-        sys.setswitchinterval(args.switch_interval)
-    name: str = args.scenario
-    if name.startswith("shm-"):
-        from rlbridge.bench.jitter_shm import shm_parent
+    """Run one scenario in this process and write its lateness samples as JSON.
 
-        Path(args.result).write_text(json.dumps(shm_parent(args)))
-        return
+    The ``shm-*`` scenarios are not run here but by :func:`benchmarks.jitter.shm.shm_parent`
+    (the worker's entry in :mod:`.cli` picks); this module knows nothing of them.
+    """
+    name: str = args.scenario
     info = prepare_process(args.mlock)
     stop = threading.Event()
     extra = _extra_threads(name, stop)

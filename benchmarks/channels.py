@@ -347,3 +347,29 @@ def format_markdown(rows: list[BenchRow]) -> str:
         for r in alloc
     ]
     return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m benchmarks.channels [--n N] [--repeats R] [--out docs/bench-channels.md]``."""
+    import argparse
+    import datetime
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.channels",
+                                     description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--n", type=int, default=200_000, help="operations per measurement")
+    parser.add_argument("--repeats", type=int, default=5, help="repeats; figures are medians")
+    parser.add_argument("--out", default="docs/bench-channels.md",
+                        help="markdown file the figures are written to")
+    args = parser.parse_args(argv)
+    text = format_markdown(run_channel_bench(args.n, args.repeats))
+    header = "# CSP layer micro-benchmark\n"
+    command = "python -m benchmarks.channels " + " ".join(sys.argv[1:] if argv is None else argv)
+    stamp = f"\nCommand: `{command.strip()}` ({datetime.date.today().isoformat()}).\n"
+    text = text.replace(header, header + stamp, 1) if text.startswith(header) else text
+    with open(args.out, "w") as f:
+        f.write(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -4,7 +4,7 @@ The worker process becomes the SDK process: a ``Bridge`` (non-blocking subscript
 send loop at 1 kHz out) and a 1 kHz pump (:func:`rlbridge.csp.shm.forwarder`) between the
 bridge channels and a :class:`~rlbridge.csp.shm.ShmLink`. The measured loop runs in an
 :class:`~rlbridge.csp.shm.HrtProcess` with the same treatment as every other loop
-(:func:`~rlbridge.bench.jitter_worker.prepare_process`, ``PriParallel``, ``--cpu``); its
+(:func:`~benchmarks.jitter.worker.prepare_process`, ``PriParallel``, ``--cpu``); its
 interpreter holds nothing but the loop, so no SDK thread can hold its GIL.
 """
 
@@ -16,8 +16,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from rlbridge.bench.jitter_config import F64, TOPIC_IN, TOPIC_IN_FAST, TOPIC_OUT
-from rlbridge.bench.jitter_worker import (
+from benchmarks.jitter.config import F64, TOPIC_IN, TOPIC_IN_FAST, TOPIC_OUT
+from benchmarks.jitter.worker import (
     loop_options,
     prepare_process,
     probed,

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from rlbridge.bench.evaluation import Evaluation, Row, ThroughputPoint
+from benchmarks.evaluation.sweep import Evaluation, Row, ThroughputPoint
 
 COLORS = {"tcp": "tab:red", "tcpn": "tab:orange", "udp": "tab:blue", "zmq": "tab:green",
           "zenoh": "tab:purple", "tcpn-latest": "tab:brown", "udp-k1": "tab:cyan",

@@ -1,4 +1,4 @@
-"""The report of a ``rlbridge bench jitter`` run: markdown section, plot, pooled rounds."""
+"""The report of a ``python -m benchmarks.jitter run``: markdown section, plot, pooled rounds."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from rlbridge.bench.jitter_config import (
+from benchmarks.jitter.config import (
     GIL_BASE,
     GIL_INTERVALS,
     JitterConfig,
@@ -21,7 +21,7 @@ from rlbridge.bench.jitter_config import (
     interval_label,
     judge,
 )
-from rlbridge.bench.jitter_steal import matched_ci, matched_delta, measured
+from benchmarks.jitter.steal import matched_ci, matched_delta, measured
 
 
 def machine_info() -> dict[str, str]:
@@ -51,7 +51,7 @@ def render_markdown(config: JitterConfig, results: list[ScenarioResult],
     begin, end = config.markers()
     lines = [
         begin,
-        f"Command: `{config.command or 'rlbridge bench jitter'}`",
+        f"Command: `{config.command or 'python -m benchmarks.jitter run'}`",
         "",
         f"Measured {machine['date']} on {machine['host']}, {machine['cpu']}, "
         f"{machine['python']}; load average before the run {machine['load']}, after "
@@ -107,7 +107,8 @@ def render_markdown(config: JitterConfig, results: list[ScenarioResult],
         cells = " | ".join(by_round.get(i, "failed") for i in range(config.repeats))
         lines.append(f"| {res.scenario.group}: {res.scenario.name} | {cells} |")
     if plot is not None:
-        lines += ["", f"![absolute jitter per cycle]({plot.name})"]
+        rel = plot.name if config.out is None else os.path.relpath(plot, config.out.parent)
+        lines += ["", f"![absolute jitter per cycle]({rel})"]
     lines.append(end)
     return "\n".join(lines) + "\n"
 
@@ -134,8 +135,8 @@ def _steal_table(results: list[ScenarioResult],
         return []
     return ["", "At equal steal: each run compared with the reference runs of this run whose "
             "steal was closest to its own (the median p99 of the sqrt(n) nearest), which "
-            "takes the host's interference out of the comparison (`rlbridge.bench."
-            "jitter_steal`; interval: runs and reference runs resampled; same allowance). "
+            "takes the host's interference out of the comparison (`benchmarks."
+            "jitter.steal`; interval: runs and reference runs resampled; same allowance). "
             "*d steal*: the scenario's steal minus that of the reference runs next to it "
             "(median); near zero, the pattern does not draw more host interference onto the "
             "loop's CPU than the loop alone.", "",

@@ -7,7 +7,7 @@ import random
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rlbridge.bench.jitter_steal import matched_ci, matched_delta, matched_deltas, neighbours
+from benchmarks.jitter.steal import matched_ci, matched_delta, matched_deltas, neighbours
 
 
 def test_each_run_is_compared_with_the_nearest_reference_runs() -> None:

@@ -1,4 +1,4 @@
-"""``python -m rlbridge.bench.jitter pool A.json B.json ...``: several runs read as one.
+"""``python -m benchmarks.jitter pool A.json B.json ...``: several runs read as one.
 
 One run's rounds cannot separate a 200 us effect from a machine whose reference p99 swings by
 milliseconds between rounds; the same condition measured in several runs can. Each run's
@@ -16,7 +16,7 @@ import statistics
 from collections.abc import Sequence
 from pathlib import Path
 
-from rlbridge.bench.jitter_config import (
+from benchmarks.jitter.config import (
     RunStats,
     Scenario,
     ScenarioResult,
@@ -24,7 +24,7 @@ from rlbridge.bench.jitter_config import (
     bootstrap_median_ci,
     judge,
 )
-from rlbridge.bench.jitter_steal import Measured, matched_ci, matched_delta, measured
+from benchmarks.jitter.steal import Measured, matched_ci, matched_delta, measured
 
 __all__ = ["pooled_deltas", "results_from_json"]
 
@@ -44,7 +44,7 @@ def results_from_json(path: Path, round_offset: int = 0) -> list[ScenarioResult]
                 res.runs.append(dataclasses.replace(stats, round=stats.round + round_offset))
             out.append(res)
     except (ValueError, KeyError, TypeError) as exc:  # JSONDecodeError is a ValueError
-        raise ValueError(f"{path}: not the JSON of a `rlbridge bench jitter` run "
+        raise ValueError(f"{path}: not the JSON of a `python -m benchmarks.jitter run` run "
                          f"({type(exc).__name__}: {exc})") from None
     return out
 

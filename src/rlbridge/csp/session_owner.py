@@ -1,0 +1,127 @@
+"""The connection as the parts of its session see it: what they read, set and call.
+
+:class:`~rlbridge.csp.connection.Connection` owns a session and builds its parts: the
+handshake (:mod:`rlbridge.csp.handshake`), the receive thread (:mod:`rlbridge.csp.receiver`)
+and the requests waiting for answers (:mod:`rlbridge.csp.pending`). The parts work on the
+connection's state, so they need its type; importing ``connection`` for it made an import
+circle. They depend on this description instead, imports run one way (``connection`` ->
+parts -> ``session_owner``), and mypy checks that ``Connection`` fits wherever it hands itself
+over. A part that needs more of the connection adds the member here.
+"""
+
+from __future__ import annotations
+
+import collections
+import socket
+import threading
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Literal, Protocol
+
+from rlbridge.wire import (
+    ConnectAck,
+    Error,
+    GoalResult,
+    Packet,
+    PacketCodec,
+    ServiceRequest,
+    ServiceResult,
+    Stats,
+    TopicAck,
+    TopicError,
+)
+from rlbridge.wire.link import LinkMonitor, LinkState
+
+if TYPE_CHECKING:
+    from rlbridge.csp.auth import ClientAuth
+
+__all__ = ["Answers", "Control", "LinkHandler", "ServiceAnswers", "SessionOwner",
+           "ValuesHandler"]
+
+#: The transport of the control packets (hello, topic-connect, stats requests).
+Control = Literal["tcp", "udp"]
+#: ``(channel, first_seq, stamps, values)``: how the receive thread hands values to channels.
+ValuesHandler = Callable[[int, int, list[int], list[object]], None]
+#: ``(state, reason)``: called from the receive thread when the link state changes.
+LinkHandler = Callable[[LinkState, str], None]
+
+
+class Answers(Protocol):
+    """Where the receive thread hands the answers to control requests."""
+
+    def answer(self, packet: TopicAck | TopicError) -> None: ...
+
+    def answer_stats(self, packet: Stats) -> None: ...
+
+
+class ServiceAnswers(Protocol):
+    """Where the receive thread hands service results, requests and goal results."""
+
+    def on_result(self, packet: ServiceResult) -> None: ...
+
+    def on_request(self, packet: ServiceRequest) -> None: ...
+
+    def on_goal_result(self, packet: GoalResult) -> None: ...
+
+
+class SessionOwner(Protocol):
+    """What the handshake, the receive thread and the pending requests use of a connection."""
+
+    # -- set up by the connection, read by the parts
+    host: str
+    port: int
+    nodelay: bool
+    control: Control
+    timeout: float
+    codec: PacketCodec
+    keep_alive: bool
+    closed: threading.Event
+    close_reason: str
+    # -- the session's sockets (the handshake opens them)
+    tcp: socket.socket | None
+    udp: socket.socket | None
+    tcp_bytes_out: int
+    # -- the session's state (the receive thread reads and counts)
+    datagrams_dropped: collections.Counter[str]
+    reported_link: LinkState
+
+    @property
+    def auth(self) -> ClientAuth | None: ...
+
+    @property
+    def ack(self) -> ConnectAck | None: ...
+
+    @property
+    def link(self) -> LinkMonitor | None: ...
+
+    @property
+    def on_values(self) -> ValuesHandler | None: ...
+
+    @property
+    def on_error(self) -> Callable[[Error], None] | None: ...
+
+    @property
+    def requests(self) -> Answers: ...
+
+    @property
+    def services(self) -> ServiceAnswers: ...
+
+    @property
+    def on_loss(self) -> Callable[[int, int], None] | None: ...
+
+    @property
+    def generation(self) -> int: ...
+
+    @property
+    def up(self) -> bool: ...
+
+    def wait_up(self, timeout: float) -> bool: ...
+
+    def send_control(self, packet: Packet) -> None: ...
+
+    def send_tcp(self, data: bytes | bytearray) -> None: ...
+
+    def send_udp_packet(self, packet: Packet) -> None: ...
+
+    def set_link(self, state: LinkState, reason: str) -> None: ...
+
+    def end_session(self, reason: str, generation: int) -> None: ...
