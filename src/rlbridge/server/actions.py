@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from rlbridge.adapters.base import BindingError, GoalHandle
-from rlbridge.server.services import MAX_CALLS, error_code
+from rlbridge.server.services import MAX_CALLS, error_code, timeout_s
 from rlbridge.server.sinks import PacketSink
 from rlbridge.wire import ErrorCode, GoalResult, GoalSend, TopicAck, TopicError, Value
 
@@ -71,7 +71,7 @@ class SessionGoals:
             loop.call_soon_threadsafe(self._done, goal, status, result, "")
 
         future = s.ctx.workers.submit(s.ctx.adapter.send_goal, req.action, req.action_type,
-                                      req.goal, feedback, done, req.timeout_ms / 1000)
+                                      req.goal, feedback, done, timeout_s(req.timeout_ms))
         future.add_done_callback(
             lambda f: loop.call_soon_threadsafe(self._answered, goal, f, via))
 

@@ -44,6 +44,13 @@ log = logging.getLogger("rlbridge.server")
 MAX_CALLS = 16
 #: Requests to one offered service that may wait for the client's answer.
 MAX_PENDING = 256
+#: The longest a call or a goal's acceptance may hold a worker thread (a longer timeout is cut).
+MAX_TIMEOUT_S = 300.0
+
+
+def timeout_s(timeout_ms: int) -> float:
+    """A packet's ``timeout_ms`` in seconds, at most :data:`MAX_TIMEOUT_S`."""
+    return min(timeout_ms / 1000, MAX_TIMEOUT_S)
 
 
 def error_code(name: str) -> ErrorCode:
@@ -93,7 +100,8 @@ class SessionServices:
         s.ctx.count("service_calls")
         self.calls += 1
         future = s.ctx.workers.submit(s.ctx.adapter.call_service, packet.service,
-                                      packet.srv_type, packet.request, packet.timeout_ms / 1000)
+                                      packet.srv_type, packet.request,
+                                      timeout_s(packet.timeout_ms))
         self._calls[packet.call] = future
         loop = s.ctx.loop
         future.add_done_callback(
@@ -218,4 +226,5 @@ class SessionServices:
         return {str(c): o.stats() for c, o in self.offers.items()}
 
 
-__all__ = ["MAX_CALLS", "MAX_PENDING", "Offer", "SessionServices"]
+__all__ = ["MAX_CALLS", "MAX_PENDING", "MAX_TIMEOUT_S", "Offer", "SessionServices",
+           "timeout_s"]
