@@ -297,6 +297,15 @@ TAG_ERROR = 12
 TAG_STATS = 13
 TAG_AUTH_CHALLENGE = 14
 TAG_AUTH_PROOF = 15
+TAG_SERVICE_CALL = 20
+TAG_SERVICE_RESULT = 21
+TAG_SERVICE_OFFER = 22
+TAG_SERVICE_REQUEST = 23
+TAG_SERVICE_REPLY = 24
+TAG_GOAL_SEND = 25
+TAG_GOAL_CANCEL = 26
+TAG_GOAL_RESULT = 27
+TAG_CHANNEL_LOSS = 28
 
 TAG_NAMES = {
     TAG_HELLO: "Hello", TAG_CONNECT_ACK: "ConnectAck", TAG_CONNECT_ERROR: "ConnectError",
@@ -304,6 +313,11 @@ TAG_NAMES = {
     TAG_TOPIC_CLOSE: "TopicClose", TAG_VALUE: "Value", TAG_BATCH: "Batch",
     TAG_HEARTBEAT: "Heartbeat", TAG_DISCONNECT: "Disconnect", TAG_ERROR: "Error",
     TAG_STATS: "Stats", TAG_AUTH_CHALLENGE: "AuthChallenge", TAG_AUTH_PROOF: "AuthProof",
+    TAG_SERVICE_CALL: "ServiceCall", TAG_SERVICE_RESULT: "ServiceResult",
+    TAG_SERVICE_OFFER: "ServiceOffer", TAG_SERVICE_REQUEST: "ServiceRequest",
+    TAG_SERVICE_REPLY: "ServiceReply", TAG_GOAL_SEND: "GoalSend",
+    TAG_GOAL_CANCEL: "GoalCancel", TAG_GOAL_RESULT: "GoalResult",
+    TAG_CHANNEL_LOSS: "ChannelLoss",
 }
 
 # Error codes (doc section 12.2).
