@@ -21,5 +21,7 @@ COPY src ./src
 RUN pip install --no-cache-dir ".[plot]"
 
 ENV PYTHONUNBUFFERED=1
+# No HEALTHCHECK here: what "healthy" means depends on the role, so docker-compose.yml gives
+# the bridge service `rlbridge ping --port 7411` (exit 0 when the server answers).
 EXPOSE 7411/tcp 7411/udp
 CMD ["rlbridge", "demo", "--seconds", "5", "--no-plot"]

@@ -13,6 +13,7 @@ import enum
 import importlib
 import inspect
 import re
+import types
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -30,6 +31,9 @@ API: list[tuple[str, str, list[str], str]] = [
     ("Bridge channels", "rlbridge.csp.bridge_channels",
      ["IncomingChannel", "OutgoingChannel", "AgedValue", "SecondWriterError"],
      "What `Bridge.subscribe` and `Bridge.publish` return."),
+    ("Write-time type checks", "rlbridge.csp.value_check", ["WrongValueType"],
+     "`OutgoingChannel.write` of a value that cannot be the bound field's type raises this "
+     "`TypeError` ([concepts.md](concepts.md#values-are-checked-where-they-are-written))."),
     ("Channel health", "rlbridge.csp.health", ["ChannelHealth"],
      "`channel.health()`: link health per channel, readable from control code "
      "([policies.md](policies.md))."),
@@ -173,9 +177,10 @@ def _signature(obj: Callable[..., Any], *, drop_self: bool = False) -> str:
 def _annotation(ann: Any) -> str:
     if isinstance(ann, str):
         return ann
-    if isinstance(ann, type):
-        return ann.__name__
-    return repr(ann).replace("typing.", "")
+    if isinstance(ann, type) and not isinstance(ann, types.GenericAlias):  # 3.10: an alias is
+        return ann.__name__                                                   # a type too
+    # pathlib._local: where Python 3.13 defines Path; the docs read the same on 3.10 to 3.13.
+    return repr(ann).replace("typing.", "").replace("pathlib._local.", "pathlib.")
 
 
 def _attribute_docs(module: Any) -> dict[str, str]:
@@ -317,7 +322,8 @@ def render_api(header: str) -> str:
         for name in names:
             obj = getattr(module, name)
             qual = f"{modname}.{name}"
-            if inspect.isclass(obj):
+            # On Python 3.10 an alias such as ``Callable[[int], None]`` passes isclass() too.
+            if inspect.isclass(obj) and not isinstance(obj, types.GenericAlias):
                 body += _render_class(obj, qual)
             elif inspect.isfunction(obj):
                 body += [f"### `{name}{_signature(obj)}`", "", _doc(obj, qual), ""]

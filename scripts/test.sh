@@ -1,6 +1,11 @@
 #!/usr/bin/env bash
-# The test command (README): install what the tests need, lint, type-check, run the tests.
-# Works on a fresh machine with only Python 3.11, pip and apt. Extra args go to pytest.
+# The test command (README): install what the tests need, lint, type-check, run the tests
+# (the full suite, on python3: 3.11 here), then the Python x ROS 2 matrix (scripts/test_matrix.sh:
+# the SDK, server, wire, CLI and ROS 2 tests on Python 3.10, 3.12 and 3.13, ROS 2 Jazzy's wheels
+# and a graph across releases, the README's examples after a plain `pip install .` on each
+# Python). Works on a fresh machine with only Python 3.11, pip and apt: a Python that is not
+# there is a loud MISSING line and its legs are skipped, except with CI=true, where it fails.
+# Extra args go to the full suite's pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -23,4 +28,8 @@ python3 -m venv .venv
 .venv/bin/ruff check src tests scripts benchmarks examples
 .venv/bin/mypy --strict src benchmarks
 # pytest exits 5 when it collected no test: with `set -e` that fails the run, as it should.
+export RLBRIDGE_TEST_REQUIRE_ROS2=1  # rclpy was installed above: the ROS 2 tests must run
+start=$SECONDS
 .venv/bin/python -m pytest "$@"
+echo "full suite: wall time $((SECONDS - start)) s"
+bash scripts/test_matrix.sh

@@ -379,7 +379,13 @@ def wait_server_ready(port: int, proc: subprocess.Popen[str] | None = None,
 
 
 def start_cli_server(procs: CliProcesses, *extra: str) -> tuple[int, subprocess.Popen[str]]:
-    """``rlbridge serve --port P *extra`` on a free port P, returned once it serves."""
+    """``rlbridge serve --port P *extra`` on a free port P, returned once it serves.
+
+    At ``--log-level warning`` unless ``extra`` says otherwise: the default (info) logs every
+    session, and nobody reads the stderr pipe of a long-lived test server until it stops.
+    """
+    if "--log-level" not in extra:
+        extra = (*extra, "--log-level", "warning")
     last: AssertionError | None = None
     for _ in range(3):  # the free port may be taken between probing and binding
         port = free_port()

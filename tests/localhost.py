@@ -12,10 +12,10 @@ import sys
 from pathlib import Path
 
 
-def rlbridge_command() -> list[str]:
-    """The installed ``rlbridge`` console script next to this interpreter, else ``-m``."""
-    script = shutil.which("rlbridge", path=str(Path(sys.executable).parent))
-    return [script] if script else [sys.executable, "-m", "rlbridge.cli"]
+def rlbridge_command(python: str = sys.executable) -> list[str]:
+    """The installed ``rlbridge`` console script next to ``python`` (this one), else ``-m``."""
+    script = shutil.which("rlbridge", path=str(Path(python).parent))
+    return [script] if script else [python, "-m", "rlbridge.cli"]
 
 
 def free_port() -> int:

@@ -9,10 +9,11 @@ import math
 import shlex
 from collections.abc import Sequence
 from dataclasses import asdict
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
 from benchmarks.evaluation import policies
+from benchmarks.evaluation.scenarios import SCENARIOS, Scenario
 from benchmarks.evaluation.sweep import (
     BASELINE_SCENARIOS,
     PERIOD_MS,
@@ -23,7 +24,7 @@ from benchmarks.evaluation.sweep import (
     ThroughputPoint,
 )
 from rlbridge.bench.common import fmt, machine_info, markdown_table
-from rlbridge.bench.scenarios import SCENARIOS, TRANSPORTS, Scenario, Summary
+from rlbridge.bench.scenarios import TRANSPORTS, Summary
 
 THESIS_TP = {  # tables 3.1 (native ROS port) and 3.2 (ROS-LUNA bridge), values/s
     "up": {100: ("99.9", "100.0"), 250: ("250.4", "250.0"), 500: ("500.2", "250.0"),
@@ -230,7 +231,7 @@ def render(ev: Evaluation, settings: EvalSettings, command: Sequence[str],
         "`figures/evaluation/` next to it and `summary.{json,csv}` under "
         "`benchmarks/results/evaluation/`).", "",
         "## Machine", "",
-        f"Date: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}  ",
+        f"Date: {datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}  ",
         *[f"{k}: {v}  " for k, v in info.items()],
         f"load average during the run: {load}  ", "",
         "The machine is shared (2 vCPUs, up to 8 other jobs): tail figures (p99, max) carry "

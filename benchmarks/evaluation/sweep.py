@@ -18,17 +18,11 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from benchmarks.evaluation import policies
+from benchmarks.evaluation.scenarios import QUICK_SCENARIOS, SCENARIOS, Scenario
 from rlbridge.bench import baselines
 from rlbridge.bench.common import BenchError, Link, LoopbackLink, ProcessGroup, Skipped, run_flow
 from rlbridge.bench.netpath import PriorityLink, StreamResult, StreamSpec, measure_stream
-from rlbridge.bench.scenarios import (
-    QUICK_SCENARIOS,
-    SCENARIOS,
-    TRANSPORTS,
-    Scenario,
-    Summary,
-    summarise,
-)
+from rlbridge.bench.scenarios import TRANSPORTS, Summary, summarise
 
 if TYPE_CHECKING:
     from rlbridge.netem import EmulatedLink

@@ -1,8 +1,16 @@
 """rlbridge: a bridge between hard-real-time control code and ROS 2, over TCP and UDP.
 
-The client SDK is ``from rlbridge import Bridge``; the server is ``rlbridge serve`` (or
-:class:`rlbridge.server.Server`). Importing this package imports neither asyncio's server
-machinery nor rclpy: the names below load on first use.
+Names (``from rlbridge import ...``):
+
+    Bridge      the client SDK: ``Bridge.connect(host, port)``, then ``subscribe`` and
+                ``publish`` return CSP channels bound to topics (``help(rlbridge.Bridge)``)
+    LinkState   ``connected``, ``degraded`` or ``lost`` (``bridge.link_state``)
+    __version__ the installed version
+
+The server is the command ``rlbridge serve`` (or :class:`rlbridge.server.Server`);
+``rlbridge --help`` or ``python -m rlbridge --help`` lists every command. The distribution
+is ``rlbridge-sdk`` (``pip install -e .`` from a checkout). Importing this package imports
+neither asyncio's server machinery nor rclpy: the names above load on first use.
 """
 
 from __future__ import annotations
@@ -28,3 +36,8 @@ def __getattr__(name: str) -> Any:
 
         return LinkState
     raise AttributeError(f"module 'rlbridge' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The lazy names too, so ``dir(rlbridge)`` and completion show ``Bridge``."""
+    return sorted({*globals(), *__all__})

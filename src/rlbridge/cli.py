@@ -5,10 +5,8 @@ from __future__ import annotations
 import functools
 import itertools
 import json
-import logging
 import math
 import statistics
-import sys
 import time
 from typing import Annotated, Any
 
@@ -16,6 +14,13 @@ import typer
 
 from rlbridge._version import __version__
 from rlbridge.cli_errors import fail, one_line_errors
+from rlbridge.cli_options import (
+    LOG_LEVEL_HELP,
+    check_log_level,
+    check_transport,
+    configure_logging,
+    option,
+)
 
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
@@ -27,11 +32,13 @@ topic_app = typer.Typer(help="Publish, echo, measure and list topics through a r
                         no_args_is_help=True)
 app.add_typer(topic_app, name="topic")
 
-Host = Annotated[str, typer.Option("--host", "-H", help="Bridge server address.")]
-Port = Annotated[int, typer.Option("--port", "-p", help="Bridge server port.")]
-Field = Annotated[str, typer.Option("--field", "-f",
-                                    help="Field path ('data', 'linear.x'); '' = whole message.")]
-TransportOpt = Annotated[str, typer.Option("--transport", "-t", help="udp or tcp.")]
+Host = Annotated[str, option("--host", "Bridge server address.")]
+Port = Annotated[int, option("--port", "Bridge server port.")]
+Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
+TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=check_transport)]
+LogLevel = Annotated[str | None, typer.Option(
+    "--log-level", callback=check_log_level, show_default=False,
+    help=f"{LOG_LEVEL_HELP} [default: warning; serve: info]")]
 
 
 def _transport(value: str) -> str:
@@ -48,22 +55,23 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def main_options(
+    ctx: typer.Context,
     version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                           help="Print the version and exit.")] = False,
-    log_level: Annotated[str, typer.Option("--log-level", help="debug, info, warning, error.")]
-    = "warning",
+    log_level: LogLevel = None,
 ) -> None:
     """rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP."""
-    logging.basicConfig(level=log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    ctx.obj = {"log_level": log_level}
+    configure_logging(log_level or "warning")
 
 
 @app.command()
 @one_line_errors
 def serve(
-    host: Annotated[str, typer.Option(help="Address to bind (0.0.0.0 for all interfaces).")]
+    ctx: typer.Context,
+    host: Annotated[str, option("--host", "Address to bind (0.0.0.0 for all interfaces).")]
     = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="TCP and UDP port (0: any free port).")] = 7411,
+    port: Annotated[int, option("--port", "TCP and UDP port (0: any free port).")] = 7411,
     tcp: Annotated[bool, typer.Option("--tcp/--no-tcp", help="Accept TCP clients.")] = True,
     udp: Annotated[bool, typer.Option("--udp/--no-udp", help="Accept UDP clients.")] = True,
     nodelay: Annotated[bool, typer.Option(help="Disable Nagle's algorithm (TCP_NODELAY).")]
@@ -89,11 +97,21 @@ def serve(
     max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
     metrics_port: Annotated[int | None, typer.Option(
-        help="Serve Prometheus metrics at http://HOST:PORT/metrics (default: off).")] = None,
+        help="Serve http://HOST:PORT/metrics (Prometheus), /healthz and /status (JSON); "
+             "default: off.")] = None,
+    log_level: LogLevel = None,
 ) -> None:
-    """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md)."""
+    """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md).
+
+    It logs one line when it listens (address, ports, adapter, authentication) and one when
+    it stops, and, at most once per 10 s per kind, what clients got wrong (a wrong key, a
+    malformed packet, a refused channel). Exit status 0 after a clean stop, 1 if it cannot
+    start.
+    """
+    configure_logging(log_level or (ctx.obj or {}).get("log_level") or "info")
     from pydantic import ValidationError
 
+    from rlbridge.cli_options import config_error
     from rlbridge.server import Server, ServerConfig
 
     try:
@@ -105,9 +123,7 @@ def serve(
                               max_packet=max_packet,
                               metrics_port=metrics_port)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "config"
-        raise fail(f"{where}: {first['msg']}", 2) from None
+        raise fail(config_error(exc), 2) from None
     Server(config).run()
 
 
@@ -132,7 +148,13 @@ def topic_pub(
     host: Host = "127.0.0.1",
     port: Port = 7411,
 ) -> None:
-    """Publish VALUE on TOPIC through the bridge."""
+    """Publish VALUE on TOPIC through the bridge.
+
+    Exits 0 only once the server has counted every value; a value it refuses (not the
+    channel's type, over its --max-rate) or a datagram that never arrives makes it exit 1,
+    saying how many of how many the server took.
+    """
+    from rlbridge.cli_delivery import confirm_delivery
     from rlbridge.csp.bridge import Bridge
 
     parsed = _parse_value(value)
@@ -142,10 +164,14 @@ def topic_pub(
         period = 1.0 / rate if rate > 0 else 0.0
         start = time.monotonic()
         for i in range(n):
-            out.write(parsed)
+            try:
+                out.write(parsed)
+            except TypeError as exc:  # the SDK checks the value against the field's type
+                raise fail(str(exc), 2) from None
             if i + 1 < n:
                 time.sleep(max(0.0, start + (i + 1) * period - time.monotonic()))
         bridge.send(wait=True)
+        confirm_delivery(bridge, out, n)
     typer.echo(f"published {n} message(s) on {topic}")
 
 
@@ -214,7 +240,10 @@ def topic_hz(
     host: Host = "127.0.0.1",
     port: Port = 7411,
 ) -> None:
-    """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second)."""
+    """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
+
+    With --duration, exits 1 if no value arrived in that time (like echo's --timeout).
+    """
     from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.errors import ChannelClosed
 
@@ -240,6 +269,8 @@ def topic_hz(
                 next_report += 1.0
                 typer.echo(format_rate(arrivals))
         typer.echo(format_rate(arrivals))
+        if not arrivals:
+            raise fail(f"no value on {topic} within {duration:g} s")
 
 
 def format_rate(arrivals: list[float]) -> str:
@@ -259,7 +290,7 @@ def format_rate(arrivals: list[float]) -> str:
 def topic_list(
     host: Host = "127.0.0.1",
     port: Port = 7411,
-    show_types: Annotated[bool, typer.Option("--show-types", "-t", help="Print types too.")]
+    show_types: Annotated[bool, option("--show-types", "Print types too.")]
     = False,
 ) -> None:
     """List the topics the server's middleware knows."""
@@ -285,6 +316,26 @@ def stats(
     with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False) as bridge:
         body = bridge.server_stats()
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
+
+
+@app.command()
+@one_line_errors
+def ping(
+    host: Host = "127.0.0.1",
+    port: Port = 7411,
+    transport: TransportOpt = "tcp",
+    timeout: Annotated[float, typer.Option(help="Seconds to wait for the answer.")] = 2.0,
+) -> None:
+    """Exit 0 if a bridge server answers at HOST:PORT, 1 if not: a health probe.
+
+    Any answer counts (a session, a key challenge, a refusal): the server is up. No key is
+    needed and no session stays open.
+    """
+    from rlbridge.ping import ping as probe
+
+    answer = probe(host, port, _transport(transport), timeout)
+    typer.echo(f"rlbridge server at {host}:{port} ({answer.transport.upper()}) "
+               f"{answer.said} in {answer.seconds * 1e3:.1f} ms")
 
 
 @functools.cache

@@ -19,7 +19,11 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def fail(message: str, code: int = 1) -> typer.Exit:
-    """Print one line on stderr and exit non-zero: the CLI's only way to report an error."""
+    """Print one line on stderr and exit non-zero: the CLI's only way to report an error.
+
+    Code 1: the command could not do what was asked; 2: the command line itself is wrong;
+    130 (from :func:`one_line_errors`): interrupted by Ctrl-C.
+    """
     typer.echo(f"rlbridge: error: {message}", err=True)
     return typer.Exit(code)
 
@@ -29,17 +33,21 @@ def one_line_errors(fn: F) -> F:
     from rlbridge.adapters import AdapterUnavailable, BindingError
     from rlbridge.server import ServerError
     from rlbridge.wire import RlbridgeError
+    from rlbridge.wire.errors import RemoteError
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
+        except RemoteError as exc:  # the server's reason, without the protocol's code name
+            raise fail(exc.reason) from None
         except (RlbridgeError, ServerError, AdapterUnavailable) as exc:
             raise fail(str(exc)) from None
         except BindingError as exc:
             raise fail(exc.reason) from None
-        except OSError as exc:
-            raise fail(exc.strerror or str(exc)) from None
+        except OSError as exc:  # a file the user named: say which
+            reason = exc.strerror or str(exc)
+            raise fail(f"{exc.filename}: {reason}" if exc.filename else reason) from None
         except ValueError as exc:
             raise fail(str(exc)) from None
         except KeyboardInterrupt:

@@ -14,11 +14,11 @@ from typing import Annotated, Any
 import typer
 
 from rlbridge.cli_errors import fail, one_line_errors
+from rlbridge.cli_options import option
 
-# The same options as ``topic`` (rlbridge.cli), spelled here so this group need not import the
-# app that imports it.
-Host = Annotated[str, typer.Option("--host", "-H", help="Bridge server address.")]
-Port = Annotated[int, typer.Option("--port", "-p", help="Bridge server port.")]
+# The same options as ``topic`` (rlbridge.cli), built the same way (cli_options).
+Host = Annotated[str, option("--host", "Bridge server address.")]
+Port = Annotated[int, option("--port", "Bridge server port.")]
 
 service_app = typer.Typer(help="Call and list services through a running server.",
                           no_args_is_help=True)
@@ -27,7 +27,7 @@ param_app = typer.Typer(help="Get, set and list the parameters of ROS nodes.",
 action_app = typer.Typer(help="Send action goals through a running server.",
                          no_args_is_help=True)
 
-Timeout = Annotated[float, typer.Option(help="Seconds to wait for the answer.")]
+Timeout = Annotated[float, option("--timeout", "Seconds to wait for the answer.")]
 
 
 def parse_document(text: str, what: str) -> Any:
@@ -66,8 +66,7 @@ def _connect(host: str, port: int, name: str) -> Any:
 def service_list(
     host: Host = "127.0.0.1",
     port: Port = 7411,
-    show_types: Annotated[bool, typer.Option("--show-types", "-t", help="Print types too.")]
-    = False,
+    show_types: Annotated[bool, option("--show-types", "Print types too.")] = False,
 ) -> None:
     """List the services the server's middleware knows."""
     with _connect(host, port, "rlbridge-service-list") as bridge:
@@ -140,9 +139,9 @@ def action_send(
                                                help="e.g. test_msgs/action/Fibonacci")],
     goal: Annotated[str, typer.Argument(help="Goal fields, JSON or YAML: '{order: 5}'.")]
     = "{}",
-    timeout: Annotated[float, typer.Option(
-        help="Seconds to wait for the goal to be accepted, and then for its result "
-             "(0 = no limit for the result).")] = 5.0,
+    timeout: Annotated[float, option(
+        "--timeout", "Seconds to wait for the goal to be accepted, and then for its result "
+        "(0 = no limit for the result).")] = 5.0,
     host: Host = "127.0.0.1",
     port: Port = 7411,
 ) -> None:

@@ -5,9 +5,12 @@ Every ROS 2 test depends on :func:`ros_env`, which (for the whole session) sets
 * ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``: DDS discovery and data stay on the loopback
   interface and shared memory; nothing is sent to other hosts or multicast on the LAN;
 * ``ROS_DOMAIN_ID`` derived from the pid (1..100): two test runs on one machine (two developers,
-  or CI next to a developer) do not see each other's topics;
+  or CI next to a developer) do not see each other's topics; ``RLBRIDGE_TEST_ROS_DOMAIN_ID``
+  picks it instead (scripts/test.sh gives each of its ROS runs its own);
 
-and clears ``ROS_STATIC_PEERS`` so no configured peer is contacted. ``ROS_LOG_DIR`` points into
+and clears ``ROS_STATIC_PEERS`` so no configured peer is contacted. With
+``RLBRIDGE_TEST_REQUIRE_ROS2=1`` (scripts/test.sh) a missing rclpy stops the run instead of
+skipping the ROS 2 tests. ``ROS_LOG_DIR`` points into
 pytest's temporary directory: rcl opens a log file per context start, which would otherwise pile
 up in ``~/.ros/log``. rclpy reads these when a
 context is initialised, so they must be set before any adapter or peer process starts; peer
@@ -17,6 +20,7 @@ between two runs cannot mix their results.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -32,12 +36,38 @@ import pytest
 
 PEER_SCRIPT = Path(__file__).with_name("ros2_peer.py")
 
+REQUIRE_ROS2 = os.environ.get("RLBRIDGE_TEST_REQUIRE_ROS2") == "1"
+if REQUIRE_ROS2 and importlib.util.find_spec("rclpy") is None:
+    # scripts/test.sh installed rclpy: without it the ROS 2 tests would skip, and pass unseen.
+    raise pytest.UsageError("RLBRIDGE_TEST_REQUIRE_ROS2=1 but this Python has no rclpy")
+
+
+def env_for(python: str) -> dict[str, str]:
+    """The environment for a child process on ``python``: this one's, less its ROS wheel paths.
+
+    The ROS wheels re-execute Python at start-up with ``LD_LIBRARY_PATH`` pointing into their
+    venv and ``_ROS_WHEELS_BOOTSTRAP_COMPLETE=1``; a child inherits both. On the same venv that
+    is what it needs; on another venv (another ROS release) it would skip its own set-up and
+    load this venv's libraries, or none ("libfastrtps.so.2.14: cannot open shared object
+    file"). So for another interpreter both go, and its bootstrap runs as in a fresh shell.
+    """
+    env = dict(os.environ)
+    if Path(python).resolve() == Path(sys.executable).resolve():
+        return env
+    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
+    ours = os.path.realpath(sys.prefix) + os.sep
+    kept = [p for p in env.pop("LD_LIBRARY_PATH", "").split(os.pathsep)
+            if p and not os.path.realpath(p).startswith(ours)]
+    if kept:
+        env["LD_LIBRARY_PATH"] = os.pathsep.join(kept)
+    return env
+
 
 @pytest.fixture(scope="session")
 def ros_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
     """Scope ROS 2 discovery to this machine and this run; yields the domain id."""
-    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge[ros2]')")
-    domain_id = 1 + os.getpid() % 100
+    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')")
+    domain_id = int(os.environ.get("RLBRIDGE_TEST_ROS_DOMAIN_ID") or 1 + os.getpid() % 100)
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("ROS_LOG_DIR", str(tmp_path_factory.mktemp("ros_log")))
         mp.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -61,12 +91,14 @@ class PeerProcess:
     """A ``ros2_peer.py serve`` process: a plain rclpy node driven over JSON lines.
 
     Replies and received messages come back on its stdout, read by a thread here; requests and
-    waits are bounded, so a hung peer fails a test instead of hanging it.
+    waits are bounded, so a hung peer fails a test instead of hanging it. ``python`` runs it on
+    another interpreter, whose rclpy may be another ROS 2 release (test_ros2_cross_release.py).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, python: str = sys.executable) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, str(PEER_SCRIPT), "serve"],
+            [python, str(PEER_SCRIPT), "serve"],
+            env=env_for(python),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,

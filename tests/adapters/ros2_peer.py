@@ -18,6 +18,9 @@ Modes
     The node-to-node baseline: start a ``latency-pub`` process publishing Float64 stamped with
     ``time.perf_counter()`` (CLOCK_MONOTONIC, the same clock in every process) at ``rate`` Hz,
     subscribe here, print p50/p99/max latency in microseconds as one JSON line.
+``release``
+    Print which rclpy this interpreter has, as one JSON line: its distribution and version
+    (``ros-rclpy`` 9.1 for the current wheels, 7.1 for Jazzy's), the RMW, the Python version.
 
 Discovery scope comes from the environment (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``)
 which the tests set; run it by hand with ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``.
@@ -329,16 +332,34 @@ def latency(rate: float, count: int, depth: int) -> None:
     print(json.dumps(result))
 
 
+def release() -> None:
+    """Say which ROS 2 release this interpreter's rclpy comes from (wheels or a sourced ROS)."""
+    from importlib import metadata
+
+    dists = metadata.packages_distributions().get("rclpy", [])
+    versions = {d: metadata.version(d) for d in dists}
+    print(json.dumps({
+        "rclpy": versions.get("ros-rclpy") or next(iter(versions.values()), "unknown"),
+        "distributions": versions,
+        "ros_distro": os.environ.get("ROS_DISTRO"),
+        "rmw": rclpy.get_rmw_implementation_identifier(),
+        "python": ".".join(map(str, sys.version_info[:3])),
+        "path": os.path.dirname(rclpy.__file__),
+    }))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("mode", nargs="?", default="serve",
-                        choices=["serve", "latency", "latency-pub"])
+                        choices=["serve", "latency", "latency-pub", "release"])
     parser.add_argument("--rate", type=float, default=1000.0)
     parser.add_argument("--count", type=int, default=5000)
     parser.add_argument("--depth", type=int, default=10, help="QoS KEEP_LAST depth")
     args = parser.parse_args()
     if args.mode == "serve":
         Peer().serve()
+    elif args.mode == "release":
+        release()
     elif args.mode == "latency":
         latency(args.rate, args.count, args.depth)
     else:

@@ -17,7 +17,7 @@ from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS
 
 ros2 = pytest.importorskip(
     "rlbridge.adapters.ros2",
-    reason="rclpy is not installed (pip install 'rlbridge[ros2]')",
+    reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')",
     exc_type=ImportError,
 )
 

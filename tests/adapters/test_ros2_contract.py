@@ -10,7 +10,7 @@ from rlbridge.adapters.base import MiddlewareAdapter
 
 ros2 = pytest.importorskip(
     "rlbridge.adapters.ros2",
-    reason="rclpy is not installed (pip install 'rlbridge[ros2]')",
+    reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')",
     exc_type=ImportError,
 )
 

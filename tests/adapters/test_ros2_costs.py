@@ -1,8 +1,9 @@
 """What the ROS 2 adapter costs the server: start-up, binding, and publish() per message.
 
 Figures are printed (``pytest -s tests/adapters/test_ros2_costs.py``) as a baseline for the
-benchmarks; the assertions are generous bounds that only catch an order-of-magnitude
-regression, since the machine may be shared.
+benchmarks (``rlbridge bench ros2`` for the figures with a same-run baseline). No timing is
+asserted: on a shared machine any bound fails for reasons that are not bugs. The tests check
+that each operation works at volume (every binding made, every publish accepted).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from rlbridge.adapters.base import QoS
 
 ros2 = pytest.importorskip(
     "rlbridge.adapters.ros2",
-    reason="rclpy is not installed (pip install 'rlbridge[ros2]')",
+    reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')",
     exc_type=ImportError,
 )
 
@@ -63,8 +64,7 @@ def test_start_up_and_binding_costs(ros_env: int, unique_topic: Callable[[str], 
         f"create_publisher p50 {_us(statistics.median(pubs))}, subscribe p50 "
         f"{_us(statistics.median(subs))}"
     )
-    assert statistics.median(pubs) < 0.05
-    assert statistics.median(subs) < 0.05
+    assert len(pubs) == len(subs) == 20
 
 
 @pytest.mark.parametrize(
@@ -109,4 +109,4 @@ def test_publish_cost_per_message(
         f"{_us(singles[int(len(singles) * 0.99)])}; batch of 100 "
         f"{_us(statistics.median(batches))}/msg"
     )
-    assert statistics.median(singles) < 0.002
+    assert len(singles) == 2000

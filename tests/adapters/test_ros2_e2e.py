@@ -18,6 +18,7 @@ import os
 import re
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from conftest import env_for
 from localhost import rlbridge_command
 from rlbridge.csp.bridge import Bridge
 from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
@@ -36,7 +38,7 @@ pytestmark = [pytest.mark.ros2, pytest.mark.timeout(90)]
 
 #: Bound of every wait (discovery and start-up on a loaded 2-core machine take seconds).
 TIMEOUT = 20.0
-SERVING = re.compile(r"rlbridge serving on [^ ]+:(\d+) ")
+SERVING = re.compile(r"rlbridge listening on [^ ]+ port (\d+) ")
 
 ZERO3 = {"x": 0.0, "y": 0.0, "z": 0.0}
 TWIST = {"linear": {"x": 0.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.25}}
@@ -45,11 +47,14 @@ POSE = {"position": {"x": 1.0, "y": 2.0, "z": 3.0},
 
 
 class CliServer:
-    """``rlbridge serve --adapter ros2 --port 0`` in a subprocess; its stderr kept in a list."""
+    """``rlbridge serve --adapter ros2 --port 0`` in a subprocess; its stderr kept in a list.
 
-    def __init__(self, node_name: str) -> None:
-        command = rlbridge_command()
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    ``python`` picks the interpreter (and so the rclpy) the server runs on.
+    """
+
+    def __init__(self, node_name: str, python: str = sys.executable) -> None:
+        command = rlbridge_command(python)
+        env = {**env_for(python), "PYTHONUNBUFFERED": "1"}
         env.pop("PYTHONWARNINGS", None)
         self.proc = subprocess.Popen(
             [*command, "--log-level", "info", "serve", "--port", "0", "--adapter", "ros2",

@@ -37,7 +37,7 @@ def test_without_rclpy_the_import_error_says_what_to_install() -> None:
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("ImportError:")
-    assert "pip install 'rlbridge[ros2]'" in result.stdout
+    assert "pip install 'rlbridge-sdk[ros2]'" in result.stdout
 
 
 @pytest.mark.ros2

@@ -167,7 +167,7 @@ def test_cli_service_call_and_list(reach: World) -> None:
     response = json.loads(done.stdout)
     assert (response["int32_value"], response["string_value"], response["float64_value"]) == (
         -7, "cba", 2.5)
-    done = cli(reach, "service", "list", "-t")
+    done = cli(reach, "service", "list", "--show-types")
     assert done.returncode == 0, done.stderr
     assert f"/reach/set_bool [{SET_BOOL}]" in done.stdout.splitlines()
 

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 pytest.importorskip(
     "rosidl_parser",
-    reason="ROS 2 message packages are not installed (pip install 'rlbridge[ros2]')",
+    reason="ROS 2 message packages are not installed (pip install 'rlbridge-sdk[ros2]')",
 )
 
 from rlbridge.adapters.base import BindingError

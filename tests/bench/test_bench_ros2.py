@@ -32,7 +32,7 @@ def _table_rows(text: str) -> dict[str, list[list[str]]]:
 def test_bench_ros2_runs_baseline_and_both_directions(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge[ros2]')")
+    pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')")
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.setenv("ROS_DOMAIN_ID", str(1 + (os.getpid() + 50) % 100))
     out = tmp_path / "ros2.md"

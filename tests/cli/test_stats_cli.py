@@ -66,5 +66,5 @@ def test_bad_metrics_port_is_one_line(cli: Any) -> None:
     result = cli.run("serve", "--port", "0", "--metrics-port", "70000")
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
-        "rlbridge: error: metrics_port: Input should be less than or equal to 65535"]
+        "rlbridge: error: --metrics-port: Input should be less than or equal to 65535"]
     assert isinstance(result, subprocess.CompletedProcess)

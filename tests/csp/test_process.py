@@ -11,6 +11,7 @@ from collections.abc import Collection
 
 import pytest
 
+from rlbridge._compat import ExceptionGroup
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.process import (

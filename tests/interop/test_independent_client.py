@@ -84,10 +84,12 @@ def test_scenario_values_arrive_intact_and_in_order(server: ServerThread) -> Non
     assert (r.ack.heartbeat_ms, r.ack.timeout_ms) == (50, 5000)
     assert (r.ack.max_packet, r.ack.max_channels, r.ack.max_batch) == (1 << 20, 256, 4096)
     for ch, ack in r.acks.items():
-        assert ack.fields == (ch, F64, 0.0)
+        assert ack.fields[:3] == (ch, F64, 0.0)
+        # Doc 6.5: a publish channel's ack carries the JSON Schema of its values; nil else.
+        assert ack.field(4) == ({"type": "number"} if ch in (1, 4) else None)
     assert r.acks[4].via == "udp", "a TopicConnect sent over UDP is answered over UDP (doc 9)"
     assert r.retransmit_ack is not None
-    assert r.retransmit_ack.fields == (4, F64, 0.0)
+    assert r.retransmit_ack.fields == r.acks[4].fields
 
     expected = r.sent_tcp + r.sent_udp
     assert ic.same_floats(r.got_tcp, expected), r.got_tcp
@@ -183,7 +185,7 @@ def test_shortest_and_longer_forms_are_accepted(client: ic.IndependentClient) ->
     assert ack.field(6) == b""
     topic = new_topic()
     client.send_tcp([ic.TAG_TOPIC_CONNECT, 1, "subscribe", topic, F64])  # field, transport...
-    assert client.recv_tag(ic.TAG_TOPIC_ACK).fields == (1, F64, 0.0)
+    assert client.recv_tag(ic.TAG_TOPIC_ACK).fields == (1, F64, 0.0, None)
     client.send_tcp([ic.TAG_TOPIC_CONNECT, 2, "publish", topic, F64, "data", "tcp", 1, None,
                      10, 0, 0, False, "volatile", "a future field"])
     assert client.recv_tag(ic.TAG_TOPIC_ACK).field(1) == 2
@@ -444,11 +446,14 @@ def test_value_errors(session: ic.IndependentClient) -> None:
         session.send_tcp(body)
         err = session.recv_tag(ic.TAG_ERROR)
         assert (err.field(1), err.field(3)) == (code, ch), err
-    # Integers are widened to float64; the refused values' numbers (0..3) are used up.
+        # Doc 6.12: field 4 counts the values a BAD_VALUE refused; 0 for other errors.
+        assert err.field(4, 0) == (1 if code == ic.BAD_VALUE else 0), err
+    # Doc 7: a batch's bad value costs only itself (its good 1.0 was published); integers
+    # are widened to float64; the refused values' numbers (0..3) are used up.
     session.send_tcp(ic.value(2, 4, 0, 3))
-    got = session.collect(1, 1)
-    assert got == [3.0]
-    assert isinstance(got[0], float)
+    got = session.collect(1, 2)
+    assert got == [1.0, 3.0]
+    assert isinstance(got[1], float)
 
 
 def test_topic_close_unbinds(session: ic.IndependentClient) -> None:

@@ -94,15 +94,15 @@ def test_delays_one_direction_and_keeps_order(make_relay: MakeRelay) -> None:
         arrived = time.monotonic()
         assert struct.unpack("!I", data)[0] == seq
         assert arrived - sent_at[seq] >= 0.020  # never early: strict lower bound
-        assert arrived - sent_at[seq] < 1.0  # generous upper bound
-    start = time.monotonic()
     h.app_b.send(b"back")
     assert h.app_a.recv(100) == b"back"
-    assert time.monotonic() - start < 0.5  # the other direction is clean
 
+    # No upper bound on the time (a loaded machine is slow for no fault of the relay): the
+    # relay's own counters say each packet went through once, in its direction.
     reply = h.request(control.GetStats())
     assert isinstance(reply, control.StatsReply)
     assert reply.stats.a_to_b.received == reply.stats.a_to_b.delivered == 10
+    assert reply.stats.b_to_a.received == reply.stats.b_to_a.delivered == 1
     assert reply.stats.a_to_b.bytes_delivered == 40
     assert reply.stats.b_to_a.delivered == 1
     assert reply.stats.a_to_b.in_flight == 0
@@ -139,10 +139,8 @@ def test_loss_is_counted_and_matches_the_model(make_relay: MakeRelay) -> None:
 
 def test_set_impairments_applies_to_new_packets(make_relay: MakeRelay) -> None:
     h = make_relay(Impairment(), Impairment())
-    start = time.monotonic()
     h.app_a.send(b"fast")
     assert h.app_b.recv(100) == b"fast"
-    fast = time.monotonic() - start
     assert isinstance(
         h.request(control.SetImpairments(a_to_b=Impairment(delay_ms=30.0), b_to_a=Impairment())),
         control.Ok,
@@ -150,8 +148,7 @@ def test_set_impairments_applies_to_new_packets(make_relay: MakeRelay) -> None:
     start = time.monotonic()
     h.app_a.send(b"slow")
     assert h.app_b.recv(100) == b"slow"
-    assert time.monotonic() - start >= 0.030
-    assert fast < 0.5
+    assert time.monotonic() - start >= 0.030  # the new delay applies: never early
 
 
 def test_stop_request_ends_the_loop(make_relay: MakeRelay) -> None:

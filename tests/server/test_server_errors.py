@@ -176,6 +176,32 @@ def test_bad_value_inside_a_batch_names_its_index(raw_tcp: Callable[..., Any]) -
     assert_usable(client)
 
 
+def test_only_the_bad_values_of_a_batch_are_refused(raw_tcp: Callable[..., Any]) -> None:
+    """Five values, two bad: the three good ones are published in order, the error counts 2."""
+    client = raw_tcp()
+    client.hello()
+    client.send(TopicConnect(5, "subscribe", "/mixed", F64, transport="tcp"))
+    client.expect(TopicAck)
+    client.send(TopicConnect(4, "publish", "/mixed", F64, transport="tcp"))
+    client.expect(TopicAck)
+    client.send(Batch(4, 0, [0] * 5, [1.0, "abc", 2, None, 3.0]))
+    received: list[Any] = []
+    error: Error | None = None
+    while error is None or len(received) < 3:
+        packet = client.recv()
+        if isinstance(packet, Error):
+            error = packet
+        elif isinstance(packet, Value | Batch):
+            received.extend([packet.value] if isinstance(packet, Value) else packet.values)
+    assert received == [1.0, 2.0, 3.0]
+    assert (error.code, error.channel, error.values) == (ErrorCode.BAD_VALUE, 4, 2)
+    assert "2 of 5 values refused" in error.reason
+    assert "at `$[1]`" in error.reason  # the first bad one, by its index in the batch
+    channel = client.stats()["session"]["channels"]["4"]
+    assert (channel["values_in"], channel["bad_values"], channel["rejected"]) == (3, 2, 2)
+    assert_usable(client)
+
+
 def test_values_on_unknown_channels(raw_tcp: Callable[..., Any]) -> None:
     client = raw_tcp()
     client.hello()

@@ -296,6 +296,7 @@ def test_port_in_use_is_a_server_error() -> None:
         holder.listen()
         port = holder.getsockname()[1]
         srv = ServerThread(port=port)
-        with pytest.raises(ServerError, match=f"cannot listen on 127.0.0.1:{port}"):
+        with pytest.raises(ServerError, match=f"cannot listen on 127.0.0.1 TCP port {port}: "
+                           "address already in use"):
             srv.start()
         srv.stop()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from rlbridge._version import pip_install
 from rlbridge.adapters.base import (
     BindingError,
     MiddlewareAdapter,
@@ -40,8 +41,7 @@ def load_adapter(
             from rlbridge.adapters.ros2 import Ros2Adapter
         except ImportError as exc:
             raise AdapterUnavailable(
-                f"the ros2 adapter needs rclpy ({exc}); install it with: "
-                "pip install 'rlbridge[ros2]'"
+                f"the ros2 adapter needs rclpy ({exc}); install it with: {pip_install('ros2')}"
             ) from None
         return Ros2Adapter(node_name, namespace, parameters=dict(parameters or {}))
     raise AdapterUnavailable(f"unknown adapter '{name}'; choose one of: {', '.join(ADAPTERS)}")

@@ -69,7 +69,11 @@ class Publisher(Protocol):
     """A run-time-bound publisher: client values into one middleware topic."""
 
     def publish(self, values: Sequence[Any]) -> None:
-        """Publish each value (field value or whole-message dict) as one message, in order."""
+        """Publish each value (field value or whole-message dict) as one message, in order.
+
+        A value the middleware cannot publish raises ``BindingError("BAD_VALUE")`` before
+        any value of the call is published (the server then retries value by value).
+        """
 
     def close(self) -> None:
         """Release the publisher; further publishes are a programming error."""

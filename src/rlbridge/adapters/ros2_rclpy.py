@@ -10,6 +10,8 @@ from __future__ import annotations
 import importlib
 import warnings
 
+from rlbridge._version import pip_install
+
 try:
     # rosidl_generator_py (imported by rclpy when a message's type support is first loaded)
     # imports lark-parser 0.12, which imports the deprecated ``sre_parse``. Import it once here
@@ -36,7 +38,7 @@ try:
     from rclpy.validate_full_topic_name import validate_full_topic_name
 except ImportError as exc:  # pragma: no cover - exercised only where rclpy is missing
     raise ImportError(
-        f"the ros2 adapter needs rclpy ({exc}); install rclpy with: pip install 'rlbridge[ros2]'"
+        f"the ros2 adapter needs rclpy ({exc}); install it with: {pip_install('ros2')}"
     ) from exc
 
 __all__ = [

@@ -45,7 +45,7 @@ from rlbridge.adapters.ros2_codecs import (
 )
 from rlbridge.adapters.ros2_fields import FieldCodec, MessageCodec, field_codec
 
-__all__ = ["ChannelCodec", "FieldCodec", "MessageCatalog", "MessageCodec", "pip_package"]
+__all__ = ["MessageCatalog", "pip_package"]
 
 _PACKAGE_RE = re.compile(r"[a-z][a-z0-9_]*\Z")
 _TYPE_RE = re.compile(r"[A-Z][A-Za-z0-9]*\Z")

@@ -187,19 +187,19 @@ def worker_main() -> None:
 
 def server_role(params: Params) -> None:
     """A bridge server (the same ``Server.serve`` the CLI runs); stops when stdin closes."""
-    import asyncio
     import logging
 
     from rlbridge.server import Server, ServerConfig, new_event_loop
+    from rlbridge.server.runner import run_on_loop
 
     logging.basicConfig(level=params.get("log_level", "INFO"), stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     config = ServerConfig(host=params["host"], port=0, **params.get("config", {}))
     server = Server(config)
     Control(on_eof=server.stop)
-    with asyncio.Runner(loop_factory=lambda: new_event_loop(config.use_uvloop)) as runner:
-        runner.run(server.serve(install_signal_handlers=True,
-                                started=lambda a: emit("ready", port=a.port)))
+    run_on_loop(server.serve(install_signal_handlers=True,
+                             started=lambda a: emit("ready", port=a.port)),
+                lambda: new_event_loop(config.use_uvloop))
 
 
 ROLES: dict[str, Role] = {"server": server_role}

@@ -15,7 +15,7 @@ import platform
 import shlex
 import sys
 from collections.abc import Sequence
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 
 
@@ -67,7 +67,7 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> str
 def report_header(title: str, command: Sequence[str]) -> str:
     """A report's title, the command that produced it, the date and the machine."""
     info = machine_info()
-    when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+    when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [f"### {title}", "", f"Command: `{shlex.join(command)}`  ", f"Date: {when}  "]
     lines += [f"{k}: {v}  " for k, v in info.items()]
     return "\n".join(lines).rstrip() + "\n"

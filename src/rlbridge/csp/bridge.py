@@ -223,7 +223,7 @@ class Bridge(ServiceMethods):
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
             max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
             reliability=reliability, depth=depth, durability=durability))
-        channel.msg_type = ack.msg_type
+        channel.bound(ack)
         with self._lock:
             self._outgoing[ch_id] = channel
         self._sender.add(channel)

@@ -18,6 +18,8 @@ write also rings the send thread's doorbell, which costs a futex wake *only* whe
 thread sleeps; with ``through_buffer`` on, a write makes no system call at all and the value
 leaves on ``Bridge.send()`` or the next send-loop tick. The ring is single-producer: a write
 from a second thread while the first writer thread lives raises :class:`ChannelMisuseError`.
+A value that cannot be the bound field's type raises at ``write`` (:mod:`.value_check`: one
+``type(value) in accept`` test on the fast path), so a bad value never reaches the wire.
 """
 
 from __future__ import annotations
@@ -30,9 +32,11 @@ from operator import itemgetter
 from typing import Any, NamedTuple
 
 from rlbridge.csp.channel import _MISSING, Channel, ChannelStatistics, Doorbell, _Missing
-from rlbridge.csp.errors import ChannelClosed, ChannelMisuseError
+from rlbridge.csp.errors import ChannelClosed, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.stamped_ring import StampedRing
+from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
+from rlbridge.wire import TopicAck
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
 from rlbridge.wire.link import LinkMonitor
 from rlbridge.wire.sequence import SequenceTracker
@@ -198,25 +202,13 @@ class IncomingChannel(Channel[Any]):
 _get_ident = threading.get_ident
 
 
-class SecondWriterError(ChannelMisuseError):
-    """A second thread wrote an outgoing channel whose first writer thread is still alive."""
-
-    def __init__(self, topic: str, owner: int, intruder: int) -> None:
-        super().__init__(f"{topic} out", "writer")
-        self.args = (
-            f"outgoing channel {topic!r} is written by thread {owner}; thread {intruder} "
-            "wrote it too. Its ring buffer has a single producer: two writers would lose "
-            "values without a trace. Publish one channel per writer thread, or hand values "
-            "to the one writer through a local Channel.",)
-
-
 class OutgoingChannel:
     """Control code -> middleware. ``write`` never blocks and never touches a socket."""
 
-    __slots__ = ("_bell", "_clock", "_closed", "_discarded", "_expired", "_held", "_history",
-                 "_link", "_max_age_ns", "_next_seq", "_overtaken", "_ring", "_writer",
-                 "channel_id", "field", "immediate", "latest", "msg_type", "redundancy",
-                 "ros_lost", "topic", "transport")  # fmt: skip
+    __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
+                 "_held", "_history", "_link", "_max_age_ns", "_next_seq", "_overtaken", "_refused",
+                 "_rejected", "_ring", "_within", "_writer", "channel_id", "field", "immediate",
+                 "latest", "msg_type", "redundancy", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
@@ -253,6 +245,21 @@ class OutgoingChannel:
         self._overtaken = 0
         self._expired = 0
         self._discarded = 0
+        self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
+        self._rejected = self._refused = 0  # refused at ``write``; by the server
+
+    def bound(self, ack: TopicAck) -> None:
+        """The server's answer: the type's normalised name, and the schema values must match."""
+        self.msg_type, check = ack.msg_type, compile_check(ack.schema)
+        self._accept, self._check, self._within = check.accept, check.coerce, check.within
+
+    def refused(self, count: int) -> None:  # receive thread: counted in health().rejected
+        """The server refused ``count`` values of this channel (``Error`` BAD_VALUE)."""
+        self._refused += count
+
+    def _wrong(self, exc: Mismatch) -> WrongValueType:
+        self._rejected += 1
+        return WrongValueType(self.topic, self.msg_type, self.field, exc)
 
     def _check_writer(self) -> None:
         """Slow path: a thread other than the recorded writer writes (module docstring)."""
@@ -263,11 +270,18 @@ class OutgoingChannel:
         self._writer = me  # first write, or the previous writer thread has ended
 
     def write(self, value: Any) -> None:
-        """Queue one value for the send thread; a full buffer drops its oldest value (counted)."""
+        """Queue one value for the send thread; a full buffer drops its oldest value (counted).
+        A value that cannot be the field's type raises ``WrongValueType`` (a TypeError)."""
         if self._closed:
             raise ChannelClosed(self.topic)
         if _get_ident() != self._writer:
             self._check_writer()
+        if type(value) not in self._accept or (self._within is not None
+                                               and value not in self._within):
+            try:
+                value = self._check(value)
+            except Mismatch as exc:
+                raise self._wrong(exc) from None
         self._ring.push_stamped(time.time_ns(), value)
         if self.immediate:
             bell = self._bell
@@ -280,6 +294,12 @@ class OutgoingChannel:
             raise ChannelClosed(self.topic)
         if _get_ident() != self._writer:
             self._check_writer()
+        accept = self._accept if self._within is None else ()
+        if not all(type(v) in accept for v in values):
+            try:
+                values = [v if type(v) in accept else self._check(v) for v in values]
+            except Mismatch as exc:
+                raise self._wrong(exc) from None
         self._ring.push_many_stamped(time.time_ns(), values)
         if self.immediate:
             bell = self._bell
@@ -367,7 +387,7 @@ class OutgoingChannel:
             duplicates=0, overwritten=ring.overwritten, overtaken=self._overtaken,
             expired=self._expired, values=ring.written,
             clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns,
-            ros_lost=self.ros_lost)
+            rejected=self._rejected + self._refused, ros_lost=self.ros_lost)
 
     @property
     def closed(self) -> bool:

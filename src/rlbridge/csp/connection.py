@@ -28,7 +28,7 @@ from collections.abc import Callable
 from rlbridge.csp import handshake
 from rlbridge.csp.auth import ClientAuth
 from rlbridge.csp.pending import Requests
-from rlbridge.csp.receiver import MAX_DRAIN, RUN_DATAGRAMS, Receiver
+from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.services import ServiceCalls
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
@@ -49,8 +49,9 @@ from rlbridge.wire import (
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
 
-__all__ = ["Connection", "ConnectionClosed", "ConnectionFailed", "Control", "LinkHandler",
-           "MAX_DRAIN", "RUN_DATAGRAMS", "ValuesHandler"]
+# ConnectionFailed and ConnectionClosed are defined in session_errors (the handshake raises
+# them too); this is the place to import them from, with Control, Connection's parameter.
+__all__ = ["Connection", "ConnectionClosed", "ConnectionFailed", "Control"]
 
 log = logging.getLogger("rlbridge.client")
 

@@ -18,12 +18,11 @@ from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.connection import ConnectionClosed
 from rlbridge.csp.errors import ChannelClosed
-from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, realtime_switch_interval, shorter_switch_interval
+from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, shorter_switch_interval
 from rlbridge.csp.process import Code, Parallel, PriParallel, Process, RunScope
 from rlbridge.csp.timer import LatenessStats, PeriodicTimer
 
-__all__ = ["HRT_SWITCH_INTERVAL", "BaseCoupling", "ControlLoop", "Coupling", "LoopOptions",
-           "Pump", "Ticker", "realtime_switch_interval"]
+__all__ = ["BaseCoupling", "ControlLoop", "Coupling", "LoopOptions", "Pump", "Ticker"]
 
 
 class LoopOptions(TypedDict, total=False):

@@ -43,7 +43,8 @@ class NoValueYet(ChannelError, LookupError):
         super().__init__(
             channel,
             f"non-blocking channel {channel!r} has never received a value and has no "
-            "initial value; pass initial=... to Channel() or write before reading",
+            "initial value: give it one where it is made, bridge.subscribe(..., initial=0.0) "
+            "(or Channel(..., initial=...)), or catch NoValueYet until the first value",
         )
 
 
@@ -63,6 +64,18 @@ class ChannelMisuseError(ChannelError, RuntimeError):
             "writer, or an MpscRing to fan several writers in)",
         )
         self.end = end
+
+
+class SecondWriterError(ChannelMisuseError):
+    """A second thread wrote an outgoing channel whose first writer thread is still alive."""
+
+    def __init__(self, topic: str, owner: int, intruder: int) -> None:
+        super().__init__(f"{topic} out", "writer")
+        self.args = (
+            f"outgoing channel {topic!r} is written by thread {owner}; thread {intruder} "
+            "wrote it too. Its ring buffer has a single producer: two writers would lose "
+            "values without a trace. Publish one channel per writer thread, or hand values "
+            "to the one writer through a local Channel.",)
 
 
 class RealTimeWarning(RuntimeWarning):

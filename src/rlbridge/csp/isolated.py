@@ -157,9 +157,14 @@ def _loop_main(link: ShmLink, spec: LoopSpec, control: Callable[..., Any],
         final = control
     except Exception:  # the law's state grew something unpicklable: report without it
         final = None
-    results.send(LoopReport(coupling.stats(), coupling.lateness_ns(), coupling.released,
-                            info, final, error))
-    results.close()
+    report = LoopReport(coupling.stats(), coupling.lateness_ns(), coupling.released, info,
+                        final, error)
+    try:
+        results.send(report)
+    except OSError:  # the owner stopped waiting (Ctrl-C in it): nobody to report to
+        pass
+    finally:
+        results.close()
 
 
 class _Owner(Process):

@@ -59,23 +59,23 @@ them, so the last values written by the loop are not lost. A coupling runs once.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, Unpack
+from typing import Any
 
+from rlbridge._compat import Unpack
 from rlbridge.csp import patterns_process as isolated
 from rlbridge.csp.bridge import Bridge, Transport
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.coupling import (
-    HRT_SWITCH_INTERVAL,
     BaseCoupling,
     ControlLoop,
     Coupling,
     LoopOptions,
     Pump,
     Ticker,
-    realtime_switch_interval,
 )
 from rlbridge.csp.errors import ChannelClosed, NoValueYet
+from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, realtime_switch_interval
 from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling, Layout
 from rlbridge.csp.patterns_process import unsubscriber
 from rlbridge.csp.process import Process

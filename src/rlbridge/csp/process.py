@@ -38,6 +38,7 @@ from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import Literal, Protocol, TypeAlias
 
+from rlbridge._compat import BaseExceptionGroup
 from rlbridge.csp.errors import RealTimeWarning
 
 _log = logging.getLogger(__name__)

@@ -17,7 +17,6 @@ in progress, so ``Bridge.close()`` returns promptly in every phase.
 
 from __future__ import annotations
 
-import enum
 import logging
 import random
 import threading
@@ -25,12 +24,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from rlbridge._compat import StrEnum
 from rlbridge.wire import RlbridgeError
 
 log = logging.getLogger("rlbridge.client")
 
 
-class ClientState(enum.StrEnum):
+class ClientState(StrEnum):
     """Where a connection is in its life; only ``CLOSED`` is final."""
 
     CONNECTING = "connecting"

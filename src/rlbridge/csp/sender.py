@@ -30,7 +30,7 @@ from typing import Protocol
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.connection import Connection
 from rlbridge.tcpstate import congested
-from rlbridge.wire import MAX_DATAGRAM, Batch, Packet, Value
+from rlbridge.wire import MAX_DATAGRAM, Batch, Error, ErrorCode, Packet, Value
 
 log = logging.getLogger("rlbridge.client")
 
@@ -64,6 +64,10 @@ class OutgoingSource(Protocol):
         """How many values wait (read by the send thread's wake-up predicate)."""
         ...
 
+    def refused(self, count: int) -> None:
+        """The server refused ``count`` values sent on this channel (receive thread)."""
+        ...
+
 
 class SendLoop:
     """Owns the send thread; started by the Bridge, stopped and joined by ``close``."""
@@ -89,6 +93,15 @@ class SendLoop:
         self.values_repeated = 0
         self.send_errors = 0
         self._holding = False
+        conn.on_error = self._on_error
+
+    def _on_error(self, error: Error) -> None:
+        """Receive thread: an ``Error(BAD_VALUE)`` counts the values the server refused."""
+        if error.code != ErrorCode.BAD_VALUE or error.channel is None:
+            return
+        for source in self._sources:
+            if source.channel_id == error.channel:
+                source.refused(error.values or 1)
 
     def start(self) -> None:
         self._thread.start()

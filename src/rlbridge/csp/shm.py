@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import multiprocessing
 import platform
+import signal
 from collections.abc import Callable, Sequence
 from multiprocessing import resource_tracker, shared_memory
 from types import TracebackType
@@ -261,6 +262,13 @@ class ShmLink:
 
 
 def _hrt_main(name: str, target: Callable[..., object], args: tuple[Any, ...]) -> None:
+    # Ctrl-C reaches every process of the terminal's group, this one too. Its owner stops it
+    # (``link.request_stop``, then terminate): a KeyboardInterrupt here would only cut the
+    # loop short and print a second traceback, the owner's being the one that matters.
+    # SIGINT was blocked from before the fork (HrtProcess.start): one that came during the
+    # interpreter's start-up is pending, and is dropped here.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     with ShmLink.attach(name) as link:
         target(link, *args)
 
@@ -281,8 +289,17 @@ class HrtProcess:
                                      name=name, daemon=True)
 
     def start(self) -> None:
-        """Start the loop's process (its own interpreter: no GIL shared with the SDK)."""
-        self._proc.start()
+        """Start the loop's process (its own interpreter: no GIL shared with the SDK).
+
+        SIGINT is blocked in this thread while it forks: the child inherits the mask through
+        exec, so a Ctrl-C during its start-up cannot kill its interpreter half-way ("Fatal
+        Python error: init_import_site"); here a blocked Ctrl-C is delayed, never lost.
+        """
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self._proc.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
     @property
     def sentinel(self) -> int:

@@ -13,7 +13,8 @@ from typing import Annotated, Literal
 import typer
 
 from rlbridge.cli_errors import fail, one_line_errors
-from rlbridge.demo.plot import DEFAULT_NAME
+from rlbridge.cli_options import option
+from rlbridge.demo.plot import DEFAULT_NAME, resolve_path
 
 ROLES = ("all", "bridge", "controller")
 DEFAULT_PORT = 7411
@@ -31,20 +32,21 @@ def register_demo(app: typer.Typer) -> None:
         role: Annotated[str, typer.Option(
             help="all: both sides in one process; bridge: server + vision node (middleware "
                  "side); controller: the embedded loop controller.")] = "all",
-        host: Annotated[str, typer.Option(
-            "--host", "-H", help="bridge/all: address to bind; controller: server to reach.")]
+        host: Annotated[str, option(
+            "--host", "bridge/all: address to bind; controller: server to reach.")]
         = "127.0.0.1",
-        port: Annotated[int | None, typer.Option(
-            "--port", "-p", help=f"Server port (all: any free port; else {DEFAULT_PORT}).")]
+        port: Annotated[int | None, option(
+            "--port", f"Server port (all: any free port; else {DEFAULT_PORT}).")]
         = None,
         adapter: Annotated[str, typer.Option(
             help="Middleware of the bridge side: inproc or ros2.")] = "inproc",
         dashboard: Annotated[bool, typer.Option(
             "--dashboard/--no-dashboard",
             help="Live terminal view (only on a terminal; else one line a second).")] = True,
-        plot: Annotated[Path | None, typer.Option(
-            help="PNG of set-points, angles and tracking error; a directory gets "
-                 f"DIR/{DEFAULT_NAME} [default: ./{DEFAULT_NAME}].", show_default=False)]
+        plot: Annotated[str | None, typer.Option(
+            help="PNG of set-points, angles and tracking error; a directory (out/, or a name "
+                 f"without an extension) gets DIR/{DEFAULT_NAME}, created if missing "
+                 f"[default: ./{DEFAULT_NAME}].", show_default=False)]
         = None,
         no_plot: Annotated[bool, typer.Option("--no-plot", help="Do not write the plot.")]
         = False,
@@ -91,7 +93,7 @@ def register_demo(app: typer.Typer) -> None:
             namespace=namespace,
             dropout=Dropout(dropout_at, dropout_for),
             dashboard=dashboard and sys.stdout.isatty(),
-            plot=None if no_plot or role == "controller" else (plot or Path(DEFAULT_NAME)),
+            plot=None if no_plot or role == "controller" else resolve_path(plot or DEFAULT_NAME),
             plot_required=plot is not None,
             report=report,
             connect_timeout=connect_timeout,

@@ -40,6 +40,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+import uuid
 from types import TracebackType
 
 from rlbridge.csp.bridge import Bridge
@@ -91,6 +92,10 @@ class PanTiltController:
         self._hrt_tid = 0
         self._scheduling = "unknown"
         self._ticks = 0
+        # Angles per bridge session (_count_session): this run, its session, where it began.
+        self._run_id = uuid.uuid4().hex[:12]
+        self._session = self._session_base = self._reconnects = 0
+        self._lost_seen = False
         self._started_ns = 0
         self._running = False
         #: (seconds since start, state) for every state the telemetry process forwarded.
@@ -134,8 +139,29 @@ class PanTiltController:
                 self._history_changed.notify_all()
             self._status_out.write(state.value)
         self._ticks += 1
+        self._count_session()
         if self._ticks % DIAGNOSTICS_EVERY == 0:
             self._diag_out.write(self.diagnostics().to_json())
+
+    def _count_session(self) -> None:
+        """Start counting angles for a new session when the link is lost (or was replaced).
+
+        From the loss of a session until its channels are bound again the SDK's send thread
+        takes nothing (values wait in the channel), so what it took so far went to sessions
+        before; what waits goes to the next session, and is counted there. Diagnostics
+        written meanwhile already carry the next session's number (they reach the next
+        bridge, not the last one).
+        """
+        taken = sum(ch.statistics().read for ch in self._angle_out)
+        reconnects = self.bridge.reconnects
+        if self.bridge.link_state is LinkState.LOST:
+            if not self._lost_seen:
+                self._session, self._session_base = self._session + 1, taken
+            self._lost_seen = True
+        if reconnects != self._reconnects:
+            if not self._lost_seen:  # lost and back between two ticks
+                self._session, self._session_base = self._session + 1, taken
+            self._reconnects, self._lost_seen = reconnects, False
 
     def diagnostics(self) -> Diagnostics:
         """A snapshot of the loop's health; cheap enough for a few calls a second."""
@@ -158,6 +184,10 @@ class PanTiltController:
             setpoints_lost=sum(ch.lost for ch in self._sp_in),
             setpoint_age_ms=max(ages) / 1e6 if min(ages) >= 0 else -1.0,
             angles_sent=sum(ch.statistics().written for ch in self._angle_out),
+            run=self._run_id, session=self._session,
+            angles_sent_session=sum(ch.statistics().read for ch in self._angle_out)
+            - self._session_base,
+            written_ns=time.time_ns() + self._angle_out[0].health().clock_offset_ns,
             error_rms_mrad=(stats[0].rms * 1e3, stats[1].rms * 1e3),
             error_max_mrad=(stats[0].max_abs * 1e3, stats[1].max_abs * 1e3),
             hrt_blocking_reads=sum(ch.statistics().hrt_blocking_reads for ch in self._sp_in),

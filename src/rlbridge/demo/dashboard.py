@@ -70,10 +70,8 @@ class Status:
         return sp, angle, math.nan
 
     def angles_lost(self) -> int:
-        """Angles the controller sent that never arrived (live: may count one in flight)."""
-        diag = self.diag
-        received = sum(self.snapshot.angles_total.values())
-        return max(0, diag.angles_sent - received) if diag is not None else 0
+        """Angles sent to this bridge that never arrived (live: may count one in flight)."""
+        return self.snapshot.angles_lost
 
 
 class View(Protocol):
@@ -169,7 +167,7 @@ class AnsiDashboard:
             f" lost        set-points {diag.setpoints_lost if diag else 0} of "
             f"{diag.setpoints_received + diag.setpoints_lost if diag else 0} (UDP), "
             f"angles {status.angles_lost()} of "
-            f"{diag.angles_sent if diag else 0} (UDP)",
+            f"{snap.angles_sent} (UDP)",
             "",
             " axis  set-point   angle  error mrad  -1 rad          0          +1 rad",
         ]

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import StrEnum
 
+from rlbridge._compat import StrEnum
 from rlbridge.demo.control import AxisController, Gains, SetpointFollower
 from rlbridge.demo.plant import RAD_PER_COUNT, PanTiltPlant
 

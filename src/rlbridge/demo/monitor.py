@@ -39,6 +39,14 @@ class TraceSnapshot:
     angles_total: dict[str, int] = field(default_factory=dict)
     """Per axis, every angle received since the start (also those no longer in ``angles``)."""
     setpoints_total: int = 0
+    angles_sent: int = 0
+    """Angles the controller sent to *this* bridge: the sum over its sessions with it, as each
+    last reported (a session with a bridge that ran before this one is not counted)."""
+
+    @property
+    def angles_lost(self) -> int:
+        """Angles sent to this bridge that never arrived (live: may count some in flight)."""
+        return max(0, self.angles_sent - sum(self.angles_total.values()))
 
 
 _T = TypeVar("_T", bound=tuple[float, ...])
@@ -64,9 +72,13 @@ class Trace:
     without bound); statuses are few and all kept.
     """
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic, keep: float = 600.0) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic, keep: float = 600.0,
+                 wall: Callable[[], int] = time.time_ns) -> None:
         self._clock = clock
         self._t0 = clock()
+        #: Diagnostics written before this (wall clock) describe a bridge that ran before.
+        self._started_ns = wall()
+        self.stale_diagnostics = 0
         self._cond = threading.Condition()
         frames = int(keep * 30) + 1
         values = int(keep * 50) + 1
@@ -78,6 +90,8 @@ class Trace:
         self._diag_at = -1.0
         self._setpoint_count = 0
         self._counts = dict.fromkeys(AXES, 0)
+        #: Angles sent per controller session, keyed by (controller run, session number).
+        self._sent: dict[tuple[str, int], int] = {}
 
     def now(self) -> float:
         """Seconds since the trace started."""
@@ -103,7 +117,11 @@ class Trace:
     def set_diagnostics(self, diag: Diagnostics) -> None:
         t = self.now()
         with self._cond:
+            if 0 < diag.written_ns < self._started_ns:  # waited in the SDK across a restart
+                self.stale_diagnostics += 1
+                return
             self._diag, self._diag_at = diag, t
+            self._sent[(diag.run, diag.session)] = diag.angles_sent_session
             self._cond.notify_all()
 
     def wait_for(self, predicate: Callable[[TraceSnapshot], bool], timeout: float) -> bool:
@@ -134,6 +152,7 @@ class Trace:
             diagnostics_at=self._diag_at,
             angles_total={axis: self._counts[axis] for axis in AXES},
             setpoints_total=self._setpoint_count,
+            angles_sent=sum(self._sent.values()),
         )
 
 

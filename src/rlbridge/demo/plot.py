@@ -2,7 +2,7 @@
 
 matplotlib is imported here, lazily, with the non-interactive Agg backend selected on the figure
 itself (no ``matplotlib.use``, no pyplot state machine), so writing a plot needs no display and
-changes nothing global. matplotlib is an optional dependency (``pip install 'rlbridge[plot]'``);
+changes nothing global. matplotlib is an optional dependency (``pip install 'rlbridge-sdk[plot]'``);
 without it :func:`write_plot` raises :class:`PlotUnavailable` with that advice.
 """
 
@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from rlbridge._version import pip_install
 from rlbridge.demo.metrics import MAX_FRAME_GAP, TrackingMetrics, errors
 from rlbridge.demo.monitor import TraceSnapshot
 from rlbridge.demo.topics import AXES, Diagnostics
@@ -28,11 +29,18 @@ class PlotUnavailable(RuntimeError):
     """matplotlib is not installed."""
 
 
-def resolve_path(path: Path) -> Path:
-    """A directory (existing, or written with a trailing slash) gets ``pan_tilt.png`` inside."""
-    if path.is_dir() or str(path).endswith(("/", "\\")):
-        return path / DEFAULT_NAME
-    return path
+def resolve_path(path: str | Path) -> Path:
+    """Where ``--plot PATH`` writes: a directory gets ``pan_tilt.png`` inside.
+
+    A directory is one that exists, a name written with a trailing slash (``out/``: give the
+    string as typed, ``Path`` drops the slash), or a name without an extension (``out``);
+    :func:`write_plot` creates it. Anything else is the file itself.
+    """
+    text = str(path)
+    target = Path(text)
+    if target.is_dir() or text.endswith(("/", "\\")) or not target.suffix:
+        return target / DEFAULT_NAME
+    return target
 
 
 def write_plot(snap: TraceSnapshot, metrics: TrackingMetrics, path: Path,
@@ -44,7 +52,7 @@ def write_plot(snap: TraceSnapshot, metrics: TrackingMetrics, path: Path,
         from matplotlib.patches import Patch
     except ImportError as exc:
         raise PlotUnavailable(
-            f"the plot needs matplotlib ({exc}): pip install 'rlbridge[plot]'") from None
+            f"the plot needs matplotlib ({exc}): {pip_install('plot')}") from None
     target = resolve_path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
 

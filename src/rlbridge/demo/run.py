@@ -103,6 +103,8 @@ class DemoResult:
         if snap is not None:
             out["setpoints_published"] = snap.setpoints_total
             out["angles_received"] = dict(snap.angles_total)
+            out["angles_sent"] = snap.angles_sent  # to this bridge, over its sessions
+            out["angles_lost"] = snap.angles_lost
         finite: dict[str, Any] = _finite(out)
         return finite
 
@@ -261,8 +263,8 @@ def summary(result: DemoResult) -> list[str]:
         sent = d.setpoints_received + d.setpoints_lost
         lost = f"  values lost: set-points {d.setpoints_lost} of {sent} (UDP)"
         if result.snapshot is not None:
-            received = sum(result.snapshot.angles_total.values())
-            lost += f", angles {max(0, d.angles_sent - received)} of {d.angles_sent} (UDP)"
+            snap = result.snapshot
+            lost += f", angles {snap.angles_lost} of {snap.angles_sent} (UDP)"
         lines.append(lost)
         lines.append(f"  controller link: {d.link}; controller-side error rms "
                      f"{d.error_rms_mrad[0]:.1f} / {d.error_rms_mrad[1]:.1f} mrad")

@@ -76,6 +76,15 @@ class Diagnostics:
     setpoints_lost: int = 0
     setpoint_age_ms: float = -1.0
     angles_sent: int = 0
+    #: This controller process (a random id) and its session with the bridge (0 the first,
+    #: +1 per reconnect), and the angles sent in that session: a restarted bridge's monitor
+    #: counts only what was sent to it (``Trace.angles_sent``), not what the previous got.
+    run: str = ""
+    session: int = 0
+    angles_sent_session: int = 0
+    #: When it was written, in the bridge's wall clock (the SDK's clock-offset estimate): a
+    #: message written to a previous bridge and delivered to a restarted one is older than it.
+    written_ns: int = 0
     error_rms_mrad: tuple[float, float] = (math.nan, math.nan)
     error_max_mrad: tuple[float, float] = (math.nan, math.nan)
     hrt_blocking_reads: int = 0

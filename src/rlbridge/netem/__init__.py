@@ -17,7 +17,8 @@ from rlbridge.netem.impairment import (
     PathModel,
     split_direction,
 )
-from rlbridge.netem.link import EmulatedLink, Side
+from rlbridge.netem.link import EmulatedLink
+from rlbridge.netem.link_settings import Side
 from rlbridge.netem.netns import StaleNamespace, cleanup_stale_namespaces, find_stale_namespaces
 from rlbridge.netem.relay_process import RelayError
 from rlbridge.netem.stats import DirectionStats, LinkStats

@@ -7,13 +7,13 @@ traceback: the usual causes (not root, no ``ip``, no TUN) are the user's to fix.
 
 from __future__ import annotations
 
-import enum
 import time
 from typing import Annotated
 
 import msgspec
 import typer
 
+from rlbridge._compat import StrEnum
 from rlbridge.netem.availability import emulator_unavailable_reason
 from rlbridge.netem.link import EmulatedLink
 from rlbridge.netem.netns import NetnsError, cleanup_stale_namespaces
@@ -40,7 +40,7 @@ netem_app = typer.Typer(
 )
 
 
-class DirectionChoice(enum.StrEnum):
+class DirectionChoice(StrEnum):
     """Which direction(s) the impairment applies to."""
 
     both = "both"

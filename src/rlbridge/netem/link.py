@@ -39,12 +39,12 @@ import subprocess
 from collections.abc import Sequence
 from contextlib import ExitStack
 from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
+from rlbridge._compat import Self
 from rlbridge.netem.impairment import Direction, Impairment
 from rlbridge.netem.link_settings import (
     DEFAULT_NETWORK,
-    MAX_LIFETIME_S,
     Side,
     check_bounds,
     describe,
@@ -62,7 +62,6 @@ from rlbridge.netem.netns import (
     new_run_token,
 )
 from rlbridge.netem.ns_children import (
-    CHILD_GRACE_S,
     NamespaceChildren,
     terminate_namespace_processes,
 )
@@ -71,7 +70,7 @@ from rlbridge.netem.signals import sigterm_raises
 from rlbridge.netem.stats import LinkStats
 from rlbridge.netem.tun import configure_point_to_point, open_tun, tx_dropped
 
-__all__ = ["CHILD_GRACE_S", "DEFAULT_NETWORK", "IFNAME", "MAX_LIFETIME_S", "EmulatedLink", "Side"]
+__all__ = ["IFNAME", "EmulatedLink"]
 
 IFNAME = "rlb0"
 """Name of the TUN device in each namespace (names are per namespace, so no clash)."""

@@ -28,7 +28,8 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from rlbridge.netem.link import EmulatedLink, Side
+from rlbridge.netem.link import EmulatedLink
+from rlbridge.netem.link_settings import Side
 
 _SEQ = struct.Struct("!I")
 

@@ -22,7 +22,9 @@ from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
+from rlbridge.server.notices import bind_failure, listening_line
 from rlbridge.server.registry import SessionRegistry
+from rlbridge.server.runner import run_on_loop
 from rlbridge.server.session import ServerContext
 from rlbridge.server.tcp import TcpConnection
 from rlbridge.server.udp import UdpEndpoint
@@ -71,8 +73,8 @@ class Server:
 
     def run(self) -> None:
         """Serve until SIGINT/SIGTERM; the CLI's entry point."""
-        with asyncio.Runner(loop_factory=lambda: new_event_loop(self.config.use_uvloop)) as r:
-            r.run(self.serve(install_signal_handlers=True))
+        run_on_loop(self.serve(install_signal_handlers=True),
+                    lambda: new_event_loop(self.config.use_uvloop))
 
     def stop(self) -> None:
         """Ask a running server to shut down; safe from any thread."""
@@ -110,20 +112,21 @@ class Server:
             tcp_server, udp_transport, port = await self._bind(loop, registry)
             if cfg.metrics_port is not None:
                 try:
-                    metrics = await MetricsEndpoint(registry.stats).start(cfg.host,
-                                                                          cfg.metrics_port)
+                    metrics = await MetricsEndpoint(registry).start(cfg.host, cfg.metrics_port)
                 except OSError as exc:
                     raise ServerError(f"cannot serve metrics on {cfg.host}:{cfg.metrics_port}: "
                                       f"{exc}") from None
             self.address = BoundAddress(cfg.host, port, tcp_server is not None,
                                         udp_transport is not None,
                                         metrics.port if metrics is not None else None)
-            log.info("rlbridge serving on %s:%d (tcp=%s udp=%s nodelay=%s adapter=%s psk=%s)",
-                     cfg.host, port, cfg.tcp, cfg.udp, cfg.nodelay, adapter.name,
-                     keys is not None)
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     loop.add_signal_handler(sig, self._stop.set)
+            # After the handlers: whoever sees this line may stop the server with a signal.
+            log.info("%s", listening_line(
+                cfg.host, port, tcp_server is not None, udp_transport is not None,
+                adapter.name, "pre-shared key" if keys is not None else "none",
+                self.address.metrics_port))
             if started is not None:
                 started(self.address)
             await self._stop.wait()
@@ -143,10 +146,11 @@ class Server:
     ) -> tuple[asyncio.Server | None, asyncio.DatagramTransport | None, int]:
         """TCP and UDP on the same port number; with port 0, retry until both get one."""
         cfg = self.config
-        last_error: OSError | None = None
+        last_error = ""
         for _ in range(20 if cfg.port == 0 else 1):
             tcp_server: asyncio.Server | None = None
             port = cfg.port
+            what = "TCP"
             try:
                 if cfg.tcp:
                     tcp_server = await loop.create_server(
@@ -155,6 +159,7 @@ class Server:
                     )
                     port = tcp_server.sockets[0].getsockname()[1]
                 udp_transport: asyncio.DatagramTransport | None = None
+                what = "UDP"
                 if cfg.udp:
                     udp_transport, _ = await loop.create_datagram_endpoint(
                         lambda: UdpEndpoint(registry), local_addr=(cfg.host, port)
@@ -162,11 +167,11 @@ class Server:
                     port = udp_transport.get_extra_info("sockname")[1]
                 return tcp_server, udp_transport, port
             except OSError as exc:
-                last_error = exc
+                last_error = bind_failure(what, cfg.host, port, exc)
                 if tcp_server is not None:
                     tcp_server.close()
                     await tcp_server.wait_closed()
-        raise ServerError(f"cannot listen on {cfg.host}:{cfg.port}: {last_error}")
+        raise ServerError(last_error)
 
     async def _shutdown(
         self,
@@ -192,7 +197,9 @@ class Server:
         if tcp_server is not None:
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(tcp_server.wait_closed(), 2.0)
-        log.info("rlbridge stopped")
+        if self.address is not None:
+            log.info("rlbridge stopped: %d session(s) served",
+                     registry.ctx.counters.get("sessions_opened", 0))
 
 
 class ServerThread:
@@ -216,10 +223,8 @@ class ServerThread:
         """Start serving; return once it listens, or raise ``ServerError`` saying why not."""
         def main() -> None:
             try:
-                with asyncio.Runner(
-                    loop_factory=lambda: new_event_loop(self.server.config.use_uvloop)
-                ) as runner:
-                    runner.run(self.server.serve(started=lambda _a: self._ready.set()))
+                run_on_loop(self.server.serve(started=lambda _a: self._ready.set()),
+                            lambda: new_event_loop(self.server.config.use_uvloop))
             except BaseException as exc:
                 self._error = exc
                 self._ready.set()

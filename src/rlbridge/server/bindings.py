@@ -18,12 +18,17 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
-from typing import Annotated, Any, get_args, get_origin
-
-import msgspec
+from collections.abc import Sequence
+from typing import Any
 
 from rlbridge.adapters.base import Publisher, Subscription, ValueSpec
+from rlbridge.server.admission import (
+    ValuesRefused,
+    exact_check,
+    publish_valid,
+    value_converter,
+    value_schema,
+)
 from rlbridge.server.sinks import PacketSink
 from rlbridge.wire import Batch, TopicConnect, Value
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
@@ -31,64 +36,6 @@ from rlbridge.wire.sequence import SequenceTracker
 
 #: How often a held latest value re-checks whether its TCP connection has drained.
 HOLD_POLL_S = 0.001
-
-_SCALARS = (float, int, bool, str)
-
-
-def value_converter(spec: ValueSpec) -> Callable[[list[Any]], list[Any]]:
-    """Validate a list of decoded values against the channel's type, in one msgspec call.
-
-    Whole messages are validated as their Struct and handed on as plain dicts, the adapter's
-    currency. Raises ``msgspec.ValidationError`` naming the offending element.
-    """
-    list_type = list[spec.python_type]  # type: ignore[name-defined]
-    if isinstance(spec.python_type, type) and issubclass(spec.python_type, msgspec.Struct):
-
-        def convert_messages(values: list[Any]) -> list[Any]:
-            result: list[Any] = msgspec.to_builtins(msgspec.convert(values, list_type))
-            return result
-
-        return convert_messages
-
-    exact = _exact_check(spec.python_type)
-
-    def convert_fields(values: list[Any]) -> list[Any]:
-        # A few values of exactly the right type (the one-value-per-packet case) skip msgspec,
-        # whose fixed cost per call is ~1 us; the result is the same, and anything else
-        # (an int for a float, a bound to check) takes the msgspec path and its errors.
-        if exact is not None and len(values) <= _EXACT_MAX and all(map(exact, values)):
-            return values
-        result: list[Any] = msgspec.convert(values, list_type)
-        return result
-
-    return convert_fields
-
-
-#: Batches up to this long are checked value by value in Python before calling msgspec.
-_EXACT_MAX = 8
-_CONSTRAINTS = ("gt", "lt", "multiple_of", "pattern", "min_length", "max_length", "tz")
-
-
-def _exact_check(python_type: Any) -> Callable[[Any], bool] | None:
-    """A predicate true for values msgspec would accept unchanged, or None if not simple.
-
-    Covers plain ``float``, ``bool`` and ``str`` and integers bounded by ``Meta(ge, le)`` (the
-    ROS integer types); ``type(v) is ...`` so ``True`` is no int and ``1`` no float here.
-    """
-    if python_type in (float, bool, str):
-        return lambda v: type(v) is python_type
-    if get_origin(python_type) is not Annotated:
-        return None
-    base, *metas = get_args(python_type)
-    if base is not int or not all(isinstance(m, msgspec.Meta) for m in metas):
-        return None
-    if any(getattr(m, c) is not None for m in metas for c in _CONSTRAINTS):
-        return None
-    lo = max((m.ge for m in metas if m.ge is not None), default=None)
-    hi = min((m.le for m in metas if m.le is not None), default=None)
-    if lo is None or hi is None:
-        return None
-    return lambda v: type(v) is int and lo <= v <= hi
 
 
 class Inbound:
@@ -103,9 +50,11 @@ class Inbound:
         self.spec = spec
         self._publisher = publisher
         self._convert = value_converter(spec)
+        #: What the TopicAck tells the client about the values it may write.
+        self.schema = value_schema(spec)
         #: For one value per packet (the common case): a value accepted unchanged skips
         #: ``_convert`` and its list checks; anything else still goes through it.
-        self._exact = _exact_check(spec.python_type)
+        self._exact = exact_check(spec.python_type)
         self._clock = clock
         self._max_age_ns = request.max_age_ms * 1_000_000
         self.tracker = SequenceTracker()
@@ -170,13 +119,13 @@ class Inbound:
             age - self.one_way_ns) // 16
 
     def _publish(self, values: list[Any]) -> None:
+        """Publish the values of the channel's type; a bad one costs only itself (admission)."""
         try:
-            converted = self._convert(values)
-        except msgspec.ValidationError:
-            self.bad_values += len(values)
+            self.values_in += publish_valid(self._convert, self._publisher.publish, values)
+        except ValuesRefused as refused:
+            self.values_in += refused.published
+            self.bad_values += refused.count
             raise
-        self.values_in += len(converted)
-        self._publisher.publish(converted)
 
     def health(self, rtt_ns: int) -> dict[str, int]:
         """Per-channel counters for ``Stats`` (names as in csp/health.py ChannelHealth)."""
@@ -185,7 +134,7 @@ class Inbound:
                 "jitter_ns": self.jitter.jitter_ns if self.values_in else -1, "lost": t.lost,
                 "duplicates": t.duplicates, "overwritten": 0,
                 "overtaken": self.overtaken + t.stale, "expired": self.expired,
-                "values": self.values_in}
+                "values": self.values_in, "rejected": self.bad_values}
 
     def stats(self) -> dict[str, Any]:
         """Counters for ``rlbridge stats``; ``late`` = duplicates and overtaken values."""
@@ -306,7 +255,7 @@ class Outbound:
         """Per-channel counters for ``Stats``; loss, jitter and age are measured by the client."""
         return {"rtt_ns": rtt_ns, "one_way_ns": -1, "jitter_ns": -1, "lost": -1,
                 "duplicates": 0, "overwritten": self.dropped, "overtaken": self.overtaken,
-                "expired": 0, "values": self.values_out}
+                "expired": 0, "values": self.values_out, "rejected": 0}
 
     def stats(self) -> dict[str, Any]:
         """Counters for ``rlbridge stats``: values offered to the client, and dropped of those."""

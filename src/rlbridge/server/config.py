@@ -57,7 +57,8 @@ class ServerConfig(BaseModel):
                                  ) from None
         return value
     metrics_port: int | None = Field(
-        None, ge=0, le=65535, description="Serve Prometheus /metrics on this port of host."
+        None, ge=0, le=65535,
+        description="Serve /metrics, /healthz and /status on this port of host."
     )
 
     @model_validator(mode="after")

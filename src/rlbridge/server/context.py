@@ -7,6 +7,7 @@ a CLI server) never see each other's settings, counters or keys.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -16,6 +17,8 @@ from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
+from rlbridge.server.ledger import Ledger
+from rlbridge.server.notices import Notices
 from rlbridge.wire import PacketCodec
 
 
@@ -36,6 +39,11 @@ class ServerContext:
     allow: AllowList = field(default_factory=lambda: AllowList(()))
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
+    #: Rate-limited warnings for the operator: wrong keys, malformed packets, refusals.
+    notices: Notices = field(
+        default_factory=lambda: Notices(logging.getLogger("rlbridge.server")))
+    #: Counters of closed sessions and channels by client and topic (the metrics' labels).
+    ledger: Ledger = field(default_factory=Ledger)
     #: Threads for blocking middleware work: service calls (server/services.py).
     workers: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(
         max_workers=32, thread_name_prefix="server-call"))

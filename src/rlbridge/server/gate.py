@@ -13,6 +13,7 @@ import logging
 import os
 from collections.abc import Callable
 
+from rlbridge.server.notices import PROBE_NAME
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.wire import (
@@ -44,7 +45,7 @@ class Gate:
         if ctx.allow.allows(host):
             return None
         ctx.count("not_allowed")
-        log.warning("refused %s from %s: not in the allow-list", what, host)
+        ctx.notices.warn("allow-list", f"refused {what} from {host}: not in the allow-list")
         return ConnectError(int(ErrorCode.NOT_ALLOWED),
                             f"client address {host} is not in this server's allow-list")
 
@@ -55,11 +56,11 @@ class Gate:
             return self._registry.open(hello)
         key = keys.key_for(hello.name)
         if key is None:
-            return self._refuse(f"no pre-shared key for client name {hello.name!r}")
+            return self._refuse(f"no pre-shared key for client name {hello.name!r}", hello)
         try:
             return ServerHandshake(key, hello.name, hello.auth, self._random(NONCE_SIZE))
         except RemoteProtocolError as exc:
-            return self._refuse(exc.reason)
+            return self._refuse(exc.reason, hello)
 
     def finish(self, handshake: ServerHandshake, hello: Hello, proof: AuthProof
                ) -> Session | ConnectError:
@@ -67,7 +68,7 @@ class Gate:
         try:
             keys = handshake.verify(proof)
         except RemoteProtocolError as exc:
-            return self._refuse(exc.reason)
+            return self._refuse(exc.reason, hello)
         result = self._registry.open(hello)
         if isinstance(result, Session):
             result.codec = sealed_codec(keys, server=True)
@@ -78,9 +79,14 @@ class Gate:
         """The client hung up during the handshake; with AUTH_FAILED it refused our proof."""
         if goodbye.code == ErrorCode.AUTH_FAILED:
             self._registry.ctx.count("auth_failed")
-            log.warning("authentication refused by the client: %s", goodbye.reason)
+            self._registry.ctx.notices.warn(
+                "authentication", f"authentication failed: {goodbye.reason}")
 
-    def _refuse(self, reason: str) -> ConnectError:
+    def _refuse(self, reason: str, hello: Hello) -> ConnectError:
         self._registry.ctx.count("auth_failed")
-        log.warning("authentication refused: %s", reason)
+        if hello.name == PROBE_NAME and not hello.auth:
+            return ConnectError(int(ErrorCode.AUTH_FAILED), reason)  # a health probe
+        self._registry.ctx.notices.warn(
+            "authentication", f"authentication failed for client {hello.name!r}: "
+            f"{reason.removeprefix('authentication failed: ')}")
         return ConnectError(int(ErrorCode.AUTH_FAILED), reason)

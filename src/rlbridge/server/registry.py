@@ -86,6 +86,7 @@ class SessionRegistry:
         final = session.stats()
         for key in SESSION_TOTALS:
             self._retired[key] += final[key]
+        self.ctx.ledger.retire_session(session.name, final)
         self._by_id.pop(session.id, None)
         self._by_token.pop(session.token, None)
         for listener in self.on_forget:

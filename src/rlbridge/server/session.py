@@ -17,13 +17,13 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import msgspec
-
 from rlbridge.adapters.base import BindingError
 from rlbridge.server.actions import SessionGoals
+from rlbridge.server.admission import ValuesRefused
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import bind, refusal
 from rlbridge.server.context import ServerContext
+from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.services import SessionServices
 from rlbridge.server.sinks import PacketSink, UdpSink
@@ -122,6 +122,11 @@ class Session:
         elif self.udp.addr != addr:
             self.udp.addr = addr
 
+    def acknowledged(self) -> None:
+        """The ConnectAck is out: the first heartbeat follows it at once (protocol.md 8.1)."""
+        if not self.closed:
+            self._watchdog.beat()
+
     @property
     def control(self) -> PacketSink | None:
         """Control replies go over TCP when the session has it, else over UDP."""
@@ -134,12 +139,20 @@ class Session:
             sink.send(packet)
 
     def error(self, code: ErrorCode, reason: str, channel: int | None = None,
-              via: PacketSink | None = None) -> None:
+              via: PacketSink | None = None, values: int = 0) -> None:
         """Tell the client what was wrong with what it sent; the session goes on."""
         self.errors_sent += 1
         self.ctx.count("errors_sent")
-        log.debug("session %d (%s): %s: %s", self.id, self.name, code.name, reason)
-        self.send_control(Error(int(code), reason, channel), via)
+        self.ctx.notices.warn(code.name.lower().replace("_", " "),
+                              f"session {self.id} ({self.name}): {reason}")
+        self.send_control(Error(int(code), reason, channel, values), via)
+
+    def _refuse_channel(self, channel: int, code: ErrorCode, reason: str,
+                        via: PacketSink | None) -> None:
+        """Answer a topic-connect with its refusal; the operator hears of it (rate-limited)."""
+        self.ctx.notices.warn("refused channel", f"session {self.id} ({self.name}): channel "
+                              f"{channel} refused: {reason}")
+        self.send_control(TopicError(channel, int(code), reason), via)
 
     # -- packets ---------------------------------------------------------------------------
     def handle(self, packet: Packet, via: str) -> None:
@@ -189,8 +202,7 @@ class Session:
         if binding is not None:
             binding.malformed += 1
         if error.tag == TOPIC_CONNECT_TAG and error.channel is not None:
-            self.send_control(TopicError(error.channel, int(ErrorCode.MALFORMED), error.reason),
-                              via)
+            self._refuse_channel(error.channel, ErrorCode.MALFORMED, error.reason, via)
             return
         self.error(ErrorCode.MALFORMED, error.reason, error.channel, via=via)
 
@@ -214,10 +226,11 @@ class Session:
                 binding.on_value(packet)
             else:
                 binding.on_batch(packet)
-        except msgspec.ValidationError as exc:
+        except ValuesRefused as exc:
             self.error(ErrorCode.BAD_VALUE,
                        f"channel {channel} ({binding.spec.msg_type} field "
-                       f"{binding.spec.field or '<whole message>'}): {exc}", channel, via)
+                       f"{binding.spec.field or '<whole message>'}): {exc.reason}", channel, via,
+                       values=exc.count)
 
     def _limit(self, packet: Value | Batch, via: PacketSink | None) -> Value | Batch | None:
         """The values ``--max-rate`` lets through (a batch's first ones); the rest counted."""
@@ -246,17 +259,17 @@ class Session:
             return
         if existing is not None and existing.request == req:
             # A retransmitted request (its ack was lost on UDP): answer it again.
-            self.send_control(TopicAck(ch, existing.spec.msg_type, existing.spec.default), via)
+            self.send_control(_ack(existing), via)
             return
         refuse = refusal(self, req)
         if refuse is not None:
-            self.send_control(TopicError(ch, int(refuse[0]), refuse[1]), via)
+            self._refuse_channel(ch, refuse[0], refuse[1], via)
             return
         try:
             binding = bind(self, req)
         except BindingError as exc:
             code = ErrorCode.__members__.get(exc.code, ErrorCode.INTERNAL)
-            self.send_control(TopicError(ch, int(code), exc.reason), via)
+            self._refuse_channel(ch, code, exc.reason, via)
             return
         if isinstance(binding, Inbound):
             self.inbound[ch] = binding
@@ -265,7 +278,7 @@ class Session:
         spec = binding.spec
         log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
-        self.send_control(TopicAck(ch, spec.msg_type, spec.default), via)
+        self.send_control(_ack(binding), via)
 
     def report_loss(self) -> None:
         """Tell the client of each channel whose ROS-side loss grew since the last report
@@ -289,7 +302,7 @@ class Session:
             if self.services.withdraw(ch) is None:
                 self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
-        self._retire(binding.stats())
+        self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
         binding.close()
 
     # -- lifetime --------------------------------------------------------------------------
@@ -303,7 +316,7 @@ class Session:
             self.send_control(Disconnect(code, reason))
         bindings: list[Inbound | Outbound] = [*self.inbound.values(), *self.outbound.values()]
         for binding in bindings:
-            self._retire(binding.stats())
+            self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
             try:
                 binding.close()
             except Exception:  # a middleware failing to release must not stop the others
@@ -314,7 +327,8 @@ class Session:
         self.goals.close()
         if self._close_tcp is not None:
             self._close_tcp()
-        log.info("session %d (%s) closed: %s", self.id, self.name, reason)
+        log.log(session_level(self.name), "session %d (%s) closed: %s", self.id, self.name,
+                reason)
         self._on_closed(self)
 
     # -- counters --------------------------------------------------------------------------
@@ -338,6 +352,7 @@ class Session:
     def _retire(self, channel: dict[str, Any]) -> None:
         for key in CHANNEL_TOTALS:
             self._retired[key] += channel.get(key, 0)
+        self.ctx.ledger.retire_channel(self.name, channel)
 
     def channel_stats(self) -> dict[str, dict[str, Any]]:
         """One dict per channel id (as a string: JSON keys); other counters go into these."""
@@ -371,3 +386,9 @@ class Session:
             "channels": channels,
         }
 
+
+def _ack(binding: Inbound | Outbound) -> TopicAck:
+    """A binding's TopicAck: a publish channel's carries the schema its values must match."""
+    spec = binding.spec
+    schema = binding.schema if isinstance(binding, Inbound) else None
+    return TopicAck(binding.channel, spec.msg_type, spec.default, schema)

@@ -8,6 +8,7 @@ import socket
 from typing import cast
 
 from rlbridge.server.gate import Gate
+from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
@@ -144,8 +145,10 @@ class TcpConnection(asyncio.Protocol):
             return
         result.attach_tcp(self._sink, self._transport.close)
         self._session = result
-        log.info("session %d (%s) opened over TCP from %s", result.id, hello.name, self._peer)
+        log.log(session_level(hello.name), "session %d (%s) opened over TCP from %s", result.id,
+                hello.name, self._peer)
         self._sink.send(self._registry.ack(result))
+        result.acknowledged()
 
     def _fatal(self, code: ErrorCode, reason: str) -> None:
         """The byte stream cannot be trusted any more: say why, then close.
@@ -153,7 +156,8 @@ class TcpConnection(asyncio.Protocol):
         Before a session exists the answer is a ConnectError ("no session"); inside a session
         it is an Error with the code, then a Disconnect, so the client's SDK reports the reason.
         """
-        log.warning("closing TCP connection from %s: %s", self._peer, reason)
+        self._registry.ctx.notices.warn("malformed",
+                                        f"closing TCP connection from {self._peer}: {reason}")
         if self._sink is None or self._transport is None:
             return
         if self._session is None:

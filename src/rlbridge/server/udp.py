@@ -10,10 +10,12 @@ from dataclasses import dataclass
 from typing import cast
 
 from rlbridge.server.gate import Gate
+from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
 from rlbridge.wire import (
+    PROTOCOL_VERSION,
     AuthProof,
     ConnectError,
     Disconnect,
@@ -23,7 +25,7 @@ from rlbridge.wire import (
     RemoteProtocolError,
 )
 from rlbridge.wire.auth import SEAL_OVERHEAD, DatagramRejected, ServerHandshake
-from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, peek_header
+from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, MAGIC, peek_header
 
 log = logging.getLogger("rlbridge.server")
 
@@ -31,6 +33,8 @@ log = logging.getLogger("rlbridge.server")
 RECEIVE_BUFFER = 4 << 20
 #: UDP handshakes (challenge sent, proof awaited) remembered at once; beyond, oldest go.
 MAX_PENDING = 256
+#: What every datagram of this protocol version starts with: magic and version.
+HEADER_PREFIX = MAGIC + bytes((PROTOCOL_VERSION,))
 
 
 class UdpEndpoint(asyncio.DatagramProtocol):
@@ -78,19 +82,25 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         if ctx.allow.networks and not ctx.allow.allows(addr[0]):
             ctx.count("udp_not_allowed")
             return
-        if len(data) > ctx.config.max_packet + DATAGRAM_HEADER.size + SEAL_OVERHEAD:
+        # The checks in the order docs/protocol.md section 3 gives them; none is answered
+        # before the token has picked a live session.
+        if len(data) < DATAGRAM_HEADER.size or data[:3] != HEADER_PREFIX:
+            ctx.count("udp_malformed")  # not ours, or not this version: nobody to tell
+            return
+        flags, token = peek_header(data)
+        seal = SEAL_OVERHEAD if flags & FLAG_MAC else 0
+        if len(data) - DATAGRAM_HEADER.size - seal > ctx.config.max_packet:
             ctx.count("udp_too_large")
+            return
+        session = self._registry.by_token(token) if token else None
+        if token and session is None:
+            ctx.count("udp_bad_token")  # a session that is gone, or a guess: never decoded
             return
         # The token picks the session, and the session the codec: an authenticated session's
         # datagrams must verify under its keys before their body is even decoded.
-        flags, token = peek_header(data)
-        session = self._registry.by_token(token) if token else None
-        if token and session is None and flags & FLAG_MAC:
-            ctx.count("udp_bad_token")  # sealed for a session that is gone: nothing to decode
-            return
         codec = session.codec if session is not None else ctx.codec
-        # The hot path (a live session, no keys): peek_header has checked the header already,
-        # so decode only the body, what decode_datagram would do next (one call, not three).
+        # The hot path (a live session, no keys): the header is checked already, so decode
+        # only the body, what decode_datagram would do next (one call, not three).
         plain = session is not None and type(codec) is PacketCodec
         try:
             if plain:
@@ -99,20 +109,18 @@ class UdpEndpoint(asyncio.DatagramProtocol):
                 _flags, token, packet = codec.decode_datagram(data)
         except DatagramRejected as exc:
             ctx.count(f"udp_{exc.kind}")  # forged, replayed or unsealed: never answered
-            log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            ctx.notices.warn("rejected datagram", f"dropped a UDP datagram from {addr}: "
+                             f"{exc.reason}")
             return
         except RemoteProtocolError as exc:
             if plain:
                 exc.token = token  # as decode_datagram sets it
             ctx.count("udp_malformed")
-            log.debug("dropped datagram from %s: %s", addr, exc.reason)
+            ctx.notices.warn("malformed", f"malformed UDP datagram from {addr}: {exc.reason}")
             # A live token (verified, if the session has keys) proves the sender is the
-            # client: tell it what was wrong.
+            # client: tell it what was wrong, at the address it registered.
             if session is not None and session.udp is not None:
                 session.malformed_packet(exc, session.udp)
-            return
-        if token and session is None:
-            ctx.count("udp_bad_token")
             return
         if session is None:
             if isinstance(packet, Hello):
@@ -187,7 +195,8 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             self._send(result, addr)
             return
         self._hello_sessions[(addr, hello.name)] = (result.id, hello)
-        log.info("session %d (%s) opened over UDP from %s", result.id, hello.name, addr)
+        log.log(session_level(hello.name), "session %d (%s) opened over UDP from %s", result.id,
+                hello.name, addr)
         self._acknowledge(result, addr)
 
     def _acknowledge(self, session: Session, addr: tuple[str, int]) -> None:
@@ -195,6 +204,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         sink = session.udp
         assert isinstance(sink, UdpSink)
         sink.send(self._registry.ack(session))
+        session.acknowledged()  # the first heartbeat; none for a retransmitted hello's ack
 
     def _send(self, packet: Packet, addr: tuple[str, int]) -> None:
         assert self._transport is not None

@@ -27,6 +27,13 @@ class SessionWatchdog:
         self._tcp_bytes_at_heartbeat = (-1, -1)
         self._arm()
 
+    def beat(self) -> None:
+        """Now, not at the next loop iteration: the first heartbeat, right after the
+        ConnectAck, before any answer to packets that came in the same read (protocol.md 11)."""
+        if self._timer is not None:
+            self._timer.cancel()
+        self._on_timer()
+
     def stop(self) -> None:
         """Cancel the pending deadline; the watchdog does not fire again."""
         if self._timer is not None:

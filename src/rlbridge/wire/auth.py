@@ -78,9 +78,8 @@ class ServerHandshake:
         if len(client_nonce) != NONCE_SIZE:
             raise RemoteProtocolError(
                 ErrorCode.AUTH_FAILED,
-                f"this server requires a pre-shared key and the hello carried none (a "
-                f"{NONCE_SIZE}-byte nonce in 'auth', got {len(client_nonce)} bytes); give the "
-                f"client its key: psk=, psk_file= or ${PSK_ENV}")
+                "this server requires a pre-shared key and this client gave none: give it "
+                f"the server's key (${PSK_ENV}, see docs/security.md)")
         self._key = key
         self._transcript = _transcript(name, client_nonce, server_nonce)
         self.challenge = AuthChallenge(server_nonce, _prf(key, b"server-proof", self._transcript))

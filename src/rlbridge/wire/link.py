@@ -17,8 +17,8 @@ correct across hosts to within half the round-trip time.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import StrEnum
 
+from rlbridge._compat import StrEnum
 from rlbridge.wire.clock import ClockOffset
 from rlbridge.wire.packets import Heartbeat
 

@@ -95,6 +95,9 @@ class TopicAck(_Packet, tag=5, frozen=True):
     channel: U32
     msg_type: TypeName
     initial: Any = None
+    #: The JSON Schema (draft 2020-12, as a map) of the values the channel accepts, so a
+    #: client can refuse a wrong value where it is written (``None``: not given).
+    schema: dict[str, Any] | None = None
 
 
 class TopicError(_Packet, tag=6, frozen=True):
@@ -161,6 +164,9 @@ class Error(_Packet, tag=12, frozen=True):
     code: U16
     reason: Reason
     channel: U32 | None = None
+    #: ``BAD_VALUE``: how many values of the refused packet were refused (the others were
+    #: published); 0 for every other error. The client counts them in ``health().rejected``.
+    values: U32 = 0
 
 
 class Stats(_Packet, tag=13, frozen=True):

@@ -1,0 +1,63 @@
+"""The write-time check agrees with the server's check for ROS 2 message types too.
+
+The schema in a ``TopicAck`` comes from the ROS 2 adapter's own msgspec types (built from the
+installed message packages); for each value here the SDK's ``write`` must refuse exactly what
+the server's validation refuses.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+import pytest
+
+from rlbridge.csp.bridge_channels import OutgoingChannel
+from rlbridge.csp.channel import Doorbell
+from rlbridge.csp.value_check import WrongValueType
+from rlbridge.server.admission import value_converter, value_schema
+from rlbridge.wire import TopicAck
+
+pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge[ros2]')")
+
+CASES: list[tuple[str, str | None, list[Any]]] = [
+    ("std_msgs/msg/Float32", "data", [1.0, 2, True, "1"]),
+    ("std_msgs/msg/UInt64", "data", [0, 2**64 - 1, -1, 1.5]),
+    ("std_msgs/msg/Char", "data", [0, 255, 256, "a"]),
+    ("std_msgs/msg/Float64MultiArray", "data", [[1.0, 2], [], [1.0, "x"], (3.0,), 1.0]),
+    ("std_msgs/msg/Float64MultiArray", None, [{"data": [1.0]}, {"layout": {"dim": []}},
+                                              {"layout": {"data_offset": -1}}, {"nope": 1}]),
+    ("geometry_msgs/msg/PoseStamped", None, [
+        {"header": {"frame_id": "map", "stamp": {"sec": 1, "nanosec": 2}},
+         "pose": {"position": {"x": 1}}},
+        {"header": {"stamp": {"nanosec": -1}}},
+        {"header": {"frame_id": 5}},
+        {"pose": {"orientation": {"w": None}}}]),
+]
+
+
+@pytest.mark.parametrize(("msg_type", "field", "values"), CASES,
+                         ids=[f"{t.rsplit('/', 1)[1]}-{f}" for t, f, _ in CASES])
+def test_write_check_agrees_with_the_ros2_server(msg_type: str, field: str | None,
+                                                 values: list[Any]) -> None:
+    from rlbridge.adapters.ros2_types import MessageCatalog
+
+    spec = MessageCatalog().resolve(msg_type, field)
+    server_check = value_converter(spec)
+    channel = OutgoingChannel(1, "/agree", msg_type, field, transport="tcp", immediate=False,
+                              buffer_size=64, doorbell=Doorbell())
+    channel.bound(TopicAck(1, spec.msg_type, spec.default, value_schema(spec)))
+    for value in values:
+        try:
+            server_check([value])
+        except msgspec.ValidationError:
+            server_ok = False
+        else:
+            server_ok = True
+        try:
+            channel.write(value)
+        except WrongValueType:
+            client_ok = False
+        else:
+            client_ok = True
+        assert client_ok == server_ok, f"{value!r}: client {client_ok}, server {server_ok}"

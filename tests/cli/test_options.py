@@ -1,0 +1,60 @@
+"""One meaning per short option across every ``rlbridge`` command (the class of ``-t`` being
+--transport in one command and --show-types in another, or ``-H`` refused by serve)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import typer
+
+from rlbridge.cli import build_app
+from rlbridge.cli_options import SHORT_OPTIONS
+
+
+def _commands(group: Any, path: str = "rlbridge") -> Iterator[tuple[str, Any]]:
+    """Every command and group under ``group`` (typer's click objects), with its path."""
+    yield path, group
+    for name, sub in getattr(group, "commands", {}).items():
+        yield from _commands(sub, f"{path} {name}")
+
+
+def _all() -> list[tuple[str, Any]]:
+    return list(_commands(typer.main.get_command(build_app())))
+
+
+def test_every_short_option_means_what_the_table_says() -> None:
+    long_of = {short: long for long, short in SHORT_OPTIONS.items()}
+    wrong = [
+        f"{path}: {short} is {param.opts}, the table says {long_of.get(short)}"
+        for path, command in _all() for param in command.params
+        if param.param_type_name == "option"
+        for short in param.opts + param.secondary_opts
+        if not short.startswith("--") and long_of.get(short) not in param.opts
+    ]
+    assert wrong == []
+
+
+def test_every_command_with_a_shared_option_also_has_its_short_form() -> None:
+    """(The bench suites' own options keep their long names only: they are not tools a
+    user types daily, and --transport there picks among more than udp and tcp.)"""
+    missing = []
+    for path, command in _all():
+        if path.startswith("rlbridge bench"):
+            continue
+        for param in command.params:
+            for long, short in SHORT_OPTIONS.items():
+                if long in getattr(param, "opts", ()) and short not in param.opts:
+                    missing.append(f"{path}: {long} without {short}")
+    assert missing == []
+
+
+def test_the_commands_a_user_meets_first_share_host_and_port() -> None:
+    commands = dict(_all())
+    for path in ("rlbridge serve", "rlbridge demo", "rlbridge stats", "rlbridge topic pub",
+                 "rlbridge topic echo", "rlbridge topic hz", "rlbridge topic list"):
+        opts = {o for p in commands[path].params for o in getattr(p, "opts", ())}
+        assert {"--host", "-H", "--port", "-p"} <= opts, path
+    for path in ("rlbridge serve", "rlbridge"):
+        opts = {o for p in commands[path].params for o in getattr(p, "opts", ())}
+        assert "--log-level" in opts, path
