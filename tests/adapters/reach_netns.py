@@ -25,7 +25,7 @@ import pytest
 from rlbridge.csp.bridge import Bridge
 from rlbridge.netem import netns
 
-SERVING = re.compile(r"rlbridge serving on [^ ]+:(\d+) ")
+SERVING = re.compile(r"rlbridge listening on [^ ]+ port (\d+) ")
 TIMEOUT = 30.0
 
 

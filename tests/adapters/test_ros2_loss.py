@@ -72,5 +72,5 @@ def test_a_burst_is_delivered_or_counted(ros_env: int,
             port = srv.server.address.metrics_port
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as r:
                 text = r.read().decode()
-            assert any(line.startswith("rlbridge_channel_ros_lost_total{")
+            assert any(line.startswith("rlbridge_channel_values_ros_lost_total{")
                        and line.endswith(f" {lost}") for line in text.splitlines()), text
