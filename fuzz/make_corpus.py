@@ -26,6 +26,7 @@ from rlbridge.wire import (
     ChannelLoss,
     ConnectAck,
     ConnectError,
+    Credit,
     Disconnect,
     Error,
     GoalCancel,
@@ -34,8 +35,10 @@ from rlbridge.wire import (
     Heartbeat,
     Hello,
     Limits,
+    LossReport,
     Packet,
     PacketCodec,
+    RosLoss,
     ServiceCall,
     ServiceOffer,
     ServiceReply,
@@ -49,6 +52,7 @@ from rlbridge.wire import (
     Value,
 )
 from rlbridge.wire.auth import SealedCodec
+from rlbridge.wire.records import RecordSealer
 
 HERE = Path(__file__).parent / "corpus"
 F64 = "std_msgs/msg/Float64"
@@ -58,6 +62,7 @@ CODEC = PacketCodec()
 EVERY_TYPE: list[Packet] = [
     Hello(PROTOCOL_VERSION, "seed", b"n" * 16),
     ConnectAck(1, 2, 200, 600, Limits(1 << 20, 256, 4096)),
+    ConnectAck(1, 2, 200, 600, Limits(1 << 20, 256, 4096), bytes(range(32))),  # over TLS
     ConnectError(21, "no"),
     TopicConnect(1, "publish", "/a", F64),
     TopicAck(1, F64, 0.0),
@@ -71,6 +76,10 @@ EVERY_TYPE: list[Packet] = [
     Stats(),
     AuthChallenge(b"n" * 16, b"p" * 32),
     AuthProof(b"p" * 32),
+    Credit(2, 64),
+    LossReport([ChannelLoss(1, 10, 2, 12, 0), ChannelLoss(3, 0, 0, 0, 5)]),
+    TopicConnect(4, "subscribe", "/a", F64, buffer_size=8, flow=True),
+    TopicAck(5, F64, 0.0, credit=4096),
     ServiceCall(1, "/s", SET_BOOL, {"data": True}, 50),
     ServiceResult(1, 0, {"success": True, "message": ""}),
     ServiceOffer(4, "/s", SET_BOOL),
@@ -79,7 +88,7 @@ EVERY_TYPE: list[Packet] = [
     GoalSend(5, "/fib", "test_msgs/action/Fibonacci", {"order": 3}, 50),
     GoalCancel(5),
     GoalResult(5, 4, {"sequence": [0, 1]}),
-    ChannelLoss(2, 3),
+    RosLoss(2, 3),
 ]
 
 #: A session's life as a client drives it: publish and subscribe on both transports.
@@ -90,6 +99,13 @@ SESSION: list[Packet] = [
     Value(1, 0, 0, 1.5),
     Batch(1, 1, [0, 0, 0], [1.0, 2.0, 3.0]),
     Value(3, 0, 0, {"linear": {"x": 1.0}}),
+    TopicConnect(4, "subscribe", "/f", F64, buffer_size=4, flow=True),
+    TopicConnect(5, "publish", "/f", F64, flow=True, loss_report=True),
+    Batch(5, 0, [0] * 6, [1.0] * 6),
+    Credit(4, 8),
+    Credit(4, 2),  # old news
+    Credit(1, 9),  # not a flow-controlled subscription
+    LossReport([ChannelLoss(5, 1, 0, 1)]),  # a server's packet, from a client
     Heartbeat(5, 0),
     Stats(),
     ServiceOffer(4, "/s", SET_BOOL),
@@ -133,6 +149,13 @@ BAD: list[bytes] = [
     b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
     frame(body(15, b"x" * 31)),  # proof of the wrong size
     frame(body(13, {"k" * 10: [1] * 1000})),  # stats with a big body
+    frame(body(34, 1, -5)),  # negative credit
+    frame(body(35, [[1, 2, 3, 4]] * 300)),  # a loss report over its 256 channels
+    frame(body(35, [[1, "x", 3, 4]])),  # a loss report with a bad count
+    b"\x16\x03\x01\x00\xc8\x01\x00\x00\xc4\x03\x03" + bytes(32),  # a TLS ClientHello
+    b"\x15\x03\x03\x00\x02\x02\x46",  # a TLS alert
+    FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 40) + bytes(40),  # a record that won't open
+    FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 0xFFFF_FFFF),  # an absurd record
     frame(body(20, 1, "/s", SET_BOOL, [1, 2])),  # a service request that is not a map
     frame(body(20, 1, "", SET_BOOL, {})),  # empty service name
     frame(body(24, 4, 1, 0, {"success": "very"})),  # a reply that does not fit
@@ -157,6 +180,17 @@ def decoder_seeds() -> Iterator[bytes]:
         yield b"\x00" + bad
         yield b"\x05" + bad
     yield b"\x00" + DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 7)
+    # Sealed TCP records the harness opens (its stream key), whole, tampered, out of order.
+    frames = b"".join(CODEC.encode_frame(p) for p in EVERY_TYPE)
+    sealer = RecordSealer(bytes(range(32)))
+    first, second = sealer.seal(frames[:200]), sealer.seal(frames[200:])
+    for mode in (b"\x00", b"\x01", b"\x07"):
+        yield mode + first + second
+        yield mode + second + first
+        yield mode + first + first
+        yield mode + first[:-1] + bytes([first[-1] ^ 1]) + second
+        yield mode + first + CODEC.encode_frame(Stats())  # a plain frame injected after
+        yield mode + first[:50]
 
 
 def server_seeds() -> Iterator[bytes]:

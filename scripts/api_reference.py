@@ -28,6 +28,12 @@ API: list[tuple[str, str, list[str], str]] = [
     ("Bridge: the session with a server", "rlbridge.csp.bridge",
      ["Bridge", "Transport", "DEFAULT_SWITCH_INTERVAL"],
      "Start here: `Bridge.connect` opens a session, `subscribe`/`publish` return channels."),
+    ("", "rlbridge.csp.bridge_status", ["BridgeStatus"],
+     "The Bridge's link state, session facts and counters (inherited by `Bridge`)."),
+    ("I/O idle strategies", "rlbridge.csp.idle",
+     ["IdleStrategy", "Park", "SpinThenPark", "BusySpin", "idle_strategy"],
+     "`Bridge.connect(idle=...)`: how the SDK's send and receive threads wait for work "
+     "([concepts.md](concepts.md#io-threads-how-they-wait-idle-strategies))."),
     ("Bridge channels", "rlbridge.csp.bridge_channels",
      ["IncomingChannel", "OutgoingChannel", "AgedValue", "SecondWriterError"],
      "What `Bridge.subscribe` and `Bridge.publish` return."),

@@ -82,7 +82,7 @@ def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge
     assert stats["dropped"] == 0
     assert (len(received) - 1) + lost == expected
     assert received[-1] == N - 1 or lost > 0
-    deadline = time.monotonic() + 10  # the ChannelLoss report, once per heartbeat period
+    deadline = time.monotonic() + 10  # the RosLoss report, once per heartbeat period
     while ch.health().ros_lost != lost and time.monotonic() < deadline:
         time.sleep(0.05)
     assert ch.health().ros_lost == lost if lost else ch.health().ros_lost in (-1, 0)

@@ -4,7 +4,7 @@ One server with the ROS 2 adapter (in this process, on the ``ros_env`` domain), 
 adapter as "another node" publishing a burst onto a topic an SDK channel subscribes to with
 the default depth (10). Every message after the first the server took is delivered to the
 client or counted in ``ros_lost``: in the server's stats, its metrics, ``rlbridge stats``'s
-table and the client's ``health()`` (the ``ChannelLoss`` report).
+table and the client's ``health()`` (the ``RosLoss`` report).
 """
 
 from __future__ import annotations

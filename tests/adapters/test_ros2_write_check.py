@@ -18,7 +18,7 @@ from rlbridge.csp.value_check import WrongValueType
 from rlbridge.server.admission import value_converter, value_schema
 from rlbridge.wire import TopicAck
 
-pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge[ros2]')")
+pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')")
 
 CASES: list[tuple[str, str | None, list[Any]]] = [
     ("std_msgs/msg/Float32", "data", [1.0, 2, True, "1"]),

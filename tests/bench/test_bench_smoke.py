@@ -76,6 +76,46 @@ def test_latency_runs_every_kind_of_row(tmp_path: Path,
     assert "<!-- bench:latency begin -->" in out.read_text()
 
 
+def test_throughput_flow_rows_add_up_and_lose_nothing(tmp_path: Path) -> None:
+    result = CliRunner().invoke(bench_app, [
+        "throughput", "--count", "20000", "--seconds", "1", "--repeats", "1",
+        "--only", "rlb-tcp-slow-flow,rlb-udp-batch", "--out", str(tmp_path / "b.md")])
+    assert result.exit_code == 0, result.output
+    assert re.search(r"flow control: 0 values lost over 1 runs", result.output), result.output
+    for line in result.output.splitlines():
+        stages = re.search(r"\| ([^|]*end to end: ([\d,]+)) \|", line)
+        if stages:  # every stage's count adds up to the end-to-end loss, none below zero
+            counts = {k: int(v.replace(",", "")) for k, v in
+                      re.findall(r"([^,:]+(?:\([^)]*\))?): ([\d,]+)", stages.group(1))}
+            end = counts.pop(" end to end", counts.pop("end to end", 0))
+            assert sum(counts.values()) == end, line
+            assert all(v >= 0 for v in counts.values()), line
+
+
+def test_latency_idle_rows_report_cpu(tmp_path: Path) -> None:
+    out = tmp_path / "bench.md"
+    result = CliRunner().invoke(bench_app, [
+        "latency", "--count", "30", "--repeats", "1", "--rates", "1000", "--idle", "park,spin",
+        "--only", "rlb-udp,rlb-udp-spin", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = _rows(result.output)
+    assert float(rows["rlbridge UDP, idle=spin"][-4]) >= 0  # CPU % of the publisher
+    assert "<!-- bench:latency-idle begin -->" in out.read_text()
+    bad = CliRunner().invoke(bench_app, ["latency", "--idle", "nap", "--out", str(out)])
+    assert bad.exit_code == 2
+    assert "unknown idle strategy 'nap'" in bad.output
+
+
+def test_feedback_runs(tmp_path: Path) -> None:
+    out = tmp_path / "bench.md"
+    result = CliRunner().invoke(bench_app, [
+        "feedback", "--repeats", "1", "--seconds", "0.5", "--only", "flood", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    row = _rows(result.output)["UDP flood, no limit"]
+    assert row[5] == "1/1", row  # the publisher's reported counts equal the server's
+    assert "<!-- bench:feedback begin -->" in out.read_text()
+
+
 def test_write_section_replaces_only_its_own_section(tmp_path: Path) -> None:
     path = tmp_path / "b.md"
     write_section(path, "a", "first")

@@ -305,7 +305,9 @@ TAG_SERVICE_REPLY = 24
 TAG_GOAL_SEND = 25
 TAG_GOAL_CANCEL = 26
 TAG_GOAL_RESULT = 27
-TAG_CHANNEL_LOSS = 28
+TAG_ROS_LOSS = 28
+TAG_CREDIT = 34
+TAG_LOSS_REPORT = 35
 
 TAG_NAMES = {
     TAG_HELLO: "Hello", TAG_CONNECT_ACK: "ConnectAck", TAG_CONNECT_ERROR: "ConnectError",
@@ -317,7 +319,8 @@ TAG_NAMES = {
     TAG_SERVICE_OFFER: "ServiceOffer", TAG_SERVICE_REQUEST: "ServiceRequest",
     TAG_SERVICE_REPLY: "ServiceReply", TAG_GOAL_SEND: "GoalSend",
     TAG_GOAL_CANCEL: "GoalCancel", TAG_GOAL_RESULT: "GoalResult",
-    TAG_CHANNEL_LOSS: "ChannelLoss",
+    TAG_ROS_LOSS: "RosLoss",
+    TAG_CREDIT: "Credit", TAG_LOSS_REPORT: "LossReport",
 }
 
 # Error codes (doc section 12.2).

@@ -36,6 +36,9 @@ F64 = "std_msgs/msg/Float64"
 PAD = "x" * 2000
 N = 300
 WAIT = 10.0
+#: The stalled reader sends no heartbeats: on a loaded machine the default test watchdog
+#: (5 s) could end its session mid-test, which is not what these tests are about.
+STALLED_WATCHDOG_MS = 60_000
 
 
 class StalledReader:
@@ -126,7 +129,7 @@ def _wait_server(srv: ServerThread, pred: Callable[[dict[str, Any]], bool]) -> d
 
 def test_latest_tcp_channel_skips_the_backlog_of_a_stalled_reader(
         make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any]) -> None:
-    srv = make_server()
+    srv = make_server(timeout_ms=STALLED_WATCHDOG_MS)
     reader = StalledReader(srv.port)
     try:
         reader.subscribe("/sp/latest", latest=True)
@@ -150,7 +153,7 @@ def test_latest_tcp_channel_skips_the_backlog_of_a_stalled_reader(
 def test_plain_tcp_channel_delivers_the_whole_backlog(
         make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any]) -> None:
     """The baseline of the test above: the same stall delivers every stale value."""
-    srv = make_server()
+    srv = make_server(timeout_ms=STALLED_WATCHDOG_MS)
     reader = StalledReader(srv.port)
     try:
         reader.subscribe("/sp/plain", latest=False)

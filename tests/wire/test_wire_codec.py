@@ -23,6 +23,7 @@ from rlbridge.wire import (
     ChannelLoss,
     ConnectAck,
     ConnectError,
+    Credit,
     Disconnect,
     Error,
     ErrorCode,
@@ -33,10 +34,12 @@ from rlbridge.wire import (
     Heartbeat,
     Hello,
     Limits,
+    LossReport,
     Malformed,
     Packet,
     PacketCodec,
     RemoteProtocolError,
+    RosLoss,
     ServiceCall,
     ServiceOffer,
     ServiceReply,
@@ -95,8 +98,11 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
         TopicConnect, U32, st.sampled_from(["subscribe", "publish"]), text(1, 40),
         text(1, 40), st.none() | text(1, 30), st.sampled_from(["tcp", "udp"]), U32,
         st.sampled_from([None, "reliable", "best_effort"]), U16, U32, st.integers(0, 16),
+        st.booleans(), st.booleans(), st.booleans(),
     ),
-    TopicAck: st.builds(TopicAck, U32, text(1, 40), values),
+    TopicAck: st.builds(TopicAck, U32, text(1, 40), values,
+                        st.none() | st.dictionaries(text(max_size=6), values, max_size=3),
+                        st.none() | U64),
     TopicError: st.builds(TopicError, U32, U16, text(max_size=200)),
     TopicClose: st.builds(TopicClose, U32),
     Value: st.builds(Value, U32, U64, I64, values),
@@ -108,6 +114,9 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
     AuthChallenge: st.builds(AuthChallenge, st.binary(min_size=16, max_size=16),
                              st.binary(min_size=32, max_size=32)),
     AuthProof: st.builds(AuthProof, st.binary(min_size=32, max_size=32)),
+    Credit: st.builds(Credit, U32, U64),
+    LossReport: st.builds(LossReport, st.lists(
+        st.builds(ChannelLoss, U32, U64, U64, U64, U64), max_size=5)),
 }
 #: Services, actions and ROS-side loss (tags 20-28).
 fields = st.dictionaries(text(max_size=6), values, max_size=4)
@@ -121,7 +130,7 @@ packet_strategies.update({
     GoalSend: st.builds(GoalSend, U32, text(1, 40), text(1, 40), fields, U32),
     GoalCancel: st.builds(GoalCancel, U32),
     GoalResult: st.builds(GoalResult, U32, U16, st.none() | fields, text(max_size=100)),
-    ChannelLoss: st.builds(ChannelLoss, U32, U64),
+    RosLoss: st.builds(RosLoss, U32, U64),
 })
 PACKET_TYPES: tuple[type, ...] = Packet.__args__  # type: ignore[attr-defined]
 packets: st.SearchStrategy[Packet] = st.one_of(*packet_strategies.values())
@@ -158,7 +167,7 @@ SAMPLES: list[Packet] = [
     GoalSend(6, "/fibonacci", "test_msgs/action/Fibonacci", {"order": 5}),
     GoalCancel(6),
     GoalResult(6, 4, {"sequence": [0, 1, 1, 2, 3, 5]}),
-    ChannelLoss(2, 17),
+    RosLoss(2, 17),
 ]
 
 

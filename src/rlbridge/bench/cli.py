@@ -76,17 +76,38 @@ def throughput(
     rate: Annotated[float, typer.Option(help="Offered values/s of rlbridge rows (0: flood).")]
     = 0.0,
     only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, zenoh, rlb-udp-1, rlb-tcp-1, "
-                                      "rlb-udp-batch, rlb-tcp-batch.")] = "",
+                                      "rlb-udp-batch, rlb-tcp-batch, rlb-tcp-batch-noflow, "
+                                      "rlb-tcp-slow-flow, "
+                                      "rlb-tcp-slow-noflow, rlb-tcp-send, rlb-tcp-send-spin, "
+                                      "rlb-tcp-send-wait, rlb-tcp-send-wait-spin.")] = "",
     out: Out = Path("docs/benchmarks.md"),
 ) -> None:
     """Values/s publisher -> server -> subscriber (TCP, UDP), next to UDP/ZeroMQ/Zenoh."""
     from rlbridge.bench import throughput as tp
     from rlbridge.bench.common import LoopbackLink, progress
+    from rlbridge.bench.throughput_report import report
 
     settings = tp.Settings(count=count, seconds=seconds, repeats=repeats, batch=batch,
                            rate=rate, only=_keys(only))
-    _run("throughput", lambda: tp.report(tp.run(LoopbackLink(), settings, progress), settings,
-                                         _command(ctx)), out)
+    _run("throughput", lambda: report(tp.run(LoopbackLink(), settings, progress), settings,
+                                      _command(ctx)), out)
+
+
+@bench_app.command("feedback")
+def feedback(
+    ctx: typer.Context,
+    seconds: Annotated[float, typer.Option(help="Flood length per run.")] = 2.0,
+    repeats: Repeats = 5,
+    only: Annotated[str, typer.Option(help=_ONLY + "flood, flood-adapt.")] = "",
+    out: Out = Path("docs/benchmarks.md"),
+) -> None:
+    """How soon a UDP flood's first-hop loss shows in the publisher's health() (target 1 s)."""
+    from rlbridge.bench import feedback as fb
+    from rlbridge.bench.common import LoopbackLink, progress
+
+    _run("feedback", lambda: fb.report(
+        fb.run(LoopbackLink(), repeats, seconds, _keys(only), progress), repeats, seconds,
+        _command(ctx)), out)
 
 
 @bench_app.command("latency")
@@ -114,6 +135,11 @@ def latency(
     csv: Annotated[Path | None, typer.Option(
         "--csv", help="Per-sample CSV: seq,sent_ns,recv_ns,latency_ms (empty when lost).")]
     = None,
+    idle: Annotated[str, typer.Option(
+        help="SDK idle strategies (park, spin, busy, comma-separated; send/receive for one "
+             "per thread, e.g. park/spin): the rlbridge rows once per strategy, with CPU % "
+             "per process and the publisher loop's lateness.")]
+    = "",
 ) -> None:
     """One-way latency p50/p99/max of 1 kHz and 100 Hz streams, next to raw UDP and ZeroMQ.
 
@@ -127,10 +153,21 @@ def latency(
     if transport is not None or delay or loss or csv is not None:
         _latency_link(transport or "all", delay, loss, rate, count or 1000, direction, csv)
         return
+    from rlbridge.csp.idle import STRATEGIES
+
+    strategies = _keys(idle)
+    unknown = [k for s in strategies for k in s.split("/") if k not in STRATEGIES]
+    if unknown:
+        typer.echo(f"rlbridge bench latency: error: unknown idle strategy {unknown[0]!r}; "
+                   f"choose from {', '.join(STRATEGIES)}", err=True)
+        raise typer.Exit(2)
     settings = lat.Settings(seconds=seconds, count=count, repeats=repeats,
-                            rates=tuple(float(r) for r in _keys(rates)), only=_keys(only))
-    _run("latency", lambda: lat.report(lat.run(LoopbackLink(), settings, progress), settings,
-                                       _command(ctx)), out)
+                            rates=tuple(float(r) for r in _keys(rates)), only=_keys(only),
+                            idle=strategies)
+    # The idle study has its own section: the plain run's figures stay where they are.
+    _run("latency-idle" if strategies else "latency",
+         lambda: lat.report(lat.run(LoopbackLink(), settings, progress), settings,
+                            _command(ctx)), out)
 
 
 # -- load (rlbridge.bench.load) ------------------------------------------------

@@ -9,6 +9,12 @@ subscriber (two hops, three processes) over TCP with Nagle's algorithm, TCP with
 both ends, and UDP; the baselines are one hop: a raw UDP socket pair (the floor) and ZeroMQ
 PUB/SUB over TCP (what a user would otherwise pick).
 
+``--idle park,spin,busy`` adds the rlbridge rows once per SDK idle strategy
+(:mod:`rlbridge.csp.idle`, in the publisher and the subscriber; ``park/spin`` gives the send
+thread the first and the receive thread the second), with the CPU each process used
+(% of one core over the run) and the publisher loop's own wake-up lateness p99: a spinning SDK
+thread holds the GIL the loop needs when it wakes, and this column shows what that costs.
+
 Where the processes run is the :class:`~rlbridge.bench.common.Link`'s business: the server and
 baseline receivers on side ``"a"``, publishers and senders on side ``"b"``, so an emulated link
 with delay and loss can be put between the sides without touching this module. Each run
@@ -63,6 +69,7 @@ class Case:
     kind: str
     transport: str = "udp"
     nodelay: bool = False
+    idle: str = "park"
 
 
 CASES = (
@@ -75,18 +82,60 @@ CASES = (
 
 
 # -- worker roles (child processes) --------------------------------------------------------
+def with_idle(cases: Sequence[Case], strategies: Sequence[str]) -> tuple[Case, ...]:
+    """The rows once per idle strategy: baselines once, rlbridge rows per strategy."""
+    rows = [c for c in cases if c.kind != "rlbridge"]
+    for idle in strategies:
+        rows += [Case(c.key if idle == "park" else f"{c.key}-{idle}",
+                      c.label if idle == "park" else f"{c.label}, idle={idle}",
+                      c.kind, c.transport, c.nodelay, idle)
+                 for c in cases if c.kind == "rlbridge"]
+    return tuple(rows)
+
+
+def idle_param(spec: str) -> str | tuple[str, str]:
+    """``"spin"`` for both SDK threads, ``"park/spin"`` for (send thread, receive thread)."""
+    send, _, receive = spec.partition("/")
+    return (send, receive) if receive else send
+
+
+def paced_late(send: Callable[[int], object], rate_hz: float,
+               count: int) -> tuple[int, float, float, list[int]]:
+    """:func:`paced`, also recording each call's lateness behind its schedule (ns)."""
+    period_ns = int(1e9 / rate_hz)
+    mono = time.monotonic_ns
+    start = mono()
+    late: list[int] = []
+    for i in range(count):
+        due = start + i * period_ns
+        delay = due - mono()
+        if delay > 0:
+            time.sleep(delay / 1e9)
+        now = mono()
+        late.append(now - due)
+        send(time.time_ns())
+    return count, start / 1e9, mono() / 1e9, late
+
+
 def publisher(params: Params) -> None:
     """Writes ``time.time_ns()`` on schedule; ``write`` hands it to the SDK's send thread."""
     from rlbridge.csp.bridge import Bridge
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
-                            name="bench-lat-pub")
+                            name="bench-lat-pub", idle=idle_param(str(params.get("idle", "park"))))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"])
     emit("ready")
     wait_for_go(control)
-    sent, t0, t1 = paced(out.write, float(params["rate_hz"]), int(params["count"]))
-    emit("sent", sent=sent, t_start=t0, t_end=t1)
+    if params.get("idle") is None:
+        sent, t0, t1 = paced(out.write, float(params["rate_hz"]), int(params["count"]))
+        emit("sent", sent=sent, t_start=t0, t_end=t1)
+    else:
+        sent, t0, t1, late = paced_late(out.write, float(params["rate_hz"]),
+                                        int(params["count"]))
+        kept = sorted(late[WARMUP:])
+        emit("sent", sent=sent, t_start=t0, t_end=t1,
+             late_p99_us=percentile(kept, 99) / 1000 if kept else math.nan)
     hold(control)
 
 
@@ -96,7 +145,7 @@ def subscriber(params: Params) -> None:
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
-                            name="bench-lat-sub")
+                            name="bench-lat-sub", idle=idle_param(str(params.get("idle", "park"))))
     ch = bridge.subscribe(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                           blocking=True, buffer_size=1024)
     emit("ready")
@@ -131,6 +180,12 @@ class Measurement:
     #: rlbridge only: p50 of publisher write -> server send, and of server send -> read.
     first_leg_p50: float = math.nan
     second_leg_p50: float = math.nan
+    #: With ``--idle``: % of one core per process over the run, and the publisher loop's
+    #: wake-up lateness p99 (us).
+    cpu_pub: float = math.nan
+    cpu_server: float = math.nan
+    cpu_sub: float = math.nan
+    loop_late_p99: float = math.nan
 
 
 def _summary(received: Params, sent: int) -> Measurement:
@@ -150,12 +205,20 @@ def _rlbridge_once(group: ProcessGroup, case: Case, stream: Params) -> Measureme
     server, host, port = start_server(group, nodelay=case.nodelay)
     common: Params = {"host": host, "port": port, "transport": case.transport,
                       "nodelay": case.nodelay, **stream}
+    if stream.get("idle_rows"):
+        common["idle"] = case.idle
     sub = group.start("subscriber", "b", MODULE, "subscriber", common)
     pub = group.start("publisher", "b", MODULE, "publisher", common)
     for worker in (sub, pub):  # started together; the publisher waits for "go" anyway
         worker.expect("ready", STARTUP_S)
     flow = run_flow(pub, sub, [pub, server, sub], _timeout(stream))
-    return _summary(flow.received, int(flow.sent["sent"]))
+    m = _summary(flow.received, int(flow.sent["sent"]))
+    span = float(flow.sent["t_end"]) - float(flow.sent["t_start"])
+    if span > 0 and stream.get("idle_rows"):
+        m.cpu_pub, m.cpu_server, m.cpu_sub = (
+            100 * flow.cpu_s[w.name] / span for w in (pub, server, sub))
+    m.loop_late_p99 = float(flow.sent.get("late_p99_us", math.nan))
+    return m
 
 
 def _timeout(stream: Params) -> float:
@@ -163,9 +226,10 @@ def _timeout(stream: Params) -> float:
 
 
 def measure(link: Link, case: Case, *, rate_hz: float, count: int,
-            idle_s: float = 0.5) -> Measurement:
+            idle_s: float = 0.5, idle_rows: bool = False) -> Measurement:
     """One repeat of ``case`` at ``rate_hz`` over ``link``, in fresh processes."""
-    stream: Params = {"rate_hz": rate_hz, "count": count, "idle_s": idle_s}
+    stream: Params = {"rate_hz": rate_hz, "count": count, "idle_s": idle_s,
+                      "idle_rows": idle_rows}
     with ProcessGroup(link, lifetime_s=_timeout(stream) + 120) as group:
         try:
             if case.kind == "rlbridge":
@@ -188,6 +252,8 @@ class Settings:
     rates: tuple[float, ...] = (1000.0, 100.0)
     idle_s: float = 0.5
     only: tuple[str, ...] = ()
+    #: SDK idle strategies to run the rlbridge rows with (``()``: the default, no CPU columns).
+    idle: tuple[str, ...] = ()
 
     def samples(self, rate_hz: float) -> int:
         """Samples kept per run (``count``, else ``seconds`` at the stream's rate)."""
@@ -208,7 +274,8 @@ class CaseResult:
 def run(link: Link, settings: Settings,
         progress: Callable[[str], None] | None = None) -> list[CaseResult]:
     """Every (case, rate) ``repeats`` times, interleaved so that noise hits every row."""
-    selected = select_cases(CASES, settings.only)
+    selected = select_cases(with_idle(CASES, settings.idle) if settings.idle else CASES,
+                            settings.only)
     results = [CaseResult(c, r) for r in settings.rates for c in selected]
     for rep in range(settings.repeats):
         for res in results:
@@ -220,7 +287,8 @@ def run(link: Link, settings: Settings,
             count = settings.samples(res.rate_hz) + WARMUP
             try:
                 res.runs.append(measure(link, res.case, rate_hz=res.rate_hz, count=count,
-                                        idle_s=settings.idle_s))
+                                        idle_s=settings.idle_s,
+                                        idle_rows=bool(settings.idle)))
             except Skipped as exc:
                 res.skipped = str(exc)
             except BenchError as exc:
@@ -238,6 +306,9 @@ def table(results: Sequence[CaseResult]) -> str:
     headers = ["stream", "path", "p50 us", "p99 us", "max us", "p50 / raw UDP p50",
                "p99 / ZeroMQ p99", "p50 pub -> server send", "p50 server send -> read",
                "samples/run", "lost/run"]
+    cpu = any(not math.isnan(m.cpu_pub) for r in results for m in r.runs)
+    if cpu:
+        headers += ["CPU % pub", "CPU % server", "CPU % sub", "pub loop late p99 us"]
     rows = []
     for r in results:
         if r.skipped is not None:
@@ -252,6 +323,8 @@ def table(results: Sequence[CaseResult]) -> str:
             fmt(ratio(r.stat("p99"), zmq.stat("p99") if zmq else math.nan), 2),
             fmt(r.stat("first_leg_p50"), 1), fmt(r.stat("second_leg_p50"), 1),
             fmt(r.stat("samples")), fmt(r.stat("lost")),
+            *([fmt(r.stat("cpu_pub"), 1), fmt(r.stat("cpu_server"), 1),
+               fmt(r.stat("cpu_sub"), 1), fmt(r.stat("loop_late_p99"), 1)] if cpu else []),
         ])
     return markdown_table(headers, rows)
 
@@ -279,7 +352,7 @@ def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[
     per_run = (f"{settings.count:,} samples" if settings.count is not None
                else f"{settings.seconds:g} s")
     parts = [
-        report_header("Latency", command),
+        report_header("Latency by SDK idle strategy" if settings.idle else "Latency", command),
         f"{settings.repeats} repeats per row, interleaved; {per_run} per run after "
         f"{WARMUP} warm-up samples. One-way latency = subscriber's `time.time_ns()` when a "
         "blocking read returns the value, minus the publisher's `time.time_ns()` written into "
@@ -288,7 +361,12 @@ def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[
         "The two legs split each rlbridge sample at the server's send stamp "
         "(`IncomingChannel.last_stamp_ns`): publisher write -> server send includes the "
         "publisher's send-thread wake-up, hop 1 and the server; server send -> read includes "
-        "hop 2, the receive thread and the reader's wake-up.",
+        "hop 2, the receive thread and the reader's wake-up."
+        + (" Idle rows: the SDK threads of publisher and subscriber wait by that strategy "
+           "(`Bridge.connect(idle=...)`); CPU % = user + system time of each whole process "
+           "over the stream, in % of one core; `pub loop late` = p99 of how late the "
+           "publisher's paced loop woke for its next write (its own GIL and scheduler wait)."
+           if settings.idle else ""),
         "",
         table(results),
         "",

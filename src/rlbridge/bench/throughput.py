@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -42,12 +42,8 @@ from rlbridge.bench.common import (
     Skipped,
     Tally,
     emit,
-    fmt,
     hold,
-    markdown_table,
     median,
-    ratio,
-    report_header,
     run_flow,
     select_cases,
     start_server,
@@ -55,6 +51,7 @@ from rlbridge.bench.common import (
 )
 
 if TYPE_CHECKING:
+    from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.bridge_channels import OutgoingChannel
 
 MODULE = "rlbridge.bench.throughput"
@@ -72,6 +69,20 @@ class Case:
     kind: str
     transport: str = "udp"
     batch: int = 1
+    #: > 0: the subscriber reads at most this many values per second (a slow reader).
+    sub_rate: float = 0.0
+    #: Credit flow control on the TCP channel (None: the SDK's default).
+    flow: bool | None = None
+    #: ``send`` / ``send-wait``: a loop of ``write_many`` + ``Bridge.send()`` (``wait=True``)
+    #: that never yields, through a buffered channel (the GIL-starvation case).
+    send_form: str = ""
+    #: The publisher's SDK idle strategy (csp/idle.py).
+    idle: str = "park"
+
+
+#: The slow subscriber of the flow-control rows: values/s it reads, and its ring.
+SLOW_RATE = 100_000.0
+SLOW_BUFFER = 4096
 
 
 def cases(batch: int = 4096) -> tuple[Case, ...]:
@@ -84,22 +95,36 @@ def cases(batch: int = 4096) -> tuple[Case, ...]:
         Case("rlb-tcp-1", "rlbridge TCP, 1 value/frame", "rlbridge", "tcp", 1),
         Case("rlb-udp-batch", f"rlbridge UDP, write_many({batch})", "rlbridge", "udp", batch),
         Case("rlb-tcp-batch", f"rlbridge TCP, write_many({batch})", "rlbridge", "tcp", batch),
+        Case("rlb-tcp-batch-noflow", f"rlbridge TCP, write_many({batch}), flow=False",
+             "rlbridge", "tcp", batch, flow=False),
+        Case("rlb-tcp-slow-flow", f"rlbridge TCP, write_many(1024), reader at "
+             f"{SLOW_RATE:,.0f}/s, flow control", "rlbridge", "tcp", 1024, SLOW_RATE, True),
+        Case("rlb-tcp-slow-noflow", f"rlbridge TCP, write_many(1024), reader at "
+             f"{SLOW_RATE:,.0f}/s, flow=False", "rlbridge", "tcp", 1024, SLOW_RATE, False),
+        *(Case(f"rlb-tcp-{form}{'' if idle == 'park' else '-' + idle}",
+               f"rlbridge TCP, loop of write_many(1024) + "
+               f"{'send()' if form == 'send' else 'send(wait=True)'}, idle={idle}",
+               "rlbridge", "tcp", 1024, 0.0, None, form, idle)
+          for form in ("send", "send-wait") for idle in ("park", "spin")),
     )
 
 
 # -- worker roles (child processes) --------------------------------------------------------
 def _write_loop(out: OutgoingChannel, batch: int, high: int, count: int, seconds: float,
-                rate: float) -> tuple[int, float]:
+                rate: float, half: list[float] | None = None) -> tuple[int, float]:
     """Write ``count`` values (or for ``seconds``); return how many and the start time.
 
     Waits while more than ``high`` values are unsent (the ring would otherwise overwrite
-    them); with ``rate`` > 0 it also keeps to that many values per second.
+    them); with ``rate`` > 0 it also keeps to that many values per second. ``half`` gets
+    ``[time, sent]`` at half time and at the end: the rate once the path is full.
     """
     values = [float(i) for i in range(batch)]
     sent = 0
     start = time.monotonic()
     end = start + seconds
     while sent < count and time.monotonic() < end:
+        if half is not None and not half and time.monotonic() >= start + seconds / 2:
+            half += [time.monotonic(), sent]
         while out.pending() > high:
             time.sleep(0.0001)
         if rate > 0:  # offered load: stay on the schedule, at most 1 ms ahead
@@ -115,6 +140,23 @@ def _write_loop(out: OutgoingChannel, batch: int, high: int, count: int, seconds
             n = min(batch, count - sent)
             out.write_many(values if n == batch else values[:n])
         sent += n
+    if half:
+        half += [time.monotonic(), sent]
+    return sent, start
+
+
+def _send_loop(bridge: Bridge, out: OutgoingChannel, batch: int, count: int, seconds: float,
+               *, wait: bool) -> tuple[int, float]:
+    """``write_many`` + ``send()`` as fast as the loop goes, never sleeping: what a control
+    loop that never yields does to the send thread (it needs the GIL too)."""
+    values = [float(i) for i in range(batch)]
+    sent = 0
+    start = time.monotonic()
+    end = start + seconds
+    while sent < count and time.monotonic() < end:
+        out.write_many(values)
+        bridge.send(wait=wait)
+        sent += batch
     return sent, start
 
 
@@ -125,20 +167,34 @@ def publisher(params: Params) -> None:
     control = Control()
     batch = int(params["batch"])
     buffer = max(4 * batch, 1 << 16)
-    bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub")
+    form = str(params.get("send_form", ""))
+    half: list[float] = []
+    bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub",
+                            idle=str(params.get("idle", "park")))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
-                         buffer_size=buffer)
+                         buffer_size=buffer, flow=params.get("flow"), through_buffer=bool(form))
     emit("ready")
     wait_for_go(control)
-    sent, start = _write_loop(out, batch, buffer // 2, int(params["count"]),
-                              float(params["seconds"]), float(params.get("rate", 0.0)))
+    if form:
+        sent, start = _send_loop(bridge, out, batch, int(params["count"]),
+                                 float(params["seconds"]), wait=form == "send-wait")
+    else:
+        sent, start = _write_loop(out, batch, buffer // 2, int(params["count"]),
+                                  float(params["seconds"]), float(params.get("rate", 0.0)), half)
+    drained = time.monotonic() + 120.0  # flow control: what waits leaves at the reader's pace
+    while out.pending() and time.monotonic() < drained:
+        bridge.send()  # a buffered channel's values leave only on send()
+        time.sleep(0.001)
     bridge.send(wait=True)
     stats = out.statistics()
+    steady = (half[3] - half[1]) / (half[2] - half[0]) if len(half) == 4 else None
     emit("sent", sent=sent, t_start=start, t_end=time.monotonic(), written=stats.written,
+         steady_rate=steady,
          overwritten=stats.overwritten, taken=stats.read)
     control.wait("stats", 120.0)
     channel = bridge.server_stats()["session"]["channels"][str(out.channel_id)]
     emit("stats", values_in=channel["values_in"], lost=channel["lost"],
+         reconnects=bridge.reconnects,
          bad_values=channel["bad_values"])
     hold(control)
 
@@ -148,22 +204,30 @@ def subscriber(params: Params) -> None:
     from rlbridge.csp.bridge import Bridge
 
     control = Control()
+    sub_rate = float(params.get("sub_rate", 0.0))
     bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-sub")
     ch = bridge.subscribe(TOPIC, MSG_TYPE, "data", transport=params["transport"],
-                          blocking=True, buffer_size=SUB_BUFFER)
+                          blocking=True, buffer_size=SLOW_BUFFER if sub_rate else SUB_BUFFER,
+                          flow=params.get("sub_flow"))
     emit("ready")
     emit("joined")
     tally = Tally(control, float(params["idle_s"]))
     read, read_many, mono = ch.read, ch.read_many, time.monotonic
+    chunk = max(1, int(sub_rate / 1000)) if sub_rate else None  # a slow reader: 1 ms steps
     while not tally.done(mono()):
         try:
             read(0.05)
         except TimeoutError:
             continue
-        tally.add(1 + len(read_many()), mono())
+        tally.add(1 + len(read_many(chunk)), mono())
+        if sub_rate:
+            delay = tally.t_first + tally.received / sub_rate - mono()
+            if delay > 0:
+                time.sleep(delay)
     stats = ch.statistics()
     out = bridge.server_stats()["session"]["channels"][str(ch.channel_id)]
     tally.report(lost=ch.lost, duplicates=ch.duplicates, overwritten=stats.overwritten,
+                 reconnects=bridge.reconnects,
                  arrived=stats.written, values_out=out["values_out"], dropped=out["dropped"])
     hold(control)
 
@@ -180,6 +244,10 @@ class Measurement:
     cpu: dict[str, float]
     written: int
     loss: dict[str, int] = field(default_factory=dict)
+    #: Loss counted another way (sequence gaps, refusals): shown, not added up.
+    seen: dict[str, int] = field(default_factory=dict)
+    #: Values the publisher wrote per second (rlbridge rows; its ring drained at the end).
+    pub_rate: float = math.nan
 
     @property
     def lost_fraction(self) -> float:
@@ -188,8 +256,14 @@ class Measurement:
 
 def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
                    idle_s: float, timeout: float, rate: float) -> Measurement:
-    server, host, port = start_server(group, max_batch=case.batch)
-    common: Params = {"host": host, "port": port, "transport": case.transport}
+    # A 5 s watchdog: under a flood on a loaded machine the default 600 ms one can end a
+    # session, and a new binding restarts the server's counters (the stages below would not
+    # add up; such runs are marked).
+    server, host, port = start_server(group, max_batch=case.batch, timeout_ms=5000)
+    common: Params = {"host": host, "port": port, "transport": case.transport,
+                      "sub_rate": case.sub_rate, "flow": case.flow,
+                      "sub_flow": case.flow,
+                      "send_form": case.send_form, "idle": case.idle}
     sub = group.start("subscriber", "b", MODULE, "subscriber", {**common, "idle_s": idle_s})
     pub = group.start("publisher", "b", MODULE, "publisher",
                       {**common, "batch": case.batch, "count": count, "seconds": seconds,
@@ -201,18 +275,31 @@ def _rlbridge_once(group: ProcessGroup, case: Case, count: int, seconds: float,
     hop1 = pub.expect("stats", 30.0)
     got = flow.received
     taken = int(flow.sent["taken"])
+    written, values_in = int(flow.sent["written"]), int(hop1["values_in"])
+    values_out, arrived = int(got["values_out"]), int(got["arrived"])
+    # Stages partition the loss: each is "in at this stage" minus "in at the next", so they
+    # add up to the end-to-end figure by construction and none goes below zero.
     loss = {
-        "publisher ring": int(flow.sent["overwritten"]),
-        "hop 1 (publisher -> server)": taken - int(hop1["values_in"]),
-        "hop 1 gaps": int(hop1["lost"]),
-        "server drops": int(got["dropped"]),
-        "hop 2 (server -> subscriber)": int(got["values_out"]) - int(got["dropped"])
-        - int(got["arrived"]) - int(got["duplicates"]),
-        "hop 2 gaps (IncomingChannel.lost)": int(got["lost"]),
-        "subscriber ring": int(got["overwritten"]),
-        "end to end": int(flow.sent["written"]) - int(got["received"]),
+        "publisher ring": written - taken,
+        "hop 1 (publisher -> server)": taken - values_in,
+        "server (accepted, never sent)": values_in - values_out,
+        "hop 2 (server sent, never arrived)": values_out - arrived,
+        "subscriber ring (arrived, never read)": arrived - int(got["received"]),
+        "end to end": written - int(got["received"]),
     }
-    return _measurement(flow, int(flow.sent["written"]), loss)
+    # The same loss seen another way (not added): sequence gaps at each receiver, and the
+    # values the server's TCP buffer refused (part of hop 2 above).
+    restarts = int(hop1.get("reconnects", 0)) + int(got.get("reconnects", 0))
+    if restarts:  # the server's counters restarted with the new bindings: no stages
+        loss = {"end to end": written - int(got["received"])}
+    seen = {"session restarts (stages not known)": restarts,
+            "hop 1 gaps (server)": int(hop1["lost"]),
+            "hop 2 gaps (IncomingChannel.lost)": int(got["lost"]),
+            "of hop 2: dropped by the server (send buffer or backlog full)": int(got["dropped"])}
+    # The publisher's rate once the path is full (its second half), else over the whole run.
+    pub_rate = flow.sent.get("steady_rate") or \
+        written / max(1e-9, float(flow.sent["t_end"]) - float(flow.sent["t_start"]))
+    return _measurement(flow, written, loss, seen, pub_rate)
 
 
 def _baseline_once(group: ProcessGroup, case: Case, count: int, seconds: float,
@@ -224,10 +311,11 @@ def _baseline_once(group: ProcessGroup, case: Case, count: int, seconds: float,
     return _measurement(flow, sent, {"end to end": sent - int(flow.received["received"])})
 
 
-def _measurement(flow: Flow, written: int, loss: dict[str, int]) -> Measurement:
+def _measurement(flow: Flow, written: int, loss: dict[str, int],
+                 seen: dict[str, int] | None = None, pub_rate: float = math.nan) -> Measurement:
     cpu = {name: flow.cpu_per_million(name) for name in flow.cpu_s}
     cpu["total"] = sum(cpu.values())
-    return Measurement(flow.rate, cpu, written, loss)
+    return Measurement(flow.rate, cpu, written, loss, seen or {}, pub_rate)
 
 
 def measure(link: Link, case: Case, *, count: int, seconds: float, idle_s: float = 0.5,
@@ -289,88 +377,3 @@ def run(link: Link, settings: Settings,
             except BenchError as exc:
                 raise BenchError(f"{res.case.label}: {exc}") from None
     return results
-
-
-def table(results: Sequence[CaseResult]) -> str:
-    """Medians over repeats; ratios to the baselines of the same run."""
-    base = {r.case.kind: r.rate for r in results if r.case.kind != "rlbridge" and r.runs}
-    headers = ["path", "values/s", "x raw UDP", "x ZeroMQ", "x Zenoh", "lost",
-               "CPU s per 1M values: sender", "server", "receiver", "total"]
-    rows = []
-    for r in results:
-        if r.skipped is not None:
-            rows.append([r.case.label, f"skipped: {r.skipped}"] + [""] * (len(headers) - 2))
-            continue
-        rlb = r.case.kind == "rlbridge"
-        lost = median([m.lost_fraction for m in r.runs])
-        rows.append([r.case.label, fmt(r.rate)]
-                    + [fmt(ratio(r.rate, base.get(k, math.nan)), 2) for k in KINDS]
-                    + [f"{100 * lost:.2f} %" if not math.isnan(lost) else "-",
-                       fmt(r.cpu("publisher" if rlb else "sender"), 2),
-                       fmt(r.cpu("server"), 2) if rlb else "-",
-                       fmt(r.cpu("subscriber" if rlb else "receiver"), 2),
-                       fmt(r.cpu("total"), 2)])
-    return markdown_table(headers, rows)
-
-
-KINDS = ("udp", "zmq", "zenoh")
-
-
-def loss_table(results: Sequence[CaseResult]) -> str:
-    """Where rlbridge values were lost, per repeat (UDP overload shows up here)."""
-    rows = []
-    for r in results:
-        if r.case.kind != "rlbridge":
-            continue
-        for i, m in enumerate(r.runs):
-            stages = ", ".join(f"{k}: {v:,}" for k, v in m.loss.items() if v)
-            rows.append([r.case.label, str(i + 1), fmt(m.rate), f"{m.written:,}",
-                         stages or "none"])
-    return markdown_table(["path", "repeat", "values/s", "written", "lost, by stage"], rows)
-
-
-def targets(results: Sequence[CaseResult]) -> list[str]:
-    """The issue's targets, each with its verdict (only rows measured in this run)."""
-    by = {r.case.key: r for r in results if r.runs}
-    lines = []
-    rivals = [by[k] for k in ("zmq", "zenoh") if k in by]
-    for key in ("rlb-tcp-batch", "rlb-udp-batch"):
-        if key in by:
-            r = by[key]
-            ok = r.rate >= 1e6 and all(r.rate > x.rate for x in rivals)
-            vs = ", ".join(f"{x.case.label} {fmt(x.rate)}" for x in rivals) or "no rivals run"
-            lines.append(f"- {r.case.label}: {fmt(r.rate)} values/s; target >= 1,000,000 and "
-                         f"ahead of {vs}: **{'met' if ok else 'not met'}**")
-    if "rlb-udp-1" in by and "udp" in by:
-        x = ratio(by["rlb-udp-1"].rate, by["udp"].rate)
-        lines.append(f"- rlbridge UDP, 1 value/datagram: {fmt(x, 2)} x the raw UDP loop; "
-                     f"target >= 0.40: **{'met' if x >= 0.4 else 'not met'}**")
-    return lines
-
-
-def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[str]) -> str:
-    """The markdown section ``rlbridge bench throughput --out`` writes."""
-    flood = "as fast as flow control allows" if not settings.rate else \
-        f"offered at {settings.rate:,.0f} values/s"
-    parts = [
-        report_header("Throughput", command),
-        f"{settings.repeats} repeats per row, interleaved; each run sends up to "
-        f"{settings.count:,} values or for {settings.seconds:g} s ({flood}). Figures are "
-        "medians over the repeats. values/s = values the receiving process read, divided by "
-        "the time from the sender's first send to that receiver's last arrival. CPU = user + "
-        "system seconds of each whole process (all threads, /proc/<pid>/stat) over the run, "
-        "per million values received. rlbridge rows: 3 processes, 2 hops (publisher -> "
-        "server -> subscriber); baselines: 2 processes, 1 hop, 8-byte messages.",
-        "",
-        table(results),
-        "",
-        "Targets:",
-        "",
-        *targets(results),
-        "",
-        "Losses of the rlbridge rows by stage (sequence gaps are `IncomingChannel.lost` for "
-        "the second hop and the server's per-channel counter for the first):",
-        "",
-        loss_table(results),
-    ]
-    return "\n".join(parts) + "\n"

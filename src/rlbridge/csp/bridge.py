@@ -1,16 +1,11 @@
 """``Bridge``: the client SDK's front door, a small facade over its parts.
 
-``Bridge.connect`` opens a :class:`~rlbridge.csp.connection.Connection` (sockets, receive
-thread, watchdog) and a :class:`~rlbridge.csp.sender.SendLoop` (send thread). ``subscribe``
-and ``publish`` bind a topic at run time (message type + field) and return CSP channels
-(:mod:`rlbridge.csp.bridge_channels`). The caller's thread never touches a socket after
-``connect``: reads and writes only move values through ring buffers.
-
-With ``reconnect`` on (the default) a :class:`~rlbridge.csp.reconnect.ReconnectSupervisor`
-opens a new session whenever one ends and :meth:`Bridge._bind_again` binds every channel under
-its old id; control code keeps its channels and notices only through the link state
-(:mod:`rlbridge.csp.link_events`) and each channel's fail-safe (:mod:`rlbridge.csp.failsafe`).
-docs/reliability.md tells the whole story.
+``connect`` opens a :class:`~rlbridge.csp.connection.Connection` (sockets, receive thread,
+watchdog) and a :class:`~rlbridge.csp.sender.SendLoop` (send thread); ``subscribe`` and
+``publish`` bind topics at run time and return CSP channels; after ``connect`` the caller's
+thread only moves values through ring buffers. With ``reconnect`` a
+:class:`~rlbridge.csp.reconnect.ReconnectSupervisor` opens a new session when one ends and
+binds every channel again under its old id (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -19,9 +14,9 @@ import contextlib
 import itertools
 import logging
 import os
+import ssl
 import sys
 import threading
-from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -29,15 +24,18 @@ from typing import Any, Literal
 from rlbridge.csp.auth import resolve_key
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.bridge_services import ServiceMethods
-from rlbridge.csp.channel import _MISSING, Channel
+from rlbridge.csp.bridge_status import BridgeStatus
+from rlbridge.csp.channel import _MISSING
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
 from rlbridge.csp.failsafe import GuardedChannel, OnLost, fail_safe
+from rlbridge.csp.feedback import Feedback
+from rlbridge.csp.idle import IdleSpec, idle_pair
 from rlbridge.csp.io_priority import IoPriority
-from rlbridge.csp.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
-from rlbridge.csp.reconnect import Backoff, ClientState, ReconnectSupervisor
+from rlbridge.csp.link_events import LinkEvents
+from rlbridge.csp.reconnect import Backoff, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
+from rlbridge.tls import client_tls
 from rlbridge.wire import RemoteError, TopicClose, TopicConnect
-from rlbridge.wire.link import LinkState
 from rlbridge.wire.packets import Durability, Reliability
 
 log = logging.getLogger("rlbridge.client")
@@ -50,7 +48,7 @@ DEFAULT_SWITCH_INTERVAL: float | None = None
 holds a short one while it runs (``rlbridge.csp.gil``); measured in docs/gil.md."""
 
 
-class Bridge(ServiceMethods):
+class Bridge(BridgeStatus, ServiceMethods):
     """A session with a bridge server. Thread-safe for SRT code; see the module docstring."""
 
     def __init__(self, conn: Connection, send_loop: SendLoop,
@@ -62,14 +60,17 @@ class Bridge(ServiceMethods):
         self._incoming: dict[int, IncomingChannel] = {}
         self._outgoing: dict[int, OutgoingChannel] = {}
         self._events = LinkEvents(conn.link_state)
+        self._feedback = Feedback(self._outgoing, self._events, send_loop.doorbell)
         self._io_priority = IoPriority(self._io_thread_ids)
         self._supervisor = None if backoff is None else ReconnectSupervisor(
             conn, backoff, self._bind_again)
         conn.keep_alive = self._supervisor is not None
         conn.on_values = self._on_values
-        conn.on_loss = self._on_loss
+        conn.on_ros_loss = self._on_ros_loss
         conn.on_link_change = self._events.emit
         conn.on_session_end = self._on_session_end
+        conn.on_credit = self._feedback.on_credit
+        conn.on_loss = self._feedback.on_loss
 
     @classmethod
     def connect(
@@ -84,37 +85,48 @@ class Bridge(ServiceMethods):
         timeout: float = 5.0,
         switch_interval: float | None = DEFAULT_SWITCH_INTERVAL,
         reconnect: bool | Backoff = True,
-        psk: bytes | None = None,
+        psk: bytes | str | None = None,
         psk_file: str | Path | None = None,
+        idle: IdleSpec | tuple[IdleSpec, IdleSpec] = "park",
+        tls: bool | ssl.SSLContext = False,
+        ca: str | Path | None = None,
+        fingerprint: str | None = None,
+        client_cert: tuple[str | Path, str | Path] | None = None,
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
 
-        ``reconnect``: when the session ends (server restart, network outage noticed by the
-        watchdog), open a new one with backoff and bind every channel again, by itself.
-        ``True`` uses :class:`~rlbridge.csp.reconnect.Backoff` defaults (50 ms doubling to
-        2 s); pass ``Backoff(max_delay=...)`` to tune it; ``False`` ends the bridge with its
-        first session (channels then close and blocked readers get ``ChannelClosed``). The
-        first connect is not retried: it raises :class:`ConnectionFailed` at once.
+        ``reconnect``: when the session ends (server restart, outage seen by the watchdog),
+        open a new one with backoff and bind every channel again. ``True``: the
+        :class:`~rlbridge.csp.reconnect.Backoff` defaults (50 ms doubling to 2 s), or pass a
+        ``Backoff``; ``False`` ends the bridge with its first session (channels close, blocked
+        readers get ``ChannelClosed``). A failed first connect raises ``ConnectionFailed``.
 
         ``send_rate_hz`` starts the SDK's send loop: buffered values go out at that rate
-        without anyone calling :meth:`send` (thesis figure 5.10). ``nodelay`` disables Nagle's
-        algorithm on this client's TCP socket (the server has ``--nodelay`` for its side).
-        ``switch_interval`` shortens CPython's process-wide GIL switch interval (5 ms by
-        default) to this many seconds, never lengthens it: a control loop that wakes while
-        another Python thread computes then waits at most that long for the GIL (docs/gil.md).
-        ``None`` leaves the interpreter's setting alone. ``psk`` (raw bytes), else ``psk_file``
-        (hex), else ``$RLBRIDGE_PSK`` (hex) is the pre-shared key for a server that requires
-        one; a wrong key raises :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
+        without anyone calling :meth:`send` (thesis figure 5.10). ``nodelay``: no Nagle on this
+        client's socket. ``switch_interval`` shortens CPython's GIL switch interval (5 ms by
+        default; ``None``: left alone), never lengthens it: a control loop waking while another
+        thread computes waits at most that long for the GIL (docs/gil.md). Security
+        (docs/security.md): the key is ``psk`` (hex), else ``psk_file``, else
+        ``$RLBRIDGE_PSK``; TLS is ``tls=True``, ``ca=``, ``fingerprint=`` (pin) or an
+        ``ssl.SSLContext``; ``client_cert=(cert, key)`` for mutual TLS.
+        ``idle``: how the send and receive threads wait for work (:mod:`rlbridge.csp.idle`):
+        ``"park"`` (block in the kernel), ``"spin"`` (poll 20 us, yield 200 us, then park),
+        ``"busy"`` (poll, never park), an ``IdleStrategy``, or a ``(send, receive)`` pair;
+        what each costs in latency and CPU: docs/concepts.md.
         """
+        send_idle, receive_idle = idle_pair(idle)
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
             sys.setswitchinterval(switch_interval)
-        key = resolve_key(psk, psk_file)  # before any socket exists: a bad key leaks nothing
-        conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
-                          control=control, timeout=timeout)
-        conn.psk = key
+        name = name or f"rlbridge-{os.getpid()}"
+        key = resolve_key(psk, psk_file, name=name)  # before any socket: a bad key leaks nothing
+        secure = client_tls(tls, ca=ca, fingerprint=fingerprint, client_cert=client_cert)
+        conn = Connection(host, port, name=name, nodelay=nodelay, control=control, timeout=timeout)
+        conn.psk, conn.tls = key, secure
+        conn.idle = receive_idle
         ack = conn.open()
         try:
-            sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch)
+            sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch,
+                              idle=send_idle)
         except BaseException:
             conn.close()  # e.g. a bad send rate: do not leak the session and its thread
             raise
@@ -143,6 +155,7 @@ class Bridge(ServiceMethods):
         depth: int = 10,
         durability: Durability = "volatile",
         on_lost: OnLost = "hold",
+        flow: bool | None = None,
     ) -> IncomingChannel:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
 
@@ -160,7 +173,10 @@ class Bridge(ServiceMethods):
         Raises the server's reason (``UnknownTypeError``, ``NoSuchFieldError``,
         ``TypeClashError``) if the binding is refused. ``on_lost`` is what reads do while the
         link is lost: ``"hold"``, ``SafeValue(v)`` or ``"raise"`` (:mod:`rlbridge.csp.failsafe`).
+        ``flow``: credit flow control, every value end to end at the reader's pace (default:
+        on for blocking TCP channels that are not ``latest``; docs/policies.md).
         """
+        flow = _flow(flow, transport, latest, blocking)
         guard = fail_safe(on_lost, self._events)
         if buffer_size < 1:
             raise ValueError(
@@ -168,9 +184,11 @@ class Bridge(ServiceMethods):
                 "arrive from the network whether or not a reader waits")
         ch_id = next(self._ids)
         kind = IncomingChannel if guard is None else GuardedChannel
-        channel = kind(ch_id, topic, msg_type, field, transport=transport, blocking=blocking,
-                       buffer_size=buffer_size, initial=initial if not blocking else _MISSING,
-                       latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
+        channel = kind(ch_id, topic, msg_type, field, transport=transport,
+                                  blocking=blocking, buffer_size=buffer_size,
+                                  initial=initial if not blocking else _MISSING,
+                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
+                                  credit_bell=self._sender.doorbell if flow else None)
         if isinstance(channel, GuardedChannel):
             channel.failsafe = guard
         with self._lock:
@@ -179,12 +197,14 @@ class Bridge(ServiceMethods):
             ack = self._conn.request_topic(TopicConnect(
                 ch_id, "subscribe", topic, msg_type, field, transport, buffer_size,
                 max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-                reliability=reliability, depth=depth, durability=durability))
+                reliability=reliability, depth=depth, flow=flow, durability=durability))
         except BaseException:
             with self._lock:
                 self._incoming.pop(ch_id, None)
             raise
         channel.msg_type = ack.msg_type
+        if flow:
+            self._sender.add_credit(channel)
         return channel
 
     def publish(
@@ -202,6 +222,9 @@ class Bridge(ServiceMethods):
         reliability: Reliability | None = None,
         depth: int = 10,
         durability: Durability = "volatile",
+        max_rate_hz: float | None = None,
+        adapt_rate: bool = False,
+        flow: bool | None = None,
     ) -> OutgoingChannel:
         """A channel whose values are published on ``topic``.
 
@@ -210,19 +233,28 @@ class Bridge(ServiceMethods):
         Either way ``write`` never blocks and never touches a socket; a full buffer drops its
         oldest value and counts it (``statistics().overwritten``). Policies as in
         :meth:`subscribe`; ``max_age_ms`` is enforced here before sending and by the server
-        before publishing. ``reliability``, ``depth`` and ``durability`` (``transient_local``:
-        a latched topic, its last ``depth`` values kept for late subscribers): the
-        publisher's middleware QoS, as in :meth:`subscribe`.
+        before publishing. ``reliability`` and ``depth``: the publisher's middleware QoS,
+        as in :meth:`subscribe`. ``max_rate_hz`` lets at most that many values per second
+        leave (the rest wait in the buffer); ``adapt_rate`` lowers it while the server
+        reports first-hop loss and raises it back (``health().rate_limit_hz``). ``flow``:
+        send only what the topic's subscribers have room for (default: on for TCP channels
+        that are not ``latest``; ``wait_writable()`` then paces a writer that must lose
+        nothing). docs/policies.md says what each promises. ``durability``
+        (``transient_local``: a latched topic, its last ``depth`` values kept for late
+        subscribers) is the publisher's middleware durability, as in :meth:`subscribe`.
         """
+        flow = _flow(flow, transport, latest, True)
         ch_id = next(self._ids)
         channel = OutgoingChannel(ch_id, topic, msg_type, field, transport=transport,
                                   immediate=not through_buffer, buffer_size=buffer_size,
                                   doorbell=self._sender.doorbell, redundancy=redundancy,
-                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link)
+                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
+                                  max_rate_hz=max_rate_hz, adapt_rate=adapt_rate, flow=flow)
         ack = self._conn.request_topic(TopicConnect(
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
             max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-            reliability=reliability, depth=depth, durability=durability))
+            reliability=reliability, depth=depth, flow=flow, loss_report=True,
+            durability=durability))
         channel.bound(ack)
         with self._lock:
             self._outgoing[ch_id] = channel
@@ -230,7 +262,12 @@ class Bridge(ServiceMethods):
         return channel
 
     def send(self, wait: bool = False) -> None:
-        """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``."""
+        """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``.
+
+        ``wait=True`` returns once the send thread has handed them to the sockets, and no
+        value waits for credit or a rate limit any more (at most 5 s): what each form costs
+        and promises is in docs/concepts.md.
+        """
         if self._conn.closed.is_set():
             raise ConnectionClosed(f"bridge is closed: {self._conn.close_reason}")
         self._sender.flush(wait=wait)
@@ -242,6 +279,8 @@ class Bridge(ServiceMethods):
             out = self._outgoing.pop(channel.channel_id, None)
         if out is not None:
             self._sender.remove(out)
+        if isinstance(channel, IncomingChannel):
+            self._sender.remove_credit(channel)
         channel.close()
         self._conn.forget_topic(channel.channel_id)
         if self._conn.up:  # while reconnecting: the new session does not bind it again
@@ -268,58 +307,6 @@ class Bridge(ServiceMethods):
         """Rate of the SDK's send loop (``Bridge.connect(send_rate_hz=...)``), or ``None``."""
         return self._sender.rate_hz
 
-    # -- link ------------------------------------------------------------------------------
-    @property
-    def link_state(self) -> LinkState:
-        """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks.
-
-        ``lost`` from the end of a session until its channels are bound again.
-        """
-        return LinkState.LOST if self._events.lost else self._conn.link_state
-
-    @property
-    def state(self) -> ClientState:
-        """``connected``, ``reconnecting`` or ``closed`` (for good)."""
-        return self._conn.state
-
-    @property
-    def closed(self) -> bool:
-        """True once the bridge is closed for good: here, or its session ended without reconnect."""
-        return self._conn.closed.is_set()
-
-    @property
-    def close_reason(self) -> str:
-        """Why the last session ended (``""`` while the first one is open)."""
-        return self._conn.close_reason
-
-    @property
-    def reconnects(self) -> int:
-        """Sessions opened again after one ended (0 with ``reconnect=False``)."""
-        return 0 if self._supervisor is None else self._supervisor.reconnects
-
-    def on_link_change(self, callback: Callable[[LinkState], None]) -> None:
-        """Call ``callback(state)`` in the SDK thread that saw the change; keep it short."""
-        self._events.add_callback(callback)
-
-    def link_events(self, buffer_size: int = DEFAULT_EVENT_BUFFER) -> Channel[LinkEvent]:
-        """A non-blocking channel of :class:`~rlbridge.csp.link_events.LinkEvent` values.
-
-        Its first value is the current state; ``read()`` never waits (the newest event),
-        ``read_many()`` returns the events not read yet. Closed with the bridge.
-        """
-        return self._events.channel(buffer_size)
-
-    @property
-    def rtt_ns(self) -> int:
-        """Smoothed round-trip time from heartbeats (-1 until measured)."""
-        link = self._conn.link
-        return -1 if link is None else link.stats(0).rtt_ns
-
-    @property
-    def local_ports(self) -> dict[str, int]:
-        """The current session's local TCP and UDP ports (they change with every reconnect)."""
-        return self._conn.local_ports()
-
     def _on_values(self, ch: int, first_seq: int, stamps: list[int], values: list[Any]) -> None:
         channel = self._incoming.get(ch)
         if channel is not None:
@@ -340,13 +327,17 @@ class Bridge(ServiceMethods):
         """
         for req in self._conn.bindings():
             incoming = self._incoming.get(req.channel)
+            outgoing = self._outgoing.get(req.channel)
             if incoming is not None:
                 incoming.restart_sequence()  # before the request: values may follow at once
                 incoming.relink(self._conn.link)
-            elif (outgoing := self._outgoing.get(req.channel)) is not None:
+            elif outgoing is not None:
                 outgoing.relink(self._conn.link)
+                outgoing.restart_sequence()  # the new binding numbers (and credits) from 0
             try:
-                self._conn.request_topic(req)
+                credit = self._conn.request_topic(req).credit
+                if outgoing is not None and credit is not None:
+                    outgoing.on_credit(credit)
             except RemoteError as exc:
                 name = req.topic if isinstance(req, TopicConnect) else getattr(req, "service", "")
                 log.warning("channel %d (%s) not bound again: %s", req.channel, name, exc)
@@ -395,3 +386,14 @@ class Bridge(ServiceMethods):
     def __exit__(self, et: type[BaseException] | None, e: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+
+def _flow(flow: bool | None, transport: Transport, latest: bool, blocking: bool) -> bool:
+    """Whether a channel is flow-controlled: asked for, else TCP every-value by default."""
+    promises_every_value = transport == "tcp" and not latest
+    if flow is None:
+        return promises_every_value and blocking
+    if flow and not promises_every_value:
+        raise ValueError("flow control needs a TCP channel that is not latest: UDP and "
+                         "latest channels drop instead of waiting (docs/policies.md)")
+    return flow

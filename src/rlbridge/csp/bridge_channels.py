@@ -11,32 +11,28 @@ behind a TCP retransmission gets the newest set-point, not a burst of stale ones
 holds ``(stamp, value)`` pairs, so :meth:`IncomingChannel.read_with_age` returns a value with
 *its own* stamp, never a neighbour's.
 
-An :class:`OutgoingChannel` is the writer end only: ``write`` stamps the value and stores it in
-a lock-free ring (two preallocated slot lists, :mod:`rlbridge.csp.stamped_ring`: no allocation
-per write); the send thread is its reader. With ``immediate=True`` (``through_buffer`` off) a
-write also rings the send thread's doorbell, which costs a futex wake *only* when the send
-thread sleeps; with ``through_buffer`` on, a write makes no system call at all and the value
-leaves on ``Bridge.send()`` or the next send-loop tick. The ring is single-producer: a write
-from a second thread while the first writer thread lives raises :class:`ChannelMisuseError`.
-A value that cannot be the bound field's type raises at ``write`` (:mod:`.value_check`: one
-``type(value) in accept`` test on the fast path), so a bad value never reaches the wire.
+The :class:`~rlbridge.csp.outgoing.OutgoingChannel` (the writer end, control code -> the
+middleware) lives in :mod:`rlbridge.csp.outgoing` and is re-exported here.
+
+A blocking TCP subscription that is not ``latest`` is flow-controlled (docs/policies.md): the
+server sends at most ``buffer_size`` values beyond what the reader has consumed, so the ring
+never overwrites one; each read that frees a quarter of the ring has the send thread grant the
+server more (``Credit``), so the reader's pace sets the publisher's.
 """
 
 from __future__ import annotations
 
-import threading
 import time
-from collections import deque
 from collections.abc import Sequence
 from operator import itemgetter
 from typing import Any, NamedTuple
 
-from rlbridge.csp.channel import _MISSING, Channel, ChannelStatistics, Doorbell, _Missing
-from rlbridge.csp.errors import ChannelClosed, SecondWriterError
+from rlbridge.csp.channel import _MISSING, Channel, Doorbell, _Missing
+from rlbridge.csp.errors import SecondWriterError
 from rlbridge.csp.health import ChannelHealth
-from rlbridge.csp.stamped_ring import StampedRing
-from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
-from rlbridge.wire import TopicAck
+from rlbridge.csp.outgoing import OutgoingChannel
+
+__all__ = ["AgedValue", "IncomingChannel", "OutgoingChannel", "SecondWriterError"]
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
 from rlbridge.wire.link import LinkMonitor
 from rlbridge.wire.sequence import SequenceTracker
@@ -58,14 +54,16 @@ _NO_CLOCK = ClockOffset()
 class IncomingChannel(Channel[Any]):
     """Middleware -> control code. Read it like any buffered channel."""
 
-    __slots__ = ("_clock", "_delivered", "_jitter", "_link", "_max_age_ns", "_one_way",
-                 "_overtaken", "_tracker", "channel_id", "expired", "field", "last_stamp_ns",
-                 "latest", "msg_type", "ros_lost", "topic", "transport")  # fmt: skip
+    __slots__ = ("_arrived", "_clock", "_credit_bell", "_credit_step", "_delivered",
+                 "_jitter", "_link", "_max_age_ns", "_one_way", "_overtaken", "_tracker",
+                 "channel_id", "credited", "expired", "field", "last_stamp_ns", "latest",
+                 "msg_type", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, blocking: bool, buffer_size: int,
                  initial: Any | _Missing = _MISSING, latest: bool = False,
-                 max_age_ms: int = 0, link: LinkMonitor | None = None) -> None:
+                 max_age_ms: int = 0, link: LinkMonitor | None = None,
+                 credit_bell: Doorbell | None = None) -> None:
         if max_age_ms < 0:
             raise ValueError(f"max_age_ms must be >= 0 (0: no limit), got {max_age_ms}")
         super().__init__(buffer_size, blocking=blocking,
@@ -90,10 +88,43 @@ class IncomingChannel(Channel[Any]):
         self._delivered = 0
         #: Values dropped on arrival for being older than ``max_age_ms``.
         self.expired = 0
+        # Credit flow control (module docstring): the send thread's doorbell, rung by a read
+        # that frees ``_credit_step`` slots; values of this binding that arrived; and the
+        # limit last granted (the server starts from the ring's size).
+        self._credit_bell = credit_bell
+        self._credit_step = max(1, buffer_size // 4)
+        self._arrived = 0
+        self.credited = buffer_size
+
+    @property
+    def flow(self) -> bool:
+        """True for a flow-controlled channel (the server sends within its credit)."""
+        return self._credit_bell is not None
 
     def restart_sequence(self) -> None:
         """The channel was bound again (reconnect): the server numbers from 0 again."""
         self._tracker.restart()
+        self._arrived = 0
+        self.credited = self._ring.capacity
+
+    def credit_limit(self) -> int:
+        """The values the server may have sent: consumed ones plus a free ring.
+
+        Read by the send thread while the receive thread delivers: ``_arrived`` is read
+        first and raised only after the ring holds the values, so a race can only make
+        the limit smaller than it could be, never let the ring overflow.
+        """
+        return self._arrived - len(self._ring) + self._ring.capacity
+
+    def credit_due(self) -> bool:
+        """Send thread: enough was consumed since the last credit to grant more."""
+        return self.credit_limit() - self.credited >= self._credit_step
+
+    def _consumed(self) -> None:
+        """After a read of a flow-controlled channel: wake the send thread to grant credit."""
+        bell = self._credit_bell
+        if bell is not None and bell.waiting and self.credit_due():
+            bell.ring()
 
     def relink(self, link: LinkMonitor | None) -> None:
         """A new session has a new link monitor: RTT and clock offset come from it now."""
@@ -112,6 +143,13 @@ class IncomingChannel(Channel[Any]):
             return
         if start:
             stamps, values = stamps[start:], values[start:]
+        try:
+            self._accept(stamps, values)
+        finally:
+            self._arrived += n - start  # after the ring has them: see credit_limit
+
+    def _accept(self, stamps: list[int], values: list[Any]) -> None:
+        """New values: measure them, apply the policies, put the rest in the ring."""
         now = time.time_ns() + self._clock.offset_ns  # in the server's clock, like the stamps
         newest = stamps[-1]
         self._jitter.add(newest, now)
@@ -138,10 +176,16 @@ class IncomingChannel(Channel[Any]):
 
     # -- reading: the ring holds (stamp, value) pairs -----------------------------------------
     def read(self, timeout: float | None = None) -> Any:
-        return Channel.read(self, timeout)[1]
+        value = Channel.read(self, timeout)[1]
+        if self._credit_bell is not None:
+            self._consumed()
+        return value
 
     def read_many(self, max_items: int | None = None) -> list[Any]:
-        return list(map(_second, Channel.read_many(self, max_items)))
+        values = list(map(_second, Channel.read_many(self, max_items)))
+        if self._credit_bell is not None:
+            self._consumed()
+        return values
 
     def read_with_age(self, timeout: float | None = None) -> AgedValue:
         """Like :meth:`read`, with the value's age: now minus its stamp, across hosts.
@@ -151,6 +195,8 @@ class IncomingChannel(Channel[Any]):
         trip (``health().clock_error_ns``).
         """
         stamp, value = Channel.read(self, timeout)
+        if self._credit_bell is not None:
+            self._consumed()
         age = time.time_ns() + self._clock.offset_ns - stamp if stamp else -1
         return _new_aged(AgedValue, (value, age))  # tuple.__new__: no Python-level __new__
 
@@ -197,208 +243,3 @@ class IncomingChannel(Channel[Any]):
             clock_offset_ns=self._clock.offset_ns,
             ros_lost=self.ros_lost,
         )
-
-
-_get_ident = threading.get_ident
-
-
-class OutgoingChannel:
-    """Control code -> middleware. ``write`` never blocks and never touches a socket."""
-
-    __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
-                 "_held", "_history", "_link", "_max_age_ns", "_next_seq", "_overtaken", "_refused",
-                 "_rejected", "_ring", "_within", "_writer", "channel_id", "field", "immediate",
-                 "latest", "msg_type", "redundancy", "ros_lost", "topic", "transport")  # fmt: skip
-
-    def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
-                 transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
-                 redundancy: int = 0, latest: bool = False, max_age_ms: int = 0,
-                 link: LinkMonitor | None = None) -> None:
-        if buffer_size < 1:
-            raise ValueError(f"an outgoing channel needs buffer_size >= 1, got {buffer_size}")
-        if not 0 <= redundancy <= 16:
-            raise ValueError(f"redundancy must be 0..16 previous values, got {redundancy}")
-        if max_age_ms < 0:
-            raise ValueError(f"max_age_ms must be >= 0 (0: no limit), got {max_age_ms}")
-        self.channel_id = channel_id
-        #: The server's count of this channel's values lost on the ROS side (-1: none yet).
-        self.ros_lost = -1
-        self.topic = topic
-        self.msg_type = msg_type
-        self.field = field
-        self.transport = transport
-        self.immediate = immediate
-        self.latest = latest
-        self.redundancy = redundancy if transport == "udp" else 0
-        self._max_age_ns = max_age_ms * 1_000_000
-        self._link = link
-        self._clock = link.clock if link is not None else _NO_CLOCK
-        self._ring = StampedRing(buffer_size)
-        self._bell = doorbell
-        self._next_seq = 0
-        self._closed = False
-        self._writer = 0
-        # Send-thread state: a latest value held back while TCP is backed up, and the last
-        # ``redundancy`` values sent (repeated in front of new ones on UDP).
-        self._held: tuple[int, Any] | None = None
-        self._history: deque[tuple[int, int, Any]] = deque(maxlen=max(self.redundancy, 1))
-        self._overtaken = 0
-        self._expired = 0
-        self._discarded = 0
-        self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
-        self._rejected = self._refused = 0  # refused at ``write``; by the server
-
-    def bound(self, ack: TopicAck) -> None:
-        """The server's answer: the type's normalised name, and the schema values must match."""
-        self.msg_type, check = ack.msg_type, compile_check(ack.schema)
-        self._accept, self._check, self._within = check.accept, check.coerce, check.within
-
-    def refused(self, count: int) -> None:  # receive thread: counted in health().rejected
-        """The server refused ``count`` values of this channel (``Error`` BAD_VALUE)."""
-        self._refused += count
-
-    def _wrong(self, exc: Mismatch) -> WrongValueType:
-        self._rejected += 1
-        return WrongValueType(self.topic, self.msg_type, self.field, exc)
-
-    def _check_writer(self) -> None:
-        """Slow path: a thread other than the recorded writer writes (module docstring)."""
-        me = threading.get_ident()
-        owner = self._writer
-        if owner and any(t.ident == owner for t in threading.enumerate()):
-            raise SecondWriterError(self.topic, owner, me)
-        self._writer = me  # first write, or the previous writer thread has ended
-
-    def write(self, value: Any) -> None:
-        """Queue one value for the send thread; a full buffer drops its oldest value (counted).
-        A value that cannot be the field's type raises ``WrongValueType`` (a TypeError)."""
-        if self._closed:
-            raise ChannelClosed(self.topic)
-        if _get_ident() != self._writer:
-            self._check_writer()
-        if type(value) not in self._accept or (self._within is not None
-                                               and value not in self._within):
-            try:
-                value = self._check(value)
-            except Mismatch as exc:
-                raise self._wrong(exc) from None
-        self._ring.push_stamped(time.time_ns(), value)
-        if self.immediate:
-            bell = self._bell
-            if bell.waiting:
-                bell.ring()
-
-    def write_many(self, values: Sequence[Any]) -> None:
-        """Queue a batch (one stamp for all): the cheapest way to move many values."""
-        if self._closed:
-            raise ChannelClosed(self.topic)
-        if _get_ident() != self._writer:
-            self._check_writer()
-        accept = self._accept if self._within is None else ()
-        if not all(type(v) in accept for v in values):
-            try:
-                values = [v if type(v) in accept else self._check(v) for v in values]
-            except Mismatch as exc:
-                raise self._wrong(exc) from None
-        self._ring.push_many_stamped(time.time_ns(), values)
-        if self.immediate:
-            bell = self._bell
-            if bell.waiting:
-                bell.ring()
-
-    def relink(self, link: LinkMonitor | None) -> None:
-        """A new session has a new link monitor: RTT and clock offset come from it now."""
-        self._link = link
-        self._clock = link.clock if link is not None else _NO_CLOCK
-
-    def pending(self) -> int:
-        """Values written and not yet taken by the send thread (a snapshot, for monitors)."""
-        return len(self._ring)
-
-    @property
-    def holding(self) -> bool:
-        """Send thread: a latest value waits for the TCP connection to drain."""
-        return self._held is not None
-
-    def take(self, congested: bool = False) -> tuple[int, list[int], list[Any], int]:
-        """Send thread: what to send now, as ``(first_seq, stamps, values, repeated)``.
-
-        Applies the policies: values older than ``max_age_ms`` are dropped (``expired``); a
-        ``latest`` channel sends only its newest value (the rest ``overtaken``) and, while
-        ``congested``, holds it back instead, to be replaced by newer ones; a UDP channel with
-        ``redundancy`` k puts the previous k values (``repeated`` of them) in front. Sequence
-        numbers are given here, so discarded values leave no gap the server would call lost.
-        """
-        stamps, values = self._ring.drain_stamped()
-        if self._max_age_ns and values:
-            cutoff = time.time_ns() - self._max_age_ns
-            keep = [i for i, s in enumerate(stamps) if s >= cutoff]
-            if len(keep) < len(values):
-                self._expired += len(values) - len(keep)
-                stamps = [stamps[i] for i in keep]
-                values = [values[i] for i in keep]
-        if self.latest:
-            held = self._held
-            if values:
-                self._overtaken += len(values) - 1 + (held is not None)
-                held = (stamps[-1], values[-1])
-            if held is None:
-                return self._next_seq, [], [], 0
-            if congested:
-                self._held = held
-                return self._next_seq, [], [], 0
-            self._held = None
-            stamps, values = [held[0]], [held[1]]
-        first = self._next_seq
-        n = len(values)
-        self._next_seq = first + n
-        if not self.redundancy or n == 0:
-            return first, stamps, values, 0
-        history = self._history
-        old = list(history)
-        history.extend((first + i, stamps[i], values[i])
-                       for i in range(max(0, n - self.redundancy), n))
-        if not old:
-            return first, stamps, values, 0
-        # The previous k values in front: one lost datagram loses no value (the server
-        # drops the copies it already has by sequence number).
-        return (old[0][0], [s for _, s, _ in old] + stamps, [v for _, _, v in old] + values,
-                len(old))
-
-    def statistics(self) -> ChannelStatistics:
-        """Counters as for a :class:`Channel`; ``overwritten`` is what a full buffer dropped."""
-        ring = self._ring
-        return ChannelStatistics(buffered=len(ring), overwritten=ring.overwritten,
-                                 dropped=self._discarded,
-                                 written=ring.written, read=ring.popped, waiting_readers=0,
-                                 waiting_writers=0, closed=self._closed)
-
-    def health(self) -> ChannelHealth:
-        """A snapshot of this channel's sending (csp/health.py); never blocks.
-
-        One-way latency here is half the round trip; loss and jitter of this direction are
-        measured by the server (``Bridge.server_stats()``, per channel).
-        """
-        link = self._link
-        rtt = link.rtt_ns if link is not None else -1
-        ring = self._ring
-        return ChannelHealth(
-            rtt_ns=rtt, one_way_ns=rtt // 2 if rtt >= 0 else -1, jitter_ns=-1, lost=-1,
-            duplicates=0, overwritten=ring.overwritten, overtaken=self._overtaken,
-            expired=self._expired, values=ring.written,
-            clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns,
-            rejected=self._rejected + self._refused, ros_lost=self.ros_lost)
-
-    @property
-    def closed(self) -> bool:
-        """True after :meth:`close` (``Bridge.unsubscribe`` or ``Bridge.close``)."""
-        return self._closed
-
-    def close(self) -> None:
-        """Refuse further writes. A latest value still held back is discarded, counted in
-        ``statistics().dropped`` (the Bridge flushes before closing, so only one that the
-        connection never let through)."""
-        self._closed = True
-        if self._held is not None:
-            self._held = None
-            self._discarded += 1

@@ -195,7 +195,7 @@ class ServiceMethods:
         return handle
 
     # -- the server's own answers ---------------------------------------------------------
-    def _on_loss(self, channel: int, ros_lost: int) -> None:
+    def _on_ros_loss(self, channel: int, ros_lost: int) -> None:
         """Receive thread: the server counted ROS-side loss of a channel (``health()``)."""
         found: IncomingChannel | OutgoingChannel | None = self._incoming.get(channel)
         if found is None:  # not ``or``: an empty channel is falsy

@@ -27,12 +27,15 @@ from collections.abc import Callable
 
 from rlbridge.csp import handshake
 from rlbridge.csp.auth import ClientAuth
+from rlbridge.csp.idle import PARK, IdleStrategy
 from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.services import ServiceCalls
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.csp.session_owner import Control, LinkHandler, ValuesHandler
+from rlbridge.csp.stream_guard import StreamGuard
+from rlbridge.tls import ClientTls
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     ConnectAck,
@@ -40,6 +43,7 @@ from rlbridge.wire import (
     Error,
     GoalSend,
     Hello,
+    LossReport,
     Malformed,
     Packet,
     PacketCodec,
@@ -48,6 +52,7 @@ from rlbridge.wire import (
     TopicConnect,
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
+from rlbridge.wire.seal import sealed_codec, tls_datagram_keys
 
 # ConnectionFailed and ConnectionClosed are defined in session_errors (the handshake raises
 # them too); this is the place to import them from, with Control, Connection's parameter.
@@ -69,6 +74,9 @@ class Connection:
         #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.
         self.psk: bytes | None = None
         self.auth: ClientAuth | None = None
+        #: TLS settings (rlbridge.tls), and what protects the current session's TCP stream.
+        self.tls: ClientTls | None = None
+        self.guard = StreamGuard()
         #: Datagrams the receive thread refused, by reason (bad_mac, replayed, bad_token, ...).
         self.datagrams_dropped: collections.Counter[str] = collections.Counter()
         self.tcp: socket.socket | None = None
@@ -82,8 +90,14 @@ class Connection:
         self.on_values: ValuesHandler | None = None
         self.on_link_change: LinkHandler | None = None
         self.on_error: Callable[[Error], None] | None = None
-        #: ``(channel, ros_lost)``: the server's count of a channel's ROS-side loss.
-        self.on_loss: Callable[[int, int], None] | None = None
+        #: ``(channel, limit)``: the server granted a publish channel credit (receive thread).
+        self.on_credit: Callable[[int, int], None] | None = None
+        #: The server's first-hop loss report for publish channels (receive thread).
+        self.on_loss: Callable[[LossReport], None] | None = None
+        #: How the receive thread waits for a readable socket (csp/idle.py).
+        self.idle: IdleStrategy = PARK
+        #: ``(channel, ros_lost)``: the server's count of a channel's ROS-side loss (``RosLoss``).
+        self.on_ros_loss: Callable[[int, int], None] | None = None
         #: Called with the reason when a session ends (before any reconnect), and once more,
         #: with ``final=True``, when the connection is closed for good.
         self.on_session_end: Callable[[str, bool], None] | None = None
@@ -100,7 +114,7 @@ class Connection:
         #: Control requests waiting for answers, and the bindings a new session makes again.
         self.requests = Requests(self)
         #: Service calls in flight and the channels of provided services.
-        self.services = ServiceCalls(self)
+        self.services: ServiceCalls = ServiceCalls(self)
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = socket.socketpair()
         #: The link state last reported through ``on_link_change``.
@@ -147,12 +161,16 @@ class Connection:
             self._handshaking = True
         self.auth = ClientAuth(self.psk, self.name) if self.psk else None
         self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
+        self.guard.reset()
         hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
             ack, self._leftover = (handshake.open_tcp(self, hello, self._wake_r)
                                    if self.control == "tcp" else handshake.open_udp(self, hello))
             if self.auth is not None:
                 self.codec = self.auth.sealed(ack)
+            elif self.guard.tls is not None and ack.datagram_key:
+                self.codec = sealed_codec(tls_datagram_keys(ack.datagram_key, ack.token),
+                                          server=False)
             return ack
         except OSError as exc:
             self._close_session_sockets()
@@ -221,12 +239,22 @@ class Connection:
 
     # -- sending (any SRT thread) ------------------------------------------------------------
     def send_tcp(self, data: bytes | bytearray) -> None:
+        """Write frames to the TCP connection (through TLS when on), whole, in call order."""
         tcp = self.tcp
         if tcp is None:
             raise ConnectionClosed("this session has no TCP connection")
         with self.tcp_lock:
-            tcp.sendall(data)
-            self.tcp_bytes_out += len(data)
+            data = self.guard.protect(data)  # in the lock: records leave in counter order
+            if data:
+                tcp.sendall(data)
+                self.tcp_bytes_out += len(data)
+
+    def tcp_received(self, data: bytes) -> bytes:
+        """The plaintext of bytes the TCP socket read (all of it: none left inside TLS)."""
+        plain, reply = self.guard.open(data)
+        if reply:  # e.g. a key update's answer: out in order with everything else
+            self.send_tcp(b"")
+        return plain
 
     def send_udp(self, data: bytes) -> None:
         udp = self.udp

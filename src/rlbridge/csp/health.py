@@ -43,11 +43,16 @@ class ChannelHealth(msgspec.Struct, frozen=True, gc=False):
     clock_error_ns: int = -1
     #: The server's clock minus this host's, as estimated from heartbeats (0: not yet).
     clock_offset_ns: int = 0
+    #: Outgoing: values the server reported as arrived at the first hop (its loss reports;
+    #: ``lost`` is then the first-hop loss it reported). Incoming: -1.
+    arrived: int = -1
+    #: Outgoing with ``max_rate_hz``: the rate limit in force (adaptive: it moves). -1: none.
+    rate_limit_hz: int = -1
     #: Values refused for not being of the channel's type: outgoing, at ``write`` (a
     #: ``TypeError``) and by the server (an ``Error(BAD_VALUE)`` counting them); server side,
     #: the values of a publish channel it refused.
     rejected: int = 0
     #: Values lost on the middleware side of the server, as the server reports them
-    #: (``ChannelLoss``, every heartbeat period): incoming, messages its ROS subscription's
+    #: (``RosLoss``, every heartbeat period): incoming, messages its ROS subscription's
     #: full queue dropped; outgoing, accepted values ROS refused. ``-1``: none reported yet.
     ros_lost: int = -1

@@ -30,11 +30,18 @@ DEFAULT_EVENT_BUFFER = 64
 
 @dataclass(frozen=True, slots=True)
 class LinkEvent:
-    """The link changed to ``state`` at ``at_ns`` (``time.monotonic_ns``), and why."""
+    """The link changed to ``state`` at ``at_ns`` (``time.monotonic_ns``), and why.
+
+    A loss event (``channel >= 0``) leaves the state as it is: the server reported that
+    ``lost`` values of publish channel ``channel`` never arrived at the first hop since
+    its previous report (docs/policies.md, loss feedback).
+    """
 
     state: LinkState
     at_ns: int
     reason: str
+    channel: int = -1
+    lost: int = 0
 
 
 class LinkEvents:
@@ -76,6 +83,15 @@ class LinkEvents:
                 ch.write(event)
             for callback in self._callbacks:
                 callback(state)
+
+    def emit_loss(self, channel: int, lost: int, reason: str) -> None:
+        """Record first-hop loss of a publish channel: an event in every channel, the state
+        unchanged (callbacks, which follow state changes, are not called)."""
+        with self._lock:
+            event = LinkEvent(self._last.state, time.monotonic_ns(), reason, channel, lost)
+            self._channels = [ch for ch in self._channels if not ch.closed]
+            for ch in self._channels:
+                ch.write(event)
 
     def close(self) -> None:
         """Close every event channel (their buffered events stay readable)."""

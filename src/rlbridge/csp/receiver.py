@@ -8,7 +8,9 @@ sans-IO codec, and gathers consecutive values of a channel into runs handed to t
 once per read burst. Between reads it sends heartbeats and runs the watchdog, with timeouts
 taken from the session's :class:`~rlbridge.wire.link.LinkMonitor`. It ends when the session
 does: the connection's generation moves on, the session is no longer up, or the wake-up
-socket is readable (``close``).
+socket is readable (``close``). How it waits is the connection's idle strategy
+(:mod:`rlbridge.csp.idle`): ``select`` with the timeout (park), or zero-timeout ``select``
+polls first (spin). ``Credit`` and ``LossReport`` packets go to the connection's handlers.
 """
 
 from __future__ import annotations
@@ -17,20 +19,22 @@ import logging
 import select
 import socket
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rlbridge.wire import (
     Batch,
-    ChannelLoss,
     ConnectError,
+    Credit,
     Disconnect,
     Error,
     FrameDecoder,
     GoalResult,
     Heartbeat,
+    LossReport,
     Malformed,
     Packet,
     RemoteProtocolError,
+    RosLoss,
     ServiceRequest,
     ServiceResult,
     Stats,
@@ -68,7 +72,7 @@ class Receiver:
     def run(self) -> None:
         """The thread's body: packets that came with the ack first, then the loop."""
         conn, generation = self._conn, self._generation
-        decoder = FrameDecoder(conn.codec)
+        decoder = conn.guard.decoder or FrameDecoder(conn.codec)
         link = conn.link
         assert link is not None
         assert conn.ack is not None
@@ -79,27 +83,36 @@ class Receiver:
         self._leftover = []
         self._flush_values()
         sockets = [s for s in (conn.tcp, conn.udp, self._wake) if s is not None]
+        idle = conn.idle
+
+        def poll() -> list[Any]:
+            return select.select(sockets, [], [], 0)[0]
+
+        def block(timeout: float | None) -> list[Any]:
+            return select.select(sockets, [], [], timeout)[0]
+
         try:
             if conn.udp is not None and conn.control == "tcp":
                 conn.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
             while generation == conn.generation and conn.up:
                 now = time.monotonic_ns()
                 timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
-                readable, _, _ = select.select(sockets, [], [], timeout)
+                readable = idle.idle(poll, block, timeout)
+                tcp, udp = conn.tcp, conn.udp
                 for sock in readable:
-                    if sock is conn.tcp:
+                    if tcp is not None and sock is tcp:
                         data = sock.recv(1 << 18)
                         self._tcp_bytes_in += len(data)
                         if not data:
                             conn.end_session("server closed the TCP connection", generation)
                             return
-                        for packet in decoder.feed(data):
+                        for packet in decoder.feed(conn.tcp_received(data)):
                             if isinstance(packet, Malformed):
                                 log.warning("malformed packet from server: %s",
                                             packet.error.reason)
                             else:
                                 self._dispatch(packet)
-                    elif sock is conn.udp:
+                    elif udp is not None and sock is udp:
                         self._receive_datagrams(sock, token)
                     else:
                         return
@@ -192,20 +205,17 @@ class Receiver:
                     conn.on_error(packet)
             case Stats():
                 conn.requests.answer_stats(packet)
-            case ServiceResult():
+            case Credit():
                 link.on_receive(now)
-                conn.services.on_result(packet)
-            case ServiceRequest():
-                link.on_receive(now)
-                conn.services.on_request(packet)
-            case ChannelLoss():
+                if conn.on_credit is not None:
+                    conn.on_credit(packet.channel, packet.limit)
+            case LossReport():
                 link.on_receive(now)
                 if conn.on_loss is not None:
-                    conn.on_loss(packet.channel, packet.ros_lost)
-            case GoalResult():
+                    conn.on_loss(packet)
+            case ServiceResult() | ServiceRequest() | GoalResult() | RosLoss():
                 link.on_receive(now)
-                self._flush_values()  # the feedback before it first
-                conn.services.on_goal_result(packet)
+                self._service_packet(packet)
             case ConnectError():
                 conn.end_session(f"server ended the session: {packet.reason}", conn.generation)
             case Disconnect():
@@ -213,6 +223,20 @@ class Receiver:
                                  conn.generation)
             case _:
                 link.on_receive(now)
+
+    def _service_packet(self, packet: ServiceResult | ServiceRequest | GoalResult | RosLoss
+                        ) -> None:
+        """Services, goals and ROS-side loss (csp/services.py, csp/bridge_services.py)."""
+        conn = self._conn
+        if isinstance(packet, ServiceResult):
+            conn.services.on_result(packet)
+        elif isinstance(packet, ServiceRequest):
+            conn.services.on_request(packet)
+        elif isinstance(packet, GoalResult):
+            self._flush_values()  # the goal's feedback before its end
+            conn.services.on_goal_result(packet)
+        elif conn.on_ros_loss is not None:
+            conn.on_ros_loss(packet.channel, packet.ros_lost)
 
     def _gather(self, channel: int, first_seq: int, stamps: list[int],
                 values: list[object]) -> None:

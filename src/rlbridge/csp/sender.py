@@ -17,7 +17,15 @@ Channel policies (docs/policies.md) are applied in ``OutgoingChannel.take``: a *
 channel on TCP is handed the kernel's view of the connection (:mod:`rlbridge.tcpstate`) and,
 while it is backed up, holds its newest value instead of queueing a burst behind a
 retransmission; this thread then re-checks every ``HOLD_POLL_S`` until the value is out.
-UDP channels with ``redundancy`` k carry the previous k values in each datagram.
+UDP channels with ``redundancy`` k carry the previous k values in each datagram. A channel's
+:class:`~rlbridge.csp.pacing.Pacing` (credit of a flow-controlled TCP channel, a
+``max_rate_hz`` limit) may let only part of what waits go; the rest stays in the ring, the
+thread comes back when the rate allows (``retry_in``) or a ``Credit`` rings its doorbell. The
+thread also grants credit for flow-controlled incoming channels whose reader consumed enough
+(a ``Credit`` frame in the same ``sendall`` as the values).
+
+How the thread waits for work is its :mod:`~rlbridge.csp.idle` strategy (park, spin then
+park, busy spin): ``Bridge.connect(idle=...)``.
 """
 
 from __future__ import annotations
@@ -29,8 +37,10 @@ from typing import Protocol
 
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.connection import Connection
+from rlbridge.csp.idle import PARK, IdleStrategy
+from rlbridge.csp.pacing import Pacing
 from rlbridge.tcpstate import congested
-from rlbridge.wire import MAX_DATAGRAM, Batch, Error, ErrorCode, Packet, Value
+from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Packet, Value
 
 log = logging.getLogger("rlbridge.client")
 
@@ -47,6 +57,9 @@ class OutgoingSource(Protocol):
     transport: str
     immediate: bool
     latest: bool
+    pacing: Pacing | None
+    #: The last take left values behind for the rate limit or credit: take again later.
+    deferred: bool
 
     def take(self, congested: bool = False) -> tuple[int, list[int], list[object], int]:
         """What to send: ``(first_seq, stamps, values, repeated)``; empty lists when nothing.
@@ -61,7 +74,15 @@ class OutgoingSource(Protocol):
         ...
 
     def pending(self) -> int:
-        """How many values wait (read by the send thread's wake-up predicate)."""
+        """How many values wait (for monitors)."""
+        ...
+
+    def ready(self, now_ns: int) -> bool:
+        """Values wait and their credit and rate limit let one go now (wake-up predicate)."""
+        ...
+
+    def retry_in(self, now_ns: int) -> float | None:
+        """Seconds until the rate limit lets a waiting value go; None: nothing to wait for."""
         ...
 
     def refused(self, count: int) -> None:
@@ -69,10 +90,22 @@ class OutgoingSource(Protocol):
         ...
 
 
+class CreditSource(Protocol):
+    """What the send thread needs from a flow-controlled incoming channel."""
+
+    channel_id: int
+    credited: int
+
+    def credit_due(self) -> bool: ...
+
+    def credit_limit(self) -> int: ...
+
+
 class SendLoop:
     """Owns the send thread; started by the Bridge, stopped and joined by ``close``."""
 
-    def __init__(self, conn: Connection, *, rate_hz: float | None, max_batch: int) -> None:
+    def __init__(self, conn: Connection, *, rate_hz: float | None, max_batch: int,
+                 idle: IdleStrategy = PARK) -> None:
         if rate_hz is not None and rate_hz <= 0:
             raise ValueError(f"send loop rate must be positive, got {rate_hz}")
         self._conn = conn
@@ -80,6 +113,12 @@ class SendLoop:
         self._period = 1.0 / rate_hz if rate_hz else None
         self._max_batch = max(1, max_batch)
         self._sources: tuple[OutgoingSource, ...] = ()
+        self._credits: tuple[CreditSource, ...] = ()
+        self.idle = idle
+        #: Seconds until a rate-limited value may go (None: no such value waits).
+        self._retry: float | None = None
+        #: Some channel's values still wait for credit or the rate limit (``flush(wait)``).
+        self._deferred = False
         #: Rung by immediate channels' writes, only while this thread sleeps.
         self.doorbell = Doorbell()
         self._flush_all = False
@@ -126,10 +165,19 @@ class SendLoop:
     def remove(self, source: OutgoingSource) -> None:
         self._sources = tuple(s for s in self._sources if s is not source)
 
+    def add_credit(self, source: CreditSource) -> None:
+        """A flow-controlled incoming channel: this thread grants the server its credit."""
+        self._credits = (*self._credits, source)
+
+    def remove_credit(self, source: CreditSource) -> None:
+        self._credits = tuple(s for s in self._credits if s is not source)
+
     def flush(self, wait: bool = False, timeout: float = 5.0) -> None:
         """Send every buffered value now (``Bridge.send``); optionally wait until it is out.
 
-        While paused the values stay buffered and this returns at once: they go on resume.
+        With ``wait``, also until no value waits for credit or a rate limit any more (at
+        their pace, within ``timeout``). While paused the values stay buffered and this
+        returns at once: they go on resume.
         """
         if self._paused:
             return
@@ -140,7 +188,8 @@ class SendLoop:
         if wait:
             with self._flushed:
                 self._flushed.wait_for(
-                    lambda: self._flush_count >= target or self._stop.is_set(), timeout)
+                    lambda: (self._flush_count >= target and not self._deferred)
+                    or self._stop.is_set() or self._paused, timeout)
 
     def _run(self) -> None:
         period = self._period
@@ -149,7 +198,10 @@ class SendLoop:
             timeout = None if next_tick is None else max(0.0, next_tick - time.monotonic())
             if self._holding:
                 timeout = HOLD_POLL_S if timeout is None else min(timeout, HOLD_POLL_S)
-            self.doorbell.wait_for(self._has_work, timeout)
+            retry = self._retry
+            if retry is not None:
+                timeout = retry if timeout is None else min(timeout, retry)
+            self.idle.idle(self._has_work, self._park, timeout)
             flush_all = self._flush_all
             self._flush_all = False
             if next_tick is not None and time.monotonic() >= next_tick:
@@ -157,19 +209,29 @@ class SendLoop:
                 next_tick += period  # type: ignore[operator]
                 if next_tick < time.monotonic():  # overrun: skip, do not burst
                     next_tick = time.monotonic() + period  # type: ignore[operator]
+            was_deferred = self._deferred
             try:
                 self._send_pending(flush_all)
             except OSError as exc:
                 self.send_errors += 1
                 log.warning("send failed: %s", exc)
-            if flush_all:
+            if flush_all or was_deferred:
                 with self._flushed:
-                    self._flush_count += 1
+                    self._flush_count += flush_all
                     self._flushed.notify_all()
 
+    def _park(self, timeout: float | None) -> bool:
+        return self.doorbell.wait_for(self._has_work, timeout)
+
     def _has_work(self) -> bool:
-        return self._stop.is_set() or (not self._paused and (
-            self._flush_all or any(s.immediate and s.pending() for s in self._sources)))
+        if self._stop.is_set():
+            return True
+        if self._paused:
+            return False
+        if self._flush_all or any(c.credit_due() for c in self._credits):
+            return True
+        now = time.monotonic_ns()
+        return any((s.immediate or s.deferred) and s.ready(now) for s in self._sources)
 
     def _send_pending(self, flush_all: bool) -> None:
         if self._paused:
@@ -180,8 +242,14 @@ class SendLoop:
         token = conn.ack.token if conn.ack is not None else 0
         backed_up: bool | None = None  # asked of the kernel once per round, if needed
         holding = False
+        deferred = False
+        retry: float | None = None
+        for credit in self._credits:
+            if credit.credit_due():
+                credit.credited = limit = credit.credit_limit()
+                codec.encode_frame_into(Credit(credit.channel_id, limit), frames)
         for src in self._sources:
-            if not (flush_all or src.immediate or src.holding):
+            if not (flush_all or src.immediate or src.holding or src.deferred):
                 continue
             busy = False
             if src.latest and src.transport == "tcp":
@@ -190,6 +258,11 @@ class SendLoop:
                 busy = backed_up
             first_seq, stamps, values, repeated = src.take(busy)
             holding = holding or src.holding
+            deferred = deferred or src.deferred
+            if src.pacing is not None:
+                wait = src.retry_in(time.monotonic_ns())
+                if wait is not None and (retry is None or wait < retry):
+                    retry = wait
             n = len(values)
             if n == 0:
                 continue
@@ -202,6 +275,8 @@ class SendLoop:
                 else:
                     self._send_datagram(packet, token)
         self._holding = holding
+        self._retry = retry
+        self._deferred = deferred
         if frames:
             conn.send_tcp(frames)
 

@@ -21,6 +21,7 @@ from rlbridge.wire import (
     ConnectAck,
     Error,
     GoalResult,
+    LossReport,
     Packet,
     PacketCodec,
     ServiceRequest,
@@ -33,6 +34,9 @@ from rlbridge.wire.link import LinkMonitor, LinkState
 
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
+    from rlbridge.csp.idle import IdleStrategy
+    from rlbridge.csp.stream_guard import StreamGuard
+    from rlbridge.tls import ClientTls
 
 __all__ = ["Answers", "Control", "LinkHandler", "ServiceAnswers", "SessionOwner",
            "ValuesHandler"]
@@ -80,12 +84,21 @@ class SessionOwner(Protocol):
     tcp: socket.socket | None
     udp: socket.socket | None
     tcp_bytes_out: int
+    tcp_lock: threading.Lock
     # -- the session's state (the receive thread reads and counts)
     datagrams_dropped: collections.Counter[str]
     reported_link: LinkState
+    #: How the receive thread waits for a readable socket.
+    idle: IdleStrategy
 
     @property
     def auth(self) -> ClientAuth | None: ...
+
+    @property
+    def tls(self) -> ClientTls | None: ...
+
+    @property
+    def guard(self) -> StreamGuard: ...
 
     @property
     def ack(self) -> ConnectAck | None: ...
@@ -100,13 +113,19 @@ class SessionOwner(Protocol):
     def on_error(self) -> Callable[[Error], None] | None: ...
 
     @property
+    def on_credit(self) -> Callable[[int, int], None] | None: ...
+
+    @property
+    def on_loss(self) -> Callable[[LossReport], None] | None: ...
+
+    @property
     def requests(self) -> Answers: ...
 
     @property
     def services(self) -> ServiceAnswers: ...
 
     @property
-    def on_loss(self) -> Callable[[int, int], None] | None: ...
+    def on_ros_loss(self) -> Callable[[int, int], None] | None: ...
 
     @property
     def generation(self) -> int: ...
@@ -119,6 +138,8 @@ class SessionOwner(Protocol):
     def send_control(self, packet: Packet) -> None: ...
 
     def send_tcp(self, data: bytes | bytearray) -> None: ...
+
+    def tcp_received(self, data: bytes) -> bytes: ...
 
     def send_udp_packet(self, packet: Packet) -> None: ...
 

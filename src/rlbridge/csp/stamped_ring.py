@@ -57,8 +57,9 @@ class StampedRing(SpscRing[Any]):
             slots[j] = values[i]
         self._head = end
 
-    def drain_stamped(self) -> tuple[list[int], list[Any]]:
-        """Consumer: every unread pair, oldest first, as ``(stamps, values)``."""
+    def drain_stamped(self, max_items: int | None = None) -> tuple[list[int], list[Any]]:
+        """Consumer: the unread pairs (at most ``max_items``), oldest first, as
+        ``(stamps, values)``; the rest stay for the next call (rate limit, credit)."""
         cap = self._cap
         tail = self._tail
         head = self._head
@@ -67,7 +68,11 @@ class StampedRing(SpscRing[Any]):
             self._skipped += lost
             tail += lost
         count = head - tail
+        if max_items is not None:
+            count = min(count, max_items)
         if count <= 0:
+            if lost > 0:
+                self._tail = tail
             return [], []
         first = tail % cap
         stop = first + count

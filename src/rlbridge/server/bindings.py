@@ -10,12 +10,16 @@ redundant datagrams are dropped by sequence number, values older than ``max_age_
 publishes only the newest value of each packet (``overtaken``). Outbound: values are stamped
 when the middleware delivered them; a ``latest`` channel whose TCP connection is backed up
 (:mod:`rlbridge.tcpstate`) holds only its newest value and writes it once the connection
-drains, counting every value it replaces (``overtaken``).
+drains, counting every value it replaces (``overtaken``). A channel under credit flow control
+(TCP, not ``latest``; :mod:`rlbridge.server.flow`) sends within the client's credit instead of
+dropping at a full socket buffer, and grants its publisher credit as the topic's subscribers
+make room.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -29,8 +33,9 @@ from rlbridge.server.admission import (
     value_converter,
     value_schema,
 )
+from rlbridge.server.flow import InboundCredit, OutboundCredit
 from rlbridge.server.sinks import PacketSink
-from rlbridge.wire import Batch, TopicConnect, Value
+from rlbridge.wire import Batch, ChannelLoss, TopicConnect, Value
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
 from rlbridge.wire.sequence import SequenceTracker
 
@@ -66,10 +71,22 @@ class Inbound:
         self.overtaken = 0
         #: Packets for this channel that did not decode (counted by the session).
         self.malformed = 0
+        #: Values the session's ``--max-rate`` refused (reported in ``LossReport``).
+        self.refused = 0
+        #: Credit granted to the publisher, for a flow-controlled channel (server/flow.py).
+        self.credit: InboundCredit | None = None
+
+    def loss(self) -> ChannelLoss:
+        """The first hop as this server saw it, for the client's ``LossReport``."""
+        t = self.tracker
+        return ChannelLoss(self.channel, t.accepted, t.lost, t.highest + 1, self.refused)
 
     def on_value(self, packet: Value) -> None:
         """``_admit`` for one value, inlined: this runs once per datagram on a busy server."""
         if not self.tracker.accept(packet.seq):
+            return
+        if self.credit is not None:
+            self._publish_flow([packet.stamp_ns], [packet.value])
             return
         stamp = packet.stamp_ns
         clock = self._clock
@@ -90,10 +107,21 @@ class Inbound:
     def on_batch(self, packet: Batch) -> None:
         start = self.tracker.accept_run(packet.first_seq, len(packet.values))
         if start < len(packet.values):
+            stamps, values = packet.stamps, packet.values
             if start:
-                self._admit(packet.stamps[start:], packet.values[start:])
+                stamps, values = stamps[start:], values[start:]
+            if self.credit is not None:
+                self._publish_flow(stamps, values)
             else:
-                self._admit(packet.stamps, packet.values)
+                self._admit(stamps, values)
+
+    def _publish_flow(self, stamps: list[int], values: list[Any]) -> None:
+        """Publish, then grant the publisher what the topic's subscribers have room for."""
+        assert self.credit is not None
+        try:
+            self._admit(stamps, values)
+        finally:
+            self.credit.grant(self.tracker.highest + 1)
 
     def _admit(self, stamps: list[int], values: list[Any]) -> None:
         """New values: measure them, apply ``max_age_ms`` and ``latest``, publish the rest."""
@@ -151,6 +179,8 @@ class Inbound:
         return getattr(self._publisher, "failed", 0)
 
     def close(self) -> None:
+        if self.credit is not None:
+            self.credit.flow.inbound.pop(self.credit, None)
         self._publisher.close()
 
 
@@ -183,6 +213,8 @@ class Outbound:
         self._held: tuple[int, Any] | None = None
         self._timer: asyncio.TimerHandle | None = None
         self._ros_lost = 0
+        #: The client's credit and the backlog, for a flow-controlled channel (server/flow.py).
+        self.credit: OutboundCredit | None = None
 
     def on_values(self, values: Sequence[Any], stamp_ns: int | None = None) -> None:
         """Called on the loop thread with a batch from the middleware.
@@ -199,7 +231,39 @@ class Outbound:
             self._held = (stamp, values[-1])
             self._release()
             return
+        credit = self.credit
+        if credit is not None:
+            self.dropped += credit.queue(stamp, values)
+            self._pump()
+            return
         self._emit(stamp, values)
+
+    def on_credit(self, limit: int) -> None:
+        """The client consumed values: send what its new credit allows."""
+        if self.credit is not None and self.credit.on_credit(limit):
+            self._pump()
+
+    def _pump(self) -> None:
+        """Send the backlog's oldest values, as many as the client's credit allows, a batch
+        at a time while the socket takes them; a full socket is tried again shortly."""
+        credit = self.credit
+        assert credit is not None
+        while True:
+            stamps, values = credit.take(self._seq, self._max_batch)
+            if not values:
+                break
+            seq = self._seq
+            self._seq = seq + len(values)
+            self.values_out += len(values)
+            self._send_run(seq, stamps, values)
+        if credit.socket_full and credit.waiting and self._timer is None:
+            with contextlib.suppress(RuntimeError):  # no loop (a test driving it by hand)
+                self._timer = asyncio.get_running_loop().call_later(HOLD_POLL_S,
+                                                                    self._on_flow_timer)
+
+    def _on_flow_timer(self) -> None:
+        self._timer = None
+        self._pump()
 
     def _release(self) -> None:
         """Write the held latest value, or, while the connection is backed up, poll again."""
@@ -245,6 +309,15 @@ class Outbound:
                 stamps = [s for s, _ in history] + stamps
                 seq -= len(history)
             history.extend((stamp, v) for v in fresh)
+        self._send_run(seq, stamps, values)
+
+    def _send_run(self, seq: int, stamps: list[int], values: list[Any]) -> None:
+        """Values numbered from ``seq`` as Value or Batch packets; refused ones counted.
+        With redundancy every packet is a Batch (docs/protocol.md 10.1)."""
+        if len(values) == 1 and self._history is None:
+            if not self.sink.send(Value(self.channel, seq, stamps[0], values[0]), data=True):
+                self.dropped += 1
+            return
         step = self._max_batch
         for i in range(0, len(values), step):
             batch = Batch(self.channel, seq + i, stamps[i : i + step], values[i : i + step])
@@ -259,9 +332,14 @@ class Outbound:
 
     def stats(self) -> dict[str, Any]:
         """Counters for ``rlbridge stats``: values offered to the client, and dropped of those."""
-        return {"direction": "subscribe", "topic": self.request.topic,
-                "transport": self.request.transport, "values_out": self.values_out,
-                "dropped": self.dropped, "ros_lost": self.ros_lost}
+        stats: dict[str, Any] = {
+            "direction": "subscribe", "topic": self.request.topic,
+            "transport": self.request.transport, "values_out": self.values_out,
+            "dropped": self.dropped, "ros_lost": self.ros_lost}
+        if self.credit is not None:
+            stats["backlog"] = self.credit.waiting
+            stats["credit_limit"] = self.credit.limit
+        return stats
 
     @property
     def ros_lost(self) -> int:
@@ -270,6 +348,11 @@ class Outbound:
             self.subscription, "lost", 0)
 
     def close(self) -> None:
+        credit = self.credit
+        if credit is not None:  # never sent: counted, and the publishers may go on
+            self.dropped += credit.clear()
+            credit.flow.outbound.discard(credit)
+            credit.flow.changed()
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 from rlbridge.adapters.base import QoS, Reliability
 from rlbridge.server.bindings import Inbound, Outbound
+from rlbridge.server.flow import SOCKET_SHARE, InboundCredit, OutboundCredit, wants_flow
 from rlbridge.wire import ErrorCode, Packet, TopicConnect
 
 if TYPE_CHECKING:
@@ -37,6 +38,11 @@ def refusal(session: SessionOwner, req: TopicConnect) -> tuple[ErrorCode, str] |
     if len(req.topic) > cfg.max_topic_length:
         return ErrorCode.LIMIT, (f"topic name of {len(req.topic)} characters is longer than "
                                  f"the server's limit of {cfg.max_topic_length}")
+    forbidden = session.ctx.access.refusal(session.identity, req.direction, req.topic)
+    if forbidden is not None:
+        session.ctx.count("topic_not_allowed")
+        session.topics_refused += 1
+        return ErrorCode.NOT_ALLOWED, forbidden
     return None
 
 
@@ -51,13 +57,23 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
     qos = QoS(req.reliability or default_rel, req.depth, req.durability)
     adapter = ctx.adapter
     spec = adapter.resolve(req.msg_type, req.field)
+    flow = ctx.flows.topic(req.topic) if wants_flow(req) else None
     if req.direction == "publish":
         pub = adapter.create_publisher(req.topic, spec.msg_type, req.field, qos)
-        return Inbound(req.channel, spec, pub, req, session.link.clock)
+        inb = Inbound(req.channel, spec, pub, req, session.link.clock)
+        if flow is not None:
+            inb.credit = InboundCredit(req.channel, flow, session.send_control)
+            flow.inbound[inb.credit] = lambda: inb.tracker.highest + 1
+        return inb
     out = Outbound(req.channel, spec, ChannelSink(session, req.transport), ctx.config.max_batch,
                    req.redundancy if req.transport == "udp" else 0, req)
     out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
                                          ctx.handoff.wrap(out.on_values))
+    if flow is not None:
+        out.credit = OutboundCredit(req.buffer_size, flow,
+                                    lambda: getattr(session.tcp, "queued", 0),
+                                    ctx.config.max_write_buffer // SOCKET_SHARE)
+        flow.outbound.add(out.credit)
     return out
 
 

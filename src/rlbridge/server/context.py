@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -15,7 +16,9 @@ from typing import Any
 
 from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
+from rlbridge.server.authz import Access
 from rlbridge.server.config import ServerConfig
+from rlbridge.server.flow import FlowTable
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.ledger import Ledger
 from rlbridge.server.notices import Notices
@@ -37,6 +40,10 @@ class ServerContext:
     #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
     handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
     allow: AllowList = field(default_factory=lambda: AllowList(()))
+    #: Who may publish and subscribe to what, and see whose Stats (server/authz.py).
+    access: Access = field(default_factory=Access)
+    #: TLS on the TCP listener (``--tls-cert``): every connection runs it (server/tls_side.py).
+    tls: ssl.SSLContext | None = None
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
     #: Rate-limited warnings for the operator: wrong keys, malformed packets, refusals.
@@ -44,6 +51,8 @@ class ServerContext:
         default_factory=lambda: Notices(logging.getLogger("rlbridge.server")))
     #: Counters of closed sessions and channels by client and topic (the metrics' labels).
     ledger: Ledger = field(default_factory=Ledger)
+    #: Flow-controlled bindings by topic (server/flow.py): credit crosses sessions here.
+    flows: FlowTable = field(default_factory=FlowTable)
     #: Threads for blocking middleware work: service calls (server/services.py).
     workers: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(
         max_workers=32, thread_name_prefix="server-call"))

@@ -31,15 +31,18 @@ from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
     Batch,
     ChannelLoss,
+    Credit,
     Disconnect,
     Error,
     ErrorCode,
     GoalCancel,
     GoalSend,
     Heartbeat,
+    LossReport,
     Packet,
     PacketCodec,
     RemoteProtocolError,
+    RosLoss,
     ServiceCall,
     ServiceOffer,
     ServiceReply,
@@ -51,6 +54,7 @@ from rlbridge.wire import (
     Value,
 )
 from rlbridge.wire.link import LinkMonitor
+from rlbridge.wire.seal import SessionKeys
 
 __all__ = ["CHANNEL_TOTALS", "ServerContext", "Session"]
 
@@ -60,6 +64,8 @@ log = logging.getLogger("rlbridge.server")
 CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values", "ros_lost")
 
 TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
+#: Channels per LossReport packet: a report of 64 fits one 1400-byte datagram.
+REPORT_CHANNELS = 64
 
 
 class Session:
@@ -77,6 +83,10 @@ class Session:
         self.id = session_id
         self.token = token
         self.name = name
+        #: Who the client proved to be: its mutual-TLS certificate's common name, or the name
+        #: its own pre-shared key is filed under; None when nothing proved a name
+        #: (authorization then applies the default rules: server/authz.py).
+        self.identity: str | None = None
         self._on_closed = on_closed
         cfg = ctx.config
         self.link = LinkMonitor(
@@ -92,13 +102,21 @@ class Session:
         self.tcp_bytes_in = 0  # of those, on TCP (heartbeats skip a busy TCP connection)
         self.malformed = 0
         self.errors_sent = 0
+        #: Topic-connects refused by the key file's rules (server/authz.py).
+        self.topics_refused = 0
         #: Totals of channels closed before now, so a session's counters never go back.
         self._retired: dict[str, int] = dict.fromkeys(CHANNEL_TOTALS, 0)
         self.closed = False
         #: Seals and opens this session's datagrams (the gate swaps in a SealedCodec).
         self.codec: PacketCodec = ctx.codec
+        #: The keys of a pre-shared-key session (the TCP connection seals its records).
+        self.keys: SessionKeys | None = None
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
+        #: What the last LossReport said per publish channel (only changes are sent), and
+        #: the channels whose last change is sent once more (a lost datagram is made good).
+        self._reported: dict[int, ChannelLoss] = {}
+        self._repeat: set[int] = set()
         self._watchdog = SessionWatchdog(self)
         #: Service calls in flight and services this client provides.
         self.services = SessionServices(self)
@@ -172,6 +190,13 @@ class Session:
                 self._data(ch, packet, sink)
             case Heartbeat():
                 self.link.on_heartbeat(packet, time.monotonic_ns(), time.time_ns())
+            case Credit(channel=ch):
+                out = self.outbound.get(ch)
+                if out is None or out.credit is None:
+                    self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not a "
+                               "flow-controlled subscription; credit ignored", ch, sink)
+                else:
+                    out.on_credit(packet.limit)
             case TopicConnect():
                 self._connect(packet, sink)
             case TopicClose(channel=ch):
@@ -217,7 +242,7 @@ class Session:
             self.error(code, f"channel {channel} {what}; cannot publish on it", channel, via)
             return
         if self.rate is not None:
-            admitted = self._limit(packet, via)
+            admitted = self._limit(packet, via, binding)
             if admitted is None:
                 return
             packet = admitted
@@ -232,13 +257,15 @@ class Session:
                        f"{binding.spec.field or '<whole message>'}): {exc.reason}", channel, via,
                        values=exc.count)
 
-    def _limit(self, packet: Value | Batch, via: PacketSink | None) -> Value | Batch | None:
+    def _limit(self, packet: Value | Batch, via: PacketSink | None,
+               binding: Inbound) -> Value | Batch | None:
         """The values ``--max-rate`` lets through (a batch's first ones); the rest counted."""
         assert self.rate is not None
         now = time.monotonic_ns()
         n = 1 if isinstance(packet, Value) else len(packet.values)
         ok = self.rate.admit(n, now)
         if ok < n:
+            binding.refused += n - ok
             self.ctx.count("rate_dropped", n - ok)
             if self.rate.should_warn(now):
                 self.error(ErrorCode.LIMIT, f"over the server's limit of {self.rate.rate:g} "
@@ -282,18 +309,41 @@ class Session:
 
     def report_loss(self) -> None:
         """Tell the client of each channel whose ROS-side loss grew since the last report
-        (``ChannelLoss``; the watchdog calls this every heartbeat period)."""
+        (``RosLoss``; the watchdog calls this every heartbeat period)."""
         bindings: list[tuple[int, Inbound | Outbound]] = [*self.inbound.items(),
                                                           *self.outbound.items()]
         for ch, binding in bindings:
             lost = binding.ros_lost
             if lost != self._loss_reported.get(ch, 0):
                 self._loss_reported[ch] = lost
-                self.send_control(ChannelLoss(ch, lost))
+                self.send_control(RosLoss(ch, lost))
 
     def _in_use(self, ch: int) -> bool:
         return (ch in self.inbound or ch in self.outbound or ch in self.services.offers
                 or ch in self.goals.goals)
+
+    def loss_reports(self) -> list[LossReport]:
+        """The first hop of every publish channel whose counts moved since the last report.
+
+        Sent by the watchdog every heartbeat period (server/watchdog.py); counts are
+        cumulative, so a report lost on UDP is made good by the next one, and the last
+        counts of a channel that stopped changing are sent twice, in two periods.
+        """
+        changed = []
+        reported, repeat = self._reported, self._repeat
+        for ch, binding in self.inbound.items():
+            if not binding.request.loss_report:
+                continue
+            loss = binding.loss()
+            if reported.get(ch) != loss:
+                reported[ch] = loss
+                repeat.add(ch)
+                changed.append(loss)
+            elif ch in repeat:
+                repeat.discard(ch)
+                changed.append(loss)
+        return [LossReport(changed[i : i + REPORT_CHANNELS])
+                for i in range(0, len(changed), REPORT_CHANNELS)]
 
     def _close_channel(self, ch: int) -> None:
         binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
@@ -303,7 +353,10 @@ class Session:
                 self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
         self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
+        self._reported.pop(ch, None)
+        self._repeat.discard(ch)
         binding.close()
+        self.ctx.flows.release(binding.request.topic)
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self, reason: str, *, notify: bool = True, code: int = 0) -> None:
@@ -321,6 +374,7 @@ class Session:
                 binding.close()
             except Exception:  # a middleware failing to release must not stop the others
                 log.exception("closing channel %d of session %d", binding.channel, self.id)
+            self.ctx.flows.release(binding.request.topic)
         self.inbound.clear()
         self.outbound.clear()
         self.services.close()
@@ -346,7 +400,10 @@ class Session:
             report = self.ctx.report()
             body["server"] = report["server"]
             if sink is not None and sink is self.tcp:
-                body["sessions"] = report["sessions"]
+                sessions = report["sessions"]
+                if not self.ctx.access.sees_all(self.identity):  # only its own (authz.py)
+                    sessions = [s for s in sessions if s["session"] == self.id]
+                body["sessions"] = sessions
         self.send_control(Stats(body), sink)
 
     def _retire(self, channel: dict[str, Any]) -> None:
@@ -373,6 +430,7 @@ class Session:
         return {
             "session": self.id,
             "name": self.name,
+            "identity": self.identity,
             "state": link.state.value,
             "rtt_us": link.rtt_ns / 1000 if link.rtt_ns >= 0 else None,
             "packets_in": self.packets_in,
@@ -381,6 +439,7 @@ class Session:
             "tcp_queued_bytes": getattr(self.tcp, "queued", 0),
             "malformed": self.malformed,
             "errors_sent": self.errors_sent,
+            "topics_refused": self.topics_refused,
             **totals,
             **self.services.stats(),
             "channels": channels,
@@ -388,7 +447,11 @@ class Session:
 
 
 def _ack(binding: Inbound | Outbound) -> TopicAck:
-    """A binding's TopicAck: a publish channel's carries the schema its values must match."""
+    """A binding's TopicAck: a publish channel's carries the schema its values must match,
+    and a flow-controlled one its first credit (server/flow.py)."""
     spec = binding.spec
-    schema = binding.schema if isinstance(binding, Inbound) else None
-    return TopicAck(binding.channel, spec.msg_type, spec.default, schema)
+    if not isinstance(binding, Inbound):
+        return TopicAck(binding.channel, spec.msg_type, spec.default)
+    credit = binding.credit
+    first = None if credit is None else credit.first(binding.tracker.highest + 1)
+    return TopicAck(binding.channel, spec.msg_type, spec.default, binding.schema, first)

@@ -16,7 +16,7 @@ from typing import Protocol
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.context import ServerContext
 from rlbridge.server.sinks import PacketSink, UdpSink
-from rlbridge.wire import ErrorCode, Packet
+from rlbridge.wire import ErrorCode, LossReport, Packet
 from rlbridge.wire.link import LinkMonitor
 
 __all__ = ["SessionOwner"]
@@ -33,6 +33,9 @@ class SessionOwner(Protocol):
     outbound: dict[int, Outbound]
     tcp_bytes_in: int
     closed: bool
+    #: Who the client proved to be (authorization, server/authz.py), and its refusals.
+    identity: str | None
+    topics_refused: int
 
     id: int
     name: str
@@ -45,3 +48,5 @@ class SessionOwner(Protocol):
               via: PacketSink | None = None) -> None: ...
 
     def report_loss(self) -> None: ...
+
+    def loss_reports(self) -> list[LossReport]: ...

@@ -25,7 +25,7 @@ from rlbridge.wire import (
     RemoteProtocolError,
 )
 from rlbridge.wire.auth import SEAL_OVERHEAD, DatagramRejected, ServerHandshake
-from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, MAGIC, peek_header
+from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, MAGIC, check_header, peek_header
 
 log = logging.getLogger("rlbridge.server")
 
@@ -86,6 +86,8 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         # before the token has picked a live session.
         if len(data) < DATAGRAM_HEADER.size or data[:3] != HEADER_PREFIX:
             ctx.count("udp_malformed")  # not ours, or not this version: nobody to tell
+            ctx.notices.warn("malformed", f"malformed UDP datagram from {addr}: "
+                             f"{_header_fault(data)}")
             return
         flags, token = peek_header(data)
         seal = SEAL_OVERHEAD if flags & FLAG_MAC else 0
@@ -150,7 +152,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         if pending is not None and pending.hello == hello:  # its challenge was lost
             self._send(pending.handshake.challenge, addr)
             return
-        result = self._gate.hello(hello)
+        result = self._gate.hello(hello, udp=True)
         if isinstance(result, ServerHandshake):
             self._pending.pop(addr, None)
             self._pending[addr] = _Pending(hello, result)
@@ -227,3 +229,15 @@ class _Pending:
     handshake: ServerHandshake
     session_id: int | None = None
     proof: AuthProof | None = None
+
+
+def _header_fault(data: bytes) -> str:
+    """Why a datagram's header is not ours, for the operator (off the hot path)."""
+    if len(data) < DATAGRAM_HEADER.size:
+        return f"{len(data)} bytes, shorter than the {DATAGRAM_HEADER.size}-byte header"
+    magic, version = data[:2], data[2]
+    try:
+        check_header(magic, version)
+    except RemoteProtocolError as exc:
+        return exc.reason
+    return "bad header"

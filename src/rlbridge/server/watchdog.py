@@ -2,7 +2,10 @@
 
 The deadlines come from the sans-IO :class:`~rlbridge.wire.link.LinkMonitor` (time passed in);
 this is the I/O shim that turns them into ``loop.call_at``. At each deadline the session is
-either closed (nothing heard from the client within ``timeout_ms``) or sends its heartbeats.
+either closed (nothing heard from the client within ``timeout_ms``) or sends its heartbeats,
+followed by a ``LossReport`` for the publish channels whose first-hop counts moved (on UDP
+when the session has it, like the heartbeat: the report is cumulative, a lost one is made good
+by the next, and it keeps out of a busy TCP stream).
 """
 
 from __future__ import annotations
@@ -58,8 +61,11 @@ class SessionWatchdog:
             return
         if s.link.heartbeat_due(now):
             hb = s.link.make_heartbeat(now, time.time_ns())
-            for sink in self._heartbeat_sinks():
+            sinks = self._heartbeat_sinks()
+            for sink in sinks:
                 sink.send(hb)
+            for report in s.loss_reports() if sinks else ():
+                sinks[-1].send(report)
             self._tcp_bytes_at_heartbeat = self._tcp_traffic()
             s.report_loss()
         self._arm()

@@ -59,7 +59,9 @@ class ConnectAck(_Packet, tag=2, frozen=True):
     heartbeat_ms: U32
     timeout_ms: U32
     limits: Limits
-    challenge: Bytes32 = b""
+    #: Over TLS: the 32-byte secret the session's datagram keys derive from (wire/seal.py);
+    #: empty otherwise (a pre-shared key derives them from the handshake instead).
+    datagram_key: Bytes32 = b""
 
 
 class ConnectError(_Packet, tag=3, frozen=True):
@@ -84,6 +86,12 @@ class TopicConnect(_Packet, tag=4, frozen=True):
     max_age_ms: U32 = 0
     redundancy: Annotated[int, msgspec.Meta(ge=0, le=16)] = 0
     latest: bool = False
+    #: Subscribe: the client grants credit for this channel (``Credit`` packets); the server
+    #: sends at most ``buffer_size`` values beyond what the client has consumed. Publish:
+    #: the client honours the credit the server grants (``TopicAck.credit``, ``Credit``).
+    flow: bool = False
+    #: Publish: the client wants ``LossReport`` packets for this channel (first-hop counts).
+    loss_report: bool = False
     #: ``transient_local``: a latched topic (late subscribers get the last ``depth`` values);
     #: ``match`` (subscribe only): the durability and reliability of the topic's publishers.
     durability: Durability = "volatile"
@@ -98,6 +106,9 @@ class TopicAck(_Packet, tag=5, frozen=True):
     #: The JSON Schema (draft 2020-12, as a map) of the values the channel accepts, so a
     #: client can refuse a wrong value where it is written (``None``: not given).
     schema: dict[str, Any] | None = None
+    #: A flow-controlled publish channel (``TopicConnect.flow``): the first credit, the
+    #: sequence number the client may send up to, not including it. None: no credit limit.
+    credit: U64 | None = None
 
 
 class TopicError(_Packet, tag=6, frozen=True):
@@ -279,7 +290,7 @@ class GoalResult(_Packet, tag=27, frozen=True):
     reason: Reason = ""
 
 
-class ChannelLoss(_Packet, tag=28, frozen=True):
+class RosLoss(_Packet, tag=28, frozen=True):
     """Server -> client: the total of values of ``channel`` lost on the middleware side so
     far (a ROS subscription's full queue, values rmw refused); sent when it grows, at most
     once per heartbeat period. The client shows it as ``health().ros_lost``."""
@@ -292,11 +303,47 @@ class ChannelLoss(_Packet, tag=28, frozen=True):
 # reuse a number (tags are the wire format): 16-19 security (TLS/AEAD/authorization),
 # 20-29 ROS 2 services/actions/parameters, 30-31 value rejection, 32-33 UDP bundles,
 # 34-37 loss feedback and flow control. Add new kinds at the end of the union below.
+class Credit(_Packet, tag=34, frozen=True):
+    """The receiving end of a flow-controlled channel -> its sender: send up to ``limit``.
+
+    The sender may send the values numbered below ``limit`` (cumulative, never decreasing:
+    a credit that arrives late or twice changes nothing). Subscriber -> server for a
+    subscribe channel, server -> publisher for a publish channel (docs/protocol.md 10.5).
+    """
+
+    channel: U32
+    limit: U64
+
+
+class ChannelLoss(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=False):
+    """One publish channel's first hop, as the server saw it (counts since it was bound)."""
+
+    channel: U32
+    #: Values that arrived (new ones; duplicates and overtaken values not counted).
+    received: U64
+    #: Values that never arrived: gaps in the sequence numbers.
+    lost: U64
+    #: One past the highest sequence number that arrived (0: none yet).
+    next_seq: U64
+    #: Values the server's own rate limit (``--max-rate``) refused.
+    refused: U64 = 0
+
+
+class LossReport(_Packet, tag=35, frozen=True):
+    """Server -> client, every heartbeat period while counts changed: the first hop per channel.
+
+    Counts are cumulative, so a lost report costs nothing but time (docs/protocol.md 10.6).
+    """
+
+    channels: Annotated[list[ChannelLoss], msgspec.Meta(max_length=256)]
+
+
 Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
     | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
+    | Credit | LossReport
     | ServiceCall | ServiceResult | ServiceOffer | ServiceRequest | ServiceReply
-    | GoalSend | GoalCancel | GoalResult | ChannelLoss
+    | GoalSend | GoalCancel | GoalResult | RosLoss
 )
 
 #: Packets a value path carries; everything else is control.
