@@ -14,11 +14,11 @@ Imports nothing from rlbridge. Modes:
 ``flood TOPIC N``
     Publish std_msgs/Int64 probes ``-1, -2, ...`` every 50 ms until a line arrives on stdin,
     then ``0 .. N-1`` as fast as rclpy goes (reliable, depth 1000); print ``probes P``.
-``count TOPIC DEPTH``
+``count TOPIC DEPTH [LAST]``
     Subscribe to std_msgs/Int64 with a reliable KEEP_LAST(DEPTH) queue and a slow callback
     (1 ms a message); count messages and the gaps in their publication sequence numbers (from
     the first message on, printed as ``first DATA``); print ``{"received": R, "gaps": G,
-    "last": L}`` after 2 s of quiet.
+    "last": L}`` once message LAST arrived (else after 2 s of quiet).
 ``call SERVICE``
     Call std_srvs/SetBool ``SERVICE`` (provided by an rlbridge client) with data=true, print
     the response as JSON, exit.
@@ -144,7 +144,7 @@ def flood(topic: str, count: int) -> None:
     rclpy.try_shutdown()
 
 
-def count_gaps(topic: str, depth: int) -> None:
+def count_gaps(topic: str, depth: int, last: int | None = None) -> None:
     rclpy.init(args=[])
     node = Node("reach_count")
     state = {"received": 0, "gaps": 0, "last": None, "seq": None, "at": time.monotonic()}
@@ -165,7 +165,10 @@ def count_gaps(topic: str, depth: int) -> None:
     print("ready", flush=True)
     executor = MultiThreadedExecutor(num_threads=1)
     executor.add_node(node)
-    while state["received"] == 0 or time.monotonic() - state["at"] < 2.0:
+    quiet = 2.0 if last is None else 60.0  # with ``last``: until it arrives (it always does:
+    # a KEEP_LAST queue keeps the newest messages), the quiet period only a safety net
+    while (state["received"] == 0 or time.monotonic() - state["at"] < quiet) and (
+            last is None or state["last"] != last):
         executor.spin_once(timeout_sec=0.1)
     print(json.dumps({k: state[k] for k in ("received", "gaps", "last")}), flush=True)
     node.destroy_node()
@@ -178,6 +181,7 @@ if __name__ == "__main__":
     elif sys.argv[1:2] == ["flood"]:
         flood(sys.argv[2], int(sys.argv[3]))
     elif sys.argv[1:2] == ["count"]:
-        count_gaps(sys.argv[2], int(sys.argv[3]))
+        count_gaps(sys.argv[2], int(sys.argv[3]),
+                   int(sys.argv[4]) if len(sys.argv) > 4 else None)
     else:
         serve()

@@ -91,7 +91,7 @@ def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge
 
 
 def test_client_to_node_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
-    node = flood_world.peer("count", "/flood/up", "10", watch=r"^first (-?\d+)")
+    node = flood_world.peer("count", "/flood/up", "10", str(N - 1), watch=r"^first (-?\d+)")
     out = sdk.publish("/flood/up", INT64, transport="tcp", buffer_size=4 * N)
     try:
         probes = 0
