@@ -27,9 +27,23 @@ python3 -m venv .venv
 
 .venv/bin/ruff check src tests scripts benchmarks examples
 .venv/bin/mypy --strict src benchmarks
-# pytest exits 5 when it collected no test: with `set -e` that fails the run, as it should.
+# pytest exits 5 when it collected no test: that fails the run, as it should. The matrix runs
+# after a failed suite too (one CI run shows both); the run fails if either failed.
 export RLBRIDGE_TEST_REQUIRE_ROS2=1  # rclpy was installed above: the ROS 2 tests must run
+mkdir -p .test-logs
 start=$SECONDS
-.venv/bin/python -m pytest "$@"
-echo "full suite: wall time $((SECONDS - start)) s"
-bash scripts/test_matrix.sh
+suite=0
+.venv/bin/python -m pytest "$@" 2>&1 | tee .test-logs/full-suite.log || suite=$?
+echo "full suite: exit $suite, wall time $((SECONDS - start)) s"
+matrix=0
+bash scripts/test_matrix.sh || matrix=$?
+# The closing line: every test of the run, the full suite's and the matrix's.
+full=$(grep -E "[0-9]+ (passed|failed)|no tests ran" .test-logs/full-suite.log | tail -1 || true)
+legs=$(cat .test-logs/matrix.summary 2>/dev/null || true)
+count() { grep -oE "[0-9]+ $1" <<<"$2" | grep -oE "[0-9]+" || echo 0; }
+passed=$(($(count passed "$full") + $(count passed "$legs")))
+failed=$(($(count failed "$full") + $(count failed "$legs")))
+skipped=$(($(count skipped "$full") + $(count skipped "$legs")))
+[ "$suite" = 0 ] && [ "$matrix" = 0 ] || failed=$((failed > 0 ? failed : 1))
+echo "all: $passed passed, $failed failed, $skipped skipped"
+[ "$suite" = 0 ] && [ "$matrix" = 0 ]

@@ -75,7 +75,7 @@ fi
 
 # -- the pool ---------------------------------------------------------------------------------
 mkdir -p "$LOGS"
-rm -f "$LOGS"/*.rc "$LOGS"/*.log
+rm -f "$LOGS"/*.rc "$LOGS"/py*.log "$LOGS"/jazzy.log "$LOGS"/readme-*.log "$LOGS/matrix.summary"
 declare -A python_of
 missing=()
 for version in "${VERSIONS[@]}"; do
@@ -147,5 +147,5 @@ for leg in "${legs[@]}"; do
 done
 echo "matrix: wall time $((SECONDS - start)) s; skipped legs: ${missing[*]:-none}"
 [ "$failed" = 0 ] || failures=$((failures > 0 ? failures : 1))
-echo "matrix: $passed passed, $failures failed, $skipped skipped"
+echo "matrix: $passed passed, $failures failed, $skipped skipped" | tee "$LOGS/matrix.summary"
 exit "$failed"
