@@ -18,14 +18,13 @@ from collections.abc import Callable
 from typing import Any
 
 from rlbridge.adapters.base import BindingError
-from rlbridge.server.actions import SessionGoals
 from rlbridge.server.admission import ValuesRefused
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import bind, refusal
 from rlbridge.server.context import ServerContext
 from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
-from rlbridge.server.services import SessionServices
+from rlbridge.server.reach import REACH_PACKETS, SessionReach
 from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
@@ -35,17 +34,11 @@ from rlbridge.wire import (
     Disconnect,
     Error,
     ErrorCode,
-    GoalCancel,
-    GoalSend,
     Heartbeat,
     LossReport,
     Packet,
     PacketCodec,
     RemoteProtocolError,
-    RosLoss,
-    ServiceCall,
-    ServiceOffer,
-    ServiceReply,
     Stats,
     TopicAck,
     TopicClose,
@@ -118,10 +111,8 @@ class Session:
         self._reported: dict[int, ChannelLoss] = {}
         self._repeat: set[int] = set()
         self._watchdog = SessionWatchdog(self)
-        #: Service calls in flight and services this client provides.
-        self.services = SessionServices(self)
-        self.goals = SessionGoals(self)
-        self._loss_reported: dict[int, int] = {}
+        #: Services, goals and ROS-side loss reports (server/reach.py).
+        self.reach = SessionReach(self)
 
     # -- transports ------------------------------------------------------------------------
     def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
@@ -203,16 +194,8 @@ class Session:
                 self._close_channel(ch)
             case Stats():
                 self._send_stats(sink, packet)
-            case ServiceCall():
-                self.services.call(packet, sink)
-            case ServiceOffer(channel=ch):
-                self.services.offer(packet, sink, self._in_use(ch))
-            case ServiceReply():
-                self.services.reply(packet, sink)
-            case GoalSend(channel=ch):
-                self.goals.send(packet, sink, self._in_use(ch))
-            case GoalCancel(channel=ch):
-                self.goals.cancel(ch, sink)
+            case _ if isinstance(packet, REACH_PACKETS):
+                self.reach.handle(packet, sink)
             case Disconnect():
                 self.close("client said goodbye", notify=False)
             case _:
@@ -280,7 +263,7 @@ class Session:
     def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
         ch = req.channel
         existing = self.inbound.get(ch) or self.outbound.get(ch)
-        if ch in self.services.offers or ch in self.goals.goals:
+        if self.reach.owns(ch):
             self.send_control(TopicError(ch, int(ErrorCode.CHANNEL_IN_USE),
                                          f"channel {ch} is already connected"), via)
             return
@@ -308,19 +291,8 @@ class Session:
         self.send_control(_ack(binding), via)
 
     def report_loss(self) -> None:
-        """Tell the client of each channel whose ROS-side loss grew since the last report
-        (``RosLoss``; the watchdog calls this every heartbeat period)."""
-        bindings: list[tuple[int, Inbound | Outbound]] = [*self.inbound.items(),
-                                                          *self.outbound.items()]
-        for ch, binding in bindings:
-            lost = binding.ros_lost
-            if lost != self._loss_reported.get(ch, 0):
-                self._loss_reported[ch] = lost
-                self.send_control(RosLoss(ch, lost))
-
-    def _in_use(self, ch: int) -> bool:
-        return (ch in self.inbound or ch in self.outbound or ch in self.services.offers
-                or ch in self.goals.goals)
+        """See :meth:`SessionReach.report_loss` (the watchdog's heartbeat calls it)."""
+        self.reach.report_loss()
 
     def loss_reports(self) -> list[LossReport]:
         """The first hop of every publish channel whose counts moved since the last report.
@@ -349,7 +321,7 @@ class Session:
         binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
             ch, None)
         if binding is None:
-            if self.services.withdraw(ch) is None:
+            if not self.reach.withdraw(ch):
                 self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
         self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
@@ -377,8 +349,7 @@ class Session:
             self.ctx.flows.release(binding.request.topic)
         self.inbound.clear()
         self.outbound.clear()
-        self.services.close()
-        self.goals.close()
+        self.reach.close()
         if self._close_tcp is not None:
             self._close_tcp()
         log.log(session_level(self.name), "session %d (%s) closed: %s", self.id, self.name,
@@ -416,7 +387,7 @@ class Session:
         rtt = self.link.rtt_ns
         return {**{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.inbound.items()},
                 **{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.outbound.items()},
-                **self.services.channel_stats(), **self.goals.channel_stats()}
+                **self.reach.channel_stats()}
 
     def stats(self) -> dict[str, Any]:
         """This session's counters; value totals include channels already closed."""
@@ -441,7 +412,7 @@ class Session:
             "errors_sent": self.errors_sent,
             "topics_refused": self.topics_refused,
             **totals,
-            **self.services.stats(),
+            **self.reach.stats(),
             "channels": channels,
         }
 
