@@ -12,6 +12,7 @@ a Markdown table of the medians and p99 of each round kind, pooled, and their ra
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import re
 import statistics
@@ -20,6 +21,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 PEER = ROOT / "tests" / "adapters" / "ros2_reach_peer.py"
@@ -33,6 +35,10 @@ def environment() -> dict[str, str]:
     return env
 
 
+def _set(done: threading.Event, _future: object) -> None:
+    done.set()
+
+
 def rclpy_rounds(calls: int) -> object:
     """An rclpy client node in this process; returns a function timing ``calls`` calls."""
     from rclpy.context import Context
@@ -43,7 +49,7 @@ def rclpy_rounds(calls: int) -> object:
     context = Context()
     context.init(args=[], domain_id=66)
     node = Node("bench_rclpy_client", context=context)
-    client = node.create_client(SetBool, "/reach/set_bool")
+    client: Any = node.create_client(SetBool, "/reach/set_bool")
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     threading.Thread(target=executor.spin, daemon=True).start()
@@ -56,7 +62,7 @@ def rclpy_rounds(calls: int) -> object:
             done = threading.Event()
             start = time.perf_counter()
             future = client.call_async(SetBool.Request(data=bool(i % 2)))
-            future.add_done_callback(lambda _f, d=done: d.set())
+            future.add_done_callback(functools.partial(_set, done))
             if not done.wait(5):
                 raise SystemExit("rclpy call timed out")
             out.append(time.perf_counter() - start)
