@@ -1,4 +1,4 @@
-"""Fuzz the sans-IO decoder: TCP framing, packet bodies, plain and sealed datagrams.
+"""Fuzz the sans-IO decoder: TCP framing, packet bodies, sealed datagrams and sealed records.
 
 Run: ``python fuzz/fuzz_decoder.py fuzz/corpus/decoder -max_total_time=60`` (atheris, libFuzzer
 flags). Invariants: only the protocol's own :class:`RemoteProtocolError` ever escapes, every
@@ -16,6 +16,7 @@ with instrumented(__name__ == "__main__"):
     from rlbridge.wire import FrameDecoder, Malformed, PacketCodec, RemoteProtocolError
     from rlbridge.wire.auth import ReplayWindow, SealedCodec
     from rlbridge.wire.codec import FRAME_HEADER
+    from rlbridge.wire.records import RECORD_MAX, RecordOpener, SealedStreamDecoder
 
 MAX_PACKET = 4096
 KEY_A, KEY_B = bytes(32), bytes(range(32))
@@ -42,6 +43,17 @@ def one_input(data: bytes) -> None:
     except RemoteProtocolError as exc:
         if not exc.fatal:
             raise AssertionError("a non-fatal error must come back as Malformed") from exc
+    # The same bytes as a sealed TCP stream (records under KEY_B, as the corpus seals them):
+    # only protocol errors escape, and a fatal one leaves the decoder refusing everything.
+    stream = SealedStreamDecoder(CODEC, MAX_PACKET)
+    stream.install(RecordOpener(KEY_B), strict=bool(data[:1]) and data[0] & 1 == 1)
+    try:
+        for chunk in _chunks(data):
+            stream.feed(chunk)
+            assert stream.buffered <= RECORD_MAX + MAX_PACKET + 4 * FRAME_HEADER.size + 16
+    except RemoteProtocolError as exc:
+        if not exc.fatal:
+            raise AssertionError("record and framing errors must end the stream") from exc
     for codec in (CODEC, SealedCodec(KEY_A, KEY_B)):
         with contextlib.suppress(RemoteProtocolError):
             codec.decode_datagram(data)

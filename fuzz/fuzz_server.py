@@ -6,7 +6,8 @@ over an in-memory transport (the only stand-in: no socket), on a server with the
 bus, with and without pre-shared keys. The first byte picks the mode; the session is opened
 properly (hello, and the key handshake in keyed mode) unless the mode says raw, then the rest
 is fed as TCP chunks and as datagrams carrying the live token (in keyed mode also sealed
-with the session's key, so the bytes get past the MAC into the sealed session's decoding).
+with the session's keys, so the bytes get past the seal into the sealed session's decoding;
+over TCP, odd-length inputs go in sealed records and even-length ones raw, as if injected).
 Invariants checked per input: nothing but the server's own handling runs (any exception is a
 finding), everything the server writes is valid protocol, and once the sessions close no
 binding or topic is left behind.
@@ -15,7 +16,6 @@ binding or topic is left behind.
 from __future__ import annotations
 
 import asyncio
-import hashlib
 from typing import Any
 
 from _atheris import fuzz, instrumented
@@ -30,7 +30,6 @@ with instrumented(__name__ == "__main__"):
     from rlbridge.server.tcp import TcpConnection
     from rlbridge.server.udp import UdpEndpoint
     from rlbridge.wire import (
-        MAGIC,
         PROTOCOL_VERSION,
         AuthChallenge,
         FrameDecoder,
@@ -38,8 +37,14 @@ with instrumented(__name__ == "__main__"):
         Malformed,
         PacketCodec,
     )
-    from rlbridge.wire.auth import COUNTER, TAG_SIZE, ClientHandshake, SealedCodec, sealed_codec
+    from rlbridge.wire.auth import ClientHandshake, SealedCodec, sealed_codec
     from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_MAC, peek_header
+    from rlbridge.wire.records import (
+        RecordOpener,
+        RecordSealer,
+        SealedStreamDecoder,
+        stream_sealers,
+    )
 
 KEY = bytes(range(32))
 PEER = ("127.0.0.1", 40000)
@@ -119,40 +124,45 @@ def close() -> None:
     WORLDS.clear()
 
 
-def _open(world: World, conn: TcpConnection, transport: MemoryTransport) -> PacketCodec:
-    """Hello (and, keyed, the handshake) so the fuzz bytes reach a live session.
+class Client:
+    """What the fuzzed client holds after opening: its datagram codec, and in keyed mode the
+    TCP record sealer and the decoder that opens the server's records."""
 
-    Returns the codec the client would open the session's datagrams with.
-    """
+    def __init__(self, codec: PacketCodec, sealer: RecordSealer | None = None,
+                 decoder: SealedStreamDecoder | None = None) -> None:
+        self.codec = codec
+        self.sealer = sealer
+        self.decoder = decoder
+
+
+def _open(world: World, conn: TcpConnection, transport: MemoryTransport) -> Client:
+    """Hello (and, keyed, the handshake) so the fuzz bytes reach a live session."""
     codec = world.ctx.codec
     handshake = ClientHandshake(KEY, "fuzz", bytes(16)) if world.keyed else None
     conn.data_received(codec.encode_frame(
         Hello(PROTOCOL_VERSION, "fuzz", handshake.nonce if handshake else b"")))
     if handshake is None:
-        return codec
+        return Client(codec)
     challenge = FrameDecoder(codec).feed(bytes(transport.out))[0]
     assert isinstance(challenge, AuthChallenge), challenge
     conn.data_received(codec.encode_frame(handshake.answer(challenge)))
     assert handshake.keys is not None
-    return sealed_codec(handshake.keys, server=False)
+    sealer, opener_key = stream_sealers(handshake.keys, server=False)
+    decoder = SealedStreamDecoder(codec, 1 << 24)
+    decoder.install(RecordOpener(opener_key), strict=False)
+    return Client(sealed_codec(handshake.keys, server=False), sealer, decoder)
 
 
-def _check_output(world: World, transport: MemoryTransport, client: PacketCodec) -> None:
-    """Everything the server wrote decodes: frames, and datagrams (sealed ones verify)."""
-    for packet in FrameDecoder(world.ctx.codec, 1 << 24).feed(bytes(transport.out)):
+def _check_output(world: World, transport: MemoryTransport, client: Client) -> None:
+    """Everything the server wrote decodes: frames or records, and datagrams (sealed ones
+    open)."""
+    decoder = client.decoder or FrameDecoder(world.ctx.codec, 1 << 24)
+    for packet in decoder.feed(bytes(transport.out)):
         assert not isinstance(packet, Malformed), packet
     for data in world.udp_transport.datagrams:
         flags, _token = peek_header(data)
-        (client if flags & FLAG_MAC else world.ctx.codec).decode_datagram(data)
+        (client.codec if flags & FLAG_MAC else world.ctx.codec).decode_datagram(data)
     world.udp_transport.datagrams.clear()
-
-
-def _seal(client: SealedCodec, token: int, body: bytes) -> bytes:
-    """Arbitrary body bytes in a datagram that verifies under the client's key."""
-    head = (DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, FLAG_MAC, token)
-            + COUNTER.pack(next(client._counter)))
-    mac = hashlib.blake2s(head + body, key=client._send_key, digest_size=TAG_SIZE).digest()
-    return head + body + mac
 
 
 def one_input(data: bytes) -> None:
@@ -163,13 +173,17 @@ def one_input(data: bytes) -> None:
     transport = MemoryTransport()
     conn = TcpConnection(world.registry)
     conn.connection_made(transport)
-    client = world.ctx.codec if mode & 2 else _open(world, conn, transport)
+    client = Client(world.ctx.codec) if mode & 2 else _open(world, conn, transport)
     step = (mode >> 3) % 31 + 1
     sessions = list(world.registry)
+    # Keyed: odd-length inputs go in sealed records (past the seal, into the session's
+    # decoding), even-length ones raw (bytes injected into a sealed stream: refused).
+    sealer = client.sealer if len(body) % 2 else None
     for i in range(0, len(body), step):
         if transport.closing:
             break
-        conn.data_received(body[i : i + step])
+        chunk = body[i : i + step]
+        conn.data_received(sealer.seal(chunk) if sealer is not None else chunk)
     # The same bytes as datagrams: from a stranger, and with a live session's token.
     if mode & 4 and len(body) >= DATAGRAM_HEADER.size:
         world.udp.datagram_received(body, PEER)
@@ -177,8 +191,9 @@ def one_input(data: bytes) -> None:
             patched = bytearray(body)
             patched[4:12] = session.token.to_bytes(8, "big")
             world.udp.datagram_received(bytes(patched), PEER)
-            if isinstance(client, SealedCodec):  # past the MAC: the sealed session's decoding
-                world.udp.datagram_received(_seal(client, session.token, body[12:]), PEER)
+            if isinstance(client.codec, SealedCodec):  # past the seal: the session's decoding
+                world.udp.datagram_received(client.codec.seal_body(body[12:], session.token),
+                                            PEER)
     world.run_callbacks()
     _check_output(world, transport, client)
     conn.connection_lost(None)

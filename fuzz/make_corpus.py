@@ -43,6 +43,7 @@ from rlbridge.wire import (
     Value,
 )
 from rlbridge.wire.auth import SealedCodec
+from rlbridge.wire.records import RecordSealer
 
 HERE = Path(__file__).parent / "corpus"
 F64 = "std_msgs/msg/Float64"
@@ -51,6 +52,7 @@ CODEC = PacketCodec()
 EVERY_TYPE: list[Packet] = [
     Hello(PROTOCOL_VERSION, "seed", b"n" * 16),
     ConnectAck(1, 2, 200, 600, Limits(1 << 20, 256, 4096)),
+    ConnectAck(1, 2, 200, 600, Limits(1 << 20, 256, 4096), bytes(range(32))),  # over TLS
     ConnectError(21, "no"),
     TopicConnect(1, "publish", "/a", F64),
     TopicAck(1, F64, 0.0),
@@ -124,6 +126,10 @@ BAD: list[bytes] = [
     frame(body(34, 1, -5)),  # negative credit
     frame(body(35, [[1, 2, 3, 4]] * 300)),  # a loss report over its 256 channels
     frame(body(35, [[1, "x", 3, 4]])),  # a loss report with a bad count
+    b"\x16\x03\x01\x00\xc8\x01\x00\x00\xc4\x03\x03" + bytes(32),  # a TLS ClientHello
+    b"\x15\x03\x03\x00\x02\x02\x46",  # a TLS alert
+    FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 40) + bytes(40),  # a record that won't open
+    FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 0xFFFF_FFFF),  # an absurd record
 ]
 
 
@@ -142,6 +148,17 @@ def decoder_seeds() -> Iterator[bytes]:
         yield b"\x00" + bad
         yield b"\x05" + bad
     yield b"\x00" + DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 7)
+    # Sealed TCP records the harness opens (its stream key), whole, tampered, out of order.
+    frames = b"".join(CODEC.encode_frame(p) for p in EVERY_TYPE)
+    sealer = RecordSealer(bytes(range(32)))
+    first, second = sealer.seal(frames[:200]), sealer.seal(frames[200:])
+    for mode in (b"\x00", b"\x01", b"\x07"):
+        yield mode + first + second
+        yield mode + second + first
+        yield mode + first + first
+        yield mode + first[:-1] + bytes([first[-1] ^ 1]) + second
+        yield mode + first + CODEC.encode_frame(Stats())  # a plain frame injected after
+        yield mode + first[:50]
 
 
 def server_seeds() -> Iterator[bytes]:

@@ -33,7 +33,9 @@ from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
 from rlbridge.wire import (
     PROTOCOL_VERSION,
+    AuthChallenge,
     ConnectAck,
+    ConnectError,
     Disconnect,
     FrameDecoder,
     Heartbeat,
@@ -374,6 +376,8 @@ def wait_server_ready(port: int, proc: subprocess.Popen[str] | None = None,
             _flags, _token, packet = codec.decode_datagram(data)
             if isinstance(packet, ConnectAck):
                 sock.send(codec.encode_datagram(Disconnect(0, "probe done"), packet.token))
+                return
+            if isinstance(packet, ConnectError | AuthChallenge):  # a key or TLS is needed
                 return
     raise AssertionError(f"server on port {port} not ready within {timeout} s")
 

@@ -25,11 +25,13 @@ def evaluation(
         help="Samples per latency row (default 1000, --quick 200).")] = None,
     rt_priority: Annotated[int, typer.Option(
         help="SCHED_FIFO priority of the measured processes in latency rows (0: off).")] = 5,
+    results: Annotated[Path, typer.Option(help="Directory of the raw summaries (JSON, CSV).")]
+    = RESULTS / "evaluation",
 ) -> None:
     """Every network scenario of the thesis (appendix A, fig. 4.2-4.4, tables 3.1/3.2).
 
     Needs root (the network emulator). Writes --out, its PNGs under <out dir>/figures/evaluation/
-    and the raw summaries under benchmarks/results/evaluation/.
+    and the raw summaries under --results.
     """
     settings = sweep.EvalSettings(count=count or (200 if quick else 1000), quick=quick,
                                   rt_priority=rt_priority)
@@ -43,8 +45,9 @@ def evaluation(
     command += ["--count", str(count)] if count else []
     command += ["--rt-priority", str(rt_priority)] if rt_priority != 5 else []
     figures = out.parent / "figures" / "evaluation"
-    evaluation_report.write(result, settings, command, out, figures, RESULTS / "evaluation")
-    typer.echo(f"wrote {out}, {figures}/ and {RESULTS / 'evaluation'}/")
+    command += ["--results", str(results)] if results != RESULTS / "evaluation" else []
+    evaluation_report.write(result, settings, command, out, figures, results)
+    typer.echo(f"wrote {out}, {figures}/ and {results}/")
 
 
 if __name__ == "__main__":

@@ -228,8 +228,8 @@ def render(ev: Evaluation, settings: EvalSettings, command: Sequence[str],
         f"priority {settings.rt_priority or 'off'} below the relay's 10 (`PriorityLink`), so "
         "that other jobs on this shared machine do not pass for a slow network.", "",
         f"Regenerate: `{shlex.join(command)}` (writes this file, every PNG under "
-        "`figures/evaluation/` next to it and `summary.{json,csv}` under "
-        "`benchmarks/results/evaluation/`).", "",
+        "`figures/evaluation/` next to it and `summary.{json,csv}` under `--results`, "
+        "by default `benchmarks/results/evaluation/`).", "",
         "## Machine", "",
         f"Date: {datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}  ",
         *[f"{k}: {v}  " for k, v in info.items()],

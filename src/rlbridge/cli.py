@@ -36,6 +36,16 @@ Host = Annotated[str, option("--host", "Bridge server address.")]
 Port = Annotated[int, option("--port", "Bridge server port.")]
 Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
 TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=check_transport)]
+TlsOpt = Annotated[bool, typer.Option("--tls", help="Connect with TLS, trusting the system's "
+                                      "CAs (or --ca / --fingerprint).")]
+CaOpt = Annotated[str | None, typer.Option("--ca", help="CA file the server's TLS certificate "
+                                           "must be signed by (implies --tls).")]
+FingerprintOpt = Annotated[str | None, typer.Option(
+    "--fingerprint", help="SHA-256 fingerprint of the server's TLS certificate to pin, as "
+    "`rlbridge tls init` prints it (implies --tls).")]
+PskFileOpt = Annotated[str | None, typer.Option(
+    "--psk-file", help="Key file in the server's format (this command's line, else the "
+    "default line); without it $RLBRIDGE_PSK.")]
 LogLevel = Annotated[str | None, typer.Option(
     "--log-level", callback=check_log_level, show_default=False,
     help=f"{LOG_LEVEL_HELP} [default: warning; serve: info]")]
@@ -85,9 +95,20 @@ def serve(
     = "rlbridge",
     namespace: Annotated[str, typer.Option(help="ROS 2 namespace (adapter ros2).")] = "",
     psk_file: Annotated[str | None, typer.Option(
-        help="Pre-shared keys, hex, one per line ('<hex>' or '<client-name> <hex>'); without "
-        "it $RLBRIDGE_PSK (hex); without both, no authentication. Never a key on the "
-        "command line.")] = None,
+        help="Key file: hex keys, one line per client ('<hex>' or '<client-name> <hex>'), "
+        "optionally with topic rules (docs/security.md); without it $RLBRIDGE_PSK (hex); "
+        "without both, no keys. Never a key on the command line.")] = None,
+    tls_cert: Annotated[str | None, typer.Option(
+        help="TLS certificate (PEM): TCP clients must then use TLS 1.3. `rlbridge tls init` "
+        "makes one.")] = None,
+    tls_key: Annotated[str | None, typer.Option(help="The TLS certificate's key (PEM).")]
+    = None,
+    tls_client_ca: Annotated[str | None, typer.Option(
+        help="Mutual TLS: clients need a certificate signed by this CA; its common name is "
+        "the client's identity.")] = None,
+    insecure: Annotated[bool, typer.Option(
+        "--insecure", help="Listen on an address other than loopback without TLS or a key "
+        "(warned at start); without it such a server refuses to start.")] = False,
     allow: Annotated[list[str] | None, typer.Option(
         help="Client network allowed in (repeatable): 192.168.1.0/24, 127.0.0.1. Default: any.")]
     = None,
@@ -118,7 +139,9 @@ def serve(
         config = ServerConfig(host=host, port=port, tcp=tcp, udp=udp, nodelay=nodelay,
                               adapter=adapter, heartbeat_ms=heartbeat_ms,
                               timeout_ms=timeout_ms, node_name=node_name, namespace=namespace,
-                              psk_file=psk_file, allow=tuple(allow or ()), max_rate=max_rate,
+                              psk_file=psk_file, tls_cert=tls_cert, tls_key=tls_key,
+                              tls_client_ca=tls_client_ca, insecure=insecure,
+                              allow=tuple(allow or ()), max_rate=max_rate,
                               max_sessions=max_sessions, max_channels=max_channels,
                               max_packet=max_packet,
                               metrics_port=metrics_port)
@@ -147,6 +170,10 @@ def topic_pub(
     transport: TransportOpt = "udp",
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
 ) -> None:
     """Publish VALUE on TOPIC through the bridge.
 
@@ -158,7 +185,8 @@ def topic_pub(
     from rlbridge.csp.bridge import Bridge
 
     parsed = _parse_value(value)
-    with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         out = bridge.publish(topic, msg_type, field or None, transport=_transport(transport))  # type: ignore[arg-type]
         n = max(1, count) if rate > 0 else 1
         period = 1.0 / rate if rate > 0 else 0.0
@@ -187,11 +215,16 @@ def topic_echo(
                                                 "without a value (0 = wait forever).")] = 0.0,
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
     from rlbridge.csp.bridge import Bridge
 
-    with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=4096)
         seen = 0
@@ -239,6 +272,10 @@ def topic_hz(
     transport: TransportOpt = "udp",
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
 
@@ -247,7 +284,8 @@ def topic_hz(
     from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.errors import ChannelClosed
 
-    with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None, transport=_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=65536)
         arrivals: list[float] = []
@@ -290,13 +328,18 @@ def format_rate(arrivals: list[float]) -> str:
 def topic_list(
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
     show_types: Annotated[bool, option("--show-types", "Print types too.")]
     = False,
 ) -> None:
     """List the topics the server's middleware knows."""
     from rlbridge.csp.bridge import Bridge
 
-    with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         for name, msg_type in bridge.server_stats()["topics"]:
             typer.echo(f"{name} [{msg_type}]" if show_types else name)
 
@@ -306,6 +349,10 @@ def topic_list(
 def stats(
     host: Host = "127.0.0.1",
     port: Port = 7411,
+    tls: TlsOpt = False,
+    ca: CaOpt = None,
+    fingerprint: FingerprintOpt = None,
+    psk_file: PskFileOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
     = False,
 ) -> None:
@@ -313,7 +360,8 @@ def stats(
     from rlbridge.csp.bridge import Bridge
     from rlbridge.server.report import format_stats
 
-    with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False) as bridge:
+    with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False,
+                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
         body = bridge.server_stats()
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 
@@ -352,6 +400,9 @@ def build_app() -> typer.Typer:
 
     app.add_typer(bench_app, name="bench")
     register_demo(app)
+    from rlbridge.tls.cli import tls_app
+
+    app.add_typer(tls_app, name="tls")
     try:
         from rlbridge.netem.cli import netem_app
     except ImportError:  # the emulator is being built in parallel; the CLI works without it

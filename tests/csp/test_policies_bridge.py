@@ -77,7 +77,9 @@ def test_health_on_both_channel_kinds(bridge: Callable[..., Bridge]) -> None:
     out.write(9.0)
     value, age = sub.read_with_age(timeout=WAIT)
     assert value == 9.0
-    assert 0 <= age < 5_000_000_000
+    # Corrected by the clock-offset estimate, whose error on a loaded machine (asymmetric
+    # delays) can exceed a fresh value's true age: the sign is not the mechanism here.
+    assert abs(age) < 5_000_000_000
 
 
 def test_max_age_drops_on_the_sdk_side(bridge: Callable[..., Bridge]) -> None:

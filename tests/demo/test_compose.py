@@ -64,6 +64,13 @@ def test_compose_file_describes_bridge_and_controller_on_one_network(
     assert {"7411:7411/tcp", "7411:7411/udp"} <= set(bridge["ports"])
     for name in ("bridge", "controller"):
         assert "profiles" not in services[name], f"{name} must start with a plain `up`"
+    # Secure by default: both use the key on a volume only they mount.
+    key = _option(bridge["command"], "--psk-file")
+    assert key == _option(controller["command"], "--psk-file")
+    assert key.startswith("/keys/")
+    assert "keys:/keys" in bridge["volumes"]
+    assert "keys:/keys:ro" in controller["volumes"]
+    assert "keys" in compose["volumes"]
 
 
 def test_impaired_link_service_is_optional_and_only_runs_tc(compose: dict[str, Any]) -> None:
@@ -92,7 +99,7 @@ def _option(command: list[Any], name: str) -> str:
     return str(command[command.index(name) + 1])
 
 
-def localize(command: list[Any], port: int, out: Path) -> list[str]:
+def localize(command: list[Any], port: int, out: Path, keys: Path) -> list[str]:
     """A compose ``command`` for this machine (see the module docstring)."""
     args = [str(a) for a in command]
     assert args[0] == "rlbridge"
@@ -105,6 +112,8 @@ def localize(command: list[Any], port: int, out: Path) -> list[str]:
             local.append(str(port))
         elif arg.startswith("/out/"):
             local.append(str(out / arg.removeprefix("/out/")))
+        elif arg.startswith("/keys/"):  # the shared volume: one directory for both services
+            local.append(str(keys / arg.removeprefix("/keys/")))
         else:
             local.append(arg)
     return local
@@ -176,16 +185,21 @@ def test_compose_services_run_locally_track_and_stop_in_order(
         free_port: Callable[[], int]) -> None:
     port = free_port()
     spec = compose["services"]
+    keys = tmp_path / "keys"  # the named volume both services mount
+    keys.mkdir()
     # `depends_on` order, as compose starts them; the controller retries until the bridge is up.
-    services["bridge"] = Service("bridge", localize(spec["bridge"]["command"], port, tmp_path))
+    services["bridge"] = Service("bridge",
+                                 localize(spec["bridge"]["command"], port, tmp_path, keys))
     services["controller"] = Service("controller",
-                                     localize(spec["controller"]["command"], port, tmp_path))
+                                     localize(spec["controller"]["command"], port, tmp_path,
+                                              keys))
     bridge, controller = services["bridge"], services["controller"]
 
     controller.wait_for_line(lambda line: "controller connected" in line, timeout=40)
-    health = localize(spec["bridge"]["healthcheck"]["test"][1:], port, tmp_path)
+    assert (keys / "demo.key").stat().st_mode & 0o077 == 0  # made by the bridge, private
+    health = localize(spec["bridge"]["healthcheck"]["test"][1:], port, tmp_path, keys)
     probe = subprocess.run(health, capture_output=True, text=True, timeout=60, check=False)
-    assert probe.returncode == 0, probe.stderr  # the bridge is healthy
+    assert probe.returncode == 0, probe.stderr  # the bridge is healthy (a keyed one too)
     # The bridge prints one line a second with the controller's state as it reported it; 4 s
     # of tracking leave enough sub-sampled angles for the checks below even when the machine
     # is so loaded that few arrive per second.
@@ -210,7 +224,7 @@ def test_compose_services_run_locally_track_and_stop_in_order(
 
     # `docker compose start bridge`: the controller, never restarted, reconnects and tracks.
     again = services["bridge again"] = Service(
-        "bridge", localize(spec["bridge"]["command"], port, tmp_path / "again"))
+        "bridge", localize(spec["bridge"]["command"], port, tmp_path / "again", keys))
     controller.wait_for_line(lambda line: "state -> tracking" in line, timeout=60)
     assert controller.proc.poll() is None, "".join(controller.output)
     again.wait_for_line(lambda line: _tracking_after(line, 2.0), timeout=60)

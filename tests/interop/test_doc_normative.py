@@ -17,6 +17,7 @@ from typing import Any
 
 import independent_client as ic
 import pytest
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 
 from rlbridge.server import ServerThread
 
@@ -193,7 +194,7 @@ def lp(field: bytes) -> bytes:
 def test_transcript_notation_and_unsealed_handshake_datagrams(
         make_server: Callable[..., ServerThread], tmp_path: Path) -> None:
     """Doc 16.1: T = lp(00 01) || lp(name) || lp(Nc) || lp(Ns); handshake datagrams use
-    token 0 unsealed, the ConnectAck is sealed under the new token."""
+    token 0 unsealed, the ConnectAck is sealed under the new token (16.2, 16.3)."""
     keys = tmp_path / "keys"
     keys.write_text(f"{KEY.hex()}\n")
     srv = make_server(psk_file=keys)
@@ -213,10 +214,17 @@ def test_transcript_notation_and_unsealed_handshake_datagrams(
         data = udp.recv(65536)
         magic, version, flags, token = ic.DATAGRAM_HEADER.unpack_from(data)
         assert (magic, version, flags & 1) == (b"RB", 1, 1)  # sealed
-        s2c = hmac.new(KEY, label + b"s2c\0" + t, hashlib.sha256).digest()
-        mac = hashlib.blake2s(data[:-16], key=s2c, digest_size=16).digest()
-        assert hmac.compare_digest(mac, data[-16:])
-        body = ic.unpackb(data[20:-16])
+        # Doc 16.2: HKDF-SHA256(K, salt Nc || Ns, info "rlbridge-keys-v1\0" || T); Ks2c is
+        # the second 32 bytes. Doc 16.3: ChaCha20-Poly1305, nonce 4 zero bytes || counter.
+        prk = hmac.new(nc + ns, KEY, hashlib.sha256).digest()
+        okm, block = b"", b""
+        for i in (1, 2):
+            block = hmac.new(prk, block + b"rlbridge-keys-v1\0" + t + bytes([i]),
+                             hashlib.sha256).digest()
+            okm += block
+        s2c = okm[32:64]
+        body = ic.unpackb(ChaCha20Poly1305(s2c).decrypt(bytes(4) + data[12:20], data[20:],
+                                                        data[:20]))
         assert body[0] == ic.TAG_CONNECT_ACK
         assert body[2] == token
 

@@ -110,7 +110,8 @@ def _run_client(script: str, args: list[str], a_to_b: Impairment,
     with EmulatedLink(a_to_b=a_to_b, b_to_a=b_to_a, seed=7, max_lifetime_s=120.0) as link:
         server = link.popen("a", [sys.executable, "-m", "rlbridge.cli", "serve", "--host",
                                   link.addr_a, "--port", str(PORT), "--nodelay",
-                                  "--heartbeat-ms", "100", "--timeout-ms", "5000"])
+                                  "--heartbeat-ms", "100", "--timeout-ms", "5000",
+                                  "--insecure"])  # a private emulated link
         try:
             client = link.popen("b", [sys.executable, "-c", script, link.addr_a, str(PORT),
                                       *args], stdout=-1, stderr=-1, text=True)

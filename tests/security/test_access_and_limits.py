@@ -114,8 +114,13 @@ def test_key_store_parse_errors() -> None:
         "cd" * 16)
     for text, message in [
         (f"{key}\n{key}\n", "line 2: a second default key"),
-        (f"bob {key}\nbob {key}\n", "line 2: a second key for client 'bob'"),
+        (f"bob {key}\nbob {key}\n", "line 2: a second line for client 'bob'"),
         ("a b c\n", "line 1: expected"),
+        (f"bob {key} publish=/a stats=maybe\n", "stats= takes 'all' or 'own'"),
+        (f"bob {key} publish=/a publish=/b\n", "repeated option 'publish'"),
+        (f"bob {key} write=/a\n", "unknown or repeated option 'write'"),
+        ("bob not-hex\n", "line 1: a key must be written in hex"),
+        ("bob -\n", "no key in the file"),
         ("# nothing\n", "no key in the file"),
     ]:
         with pytest.raises(ValueError, match=message):

@@ -231,7 +231,7 @@ def sealed_udp(psk_server: ServerThread) -> Iterator[Callable[..., SealedUdp]]:
         client.close()
 
 
-def test_forged_replayed_and_unsealed_datagrams_are_dropped_and_counted(
+def test_forged_replayed_reordered_truncated_and_unsealed_datagrams(
         psk_server: ServerThread, sealed_udp: Callable[..., SealedUdp]) -> None:
     client = sealed_udp()
     ack = client.request(TopicConnect(1, "publish", "/f", F64, transport="udp"))
@@ -241,12 +241,20 @@ def test_forged_replayed_and_unsealed_datagrams_are_dropped_and_counted(
     client.sock.send(good)  # replayed
     client.sock.send(good[:-1] + bytes([good[-1] ^ 1]))  # forged tag
     client.sock.send(client.plain.encode_datagram(Value(1, 1, 0, 2.0), client.ack.token))
+    later, earlier = client.seal(Value(1, 1, 0, 2.0)), client.seal(Value(1, 2, 0, 3.0))
+    client.sock.send(earlier)  # reordered: both arrive once, in the other order
+    client.sock.send(later)
+    client.sock.send(later)  # and a copy of one of them: replayed
+    truncated = client.seal(Value(1, 3, 0, 4.0))
+    client.sock.send(truncated[:-1])  # tag cut short: does not open
+    client.sock.send(truncated[:30])  # shorter than any seal
     body = client.request(Stats())
     assert isinstance(body, Stats)
     server = body.body["server"]
-    assert (server["udp_replayed"], server["udp_bad_mac"], server["udp_unsealed"]) == (1, 1, 1)
+    assert (server["udp_replayed"], server["udp_bad_mac"], server["udp_unsealed"]) == (2, 2, 2)
     channel = body.body["session"]["channels"]["1"]
-    assert channel["values_in"] == 1  # only the genuine one got through
+    # Only the genuine ones got past the seal, each once (the reordered one arrives late).
+    assert (channel["values_in"], channel["late"]) == (2, 1)
 
 
 def test_udp_hello_retransmission_and_stray_proofs(psk_server: ServerThread) -> None:

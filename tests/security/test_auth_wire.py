@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import hashlib
-
 import msgspec
 import pytest
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -169,14 +168,14 @@ def test_truncated_sealed_datagrams_are_refused() -> None:
 
 
 def test_bad_body_inside_a_valid_seal_is_malformed_not_forged() -> None:
-    """A MAC that verifies proves the sender: its bad body is a MALFORMED error it may hear."""
+    """A seal that opens proves the sender: its bad body is a MALFORMED error it may hear."""
     client_keys, server_keys = session()
     server = sealed_codec(server_keys, server=True)
-    head = (DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, FLAG_MAC, 77) + COUNTER.pack(1)
-            + b"\x95\x08\x03\xa1x\x00\x01")
-    tag = hashlib.blake2s(head, key=client_keys.client_to_server, digest_size=16).digest()
+    head = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, FLAG_MAC, 77) + COUNTER.pack(1)
+    sealed = ChaCha20Poly1305(client_keys.client_to_server).encrypt(
+        b"\0" * 4 + COUNTER.pack(1), b"\x95\x08\x03\xa1x\x00\x01", head)
     with pytest.raises(RemoteProtocolError) as exc:
-        server.decode_datagram(head + tag)
+        server.decode_datagram(head + sealed)
     assert not isinstance(exc.value, DatagramRejected)
     assert (exc.value.code, exc.value.token, exc.value.channel) == (ErrorCode.MALFORMED, 77, 3)
 

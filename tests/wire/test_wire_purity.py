@@ -60,6 +60,7 @@ def test_importing_wire_loads_no_io_module() -> None:
         "before = set(sys.modules)\n"
         "import rlbridge.wire, rlbridge.wire.codec, rlbridge.wire.errors, rlbridge.wire.link\n"
         "import rlbridge.wire.packets, rlbridge.wire.sequence\n"
+        "import rlbridge.wire.auth, rlbridge.wire.seal, rlbridge.wire.records\n"
         "print(json.dumps(sorted(set(sys.modules) - before)))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

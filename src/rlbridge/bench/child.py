@@ -194,7 +194,9 @@ def server_role(params: Params) -> None:
 
     logging.basicConfig(level=params.get("log_level", "INFO"), stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    config = ServerConfig(host=params["host"], port=0, **params.get("config", {}))
+    # An emulated link between network namespaces: nothing else can reach it (insecure=True).
+    config = ServerConfig(host=params["host"], port=0,
+                          **{"insecure": True, **params.get("config", {})})
     server = Server(config)
     Control(on_eof=server.stop)
     run_on_loop(server.serve(install_signal_handlers=True,

@@ -144,7 +144,7 @@ def bridge_side(params: Params) -> None:
 
     control = Control()
     bus = InProcessBus()
-    server = ServerThread(ServerConfig(host=params["host"], port=0,
+    server = ServerThread(ServerConfig(host=params["host"], port=0, insecure=True,  # netns
                                        nodelay=bool(params["nodelay"])), adapter=bus).start()
     direction = params["direction"]
     if direction == "down":

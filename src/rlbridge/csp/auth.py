@@ -1,12 +1,13 @@
 """The client's half of pre-shared-key authentication (docs/security.md).
 
-Where the key comes from, in order: ``Bridge.connect(psk=...)`` (raw bytes), ``psk_file=``
-(a file holding the key in hex, the format ``rlbridge serve --psk-file`` reads for one key),
-the ``RLBRIDGE_PSK`` environment variable (hex). A client given a key insists on
-authentication: a server that answers the hello without a challenge (no key configured, or
-someone in the middle stripping it) is refused, so a key can never silently downgrade to a
-session anyone could spoof. Once the server has proven the key and accepted ours, every
-datagram both ways is sealed with the derived session keys.
+Where the key comes from, in order: ``Bridge.connect(psk=...)`` (hex, or the key's bytes),
+``psk_file=`` (the key file format ``rlbridge serve --psk-file`` reads: the line of this
+client's name, else the default line), the ``RLBRIDGE_PSK`` environment variable (hex).
+A client given a key insists on authentication: a server that answers the hello without a
+challenge (no key configured, or someone in the middle stripping it) is refused, so a key can
+never silently downgrade to a session anyone could spoof. Once the server has proven the key
+and accepted ours, every datagram both ways and (without TLS) the TCP stream are sealed with
+the derived session keys.
 """
 
 from __future__ import annotations
@@ -14,9 +15,10 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
+from rlbridge import keyfile
 from rlbridge.csp.session_errors import ConnectionFailed
 from rlbridge.wire import (
     AuthChallenge,
@@ -33,6 +35,7 @@ from rlbridge.wire.auth import (
     PSK_ENV,
     ClientHandshake,
     SealedCodec,
+    SessionKeys,
     parse_key,
     sealed_codec,
 )
@@ -51,23 +54,29 @@ class AuthRefused(ConnectionFailed, AuthenticationFailed):
     """
 
 
-def resolve_key(psk: bytes | None = None, psk_file: str | Path | None = None,
-                environ: Mapping[str, str] | None = None) -> bytes | None:
+def resolve_key(psk: bytes | str | None = None, psk_file: str | Path | None = None,
+                environ: Mapping[str, str] | None = None, name: str | None = None
+                ) -> bytes | None:
     """The key to authenticate with, from the first source that has one (module docstring).
 
-    ``environ`` defaults to ``os.environ`` (tests pass their own mapping).
+    ``psk`` is the key in hex (``openssl rand -hex 32``), as in the key file and
+    ``$RLBRIDGE_PSK``; ``bytes`` are taken as the key itself. ``psk_file`` is a key file in
+    the server's format: the line of client ``name``, else the default line. ``environ``
+    defaults to ``os.environ`` (tests pass their own mapping).
     """
+    if isinstance(psk, str):
+        return parse_key(psk, "psk=")
     if psk is not None:
         if len(psk) < MIN_KEY_SIZE:
             raise ValueError(f"psk of {len(psk)} bytes is too short; use at least "
                              f"{MIN_KEY_SIZE} random bytes")
         return bytes(psk)
     if psk_file is not None:
-        try:
-            text = Path(psk_file).read_text()
-        except OSError as exc:
-            raise ValueError(f"cannot read the key file {psk_file}: {exc.strerror}") from None
-        return parse_key(text.split("#", 1)[0], str(psk_file))
+        path = Path(psk_file)
+        key = keyfile.key_for(keyfile.parse(keyfile.read(path), str(path)), name or "")
+        if key is None:
+            raise ValueError(f"{path}: no key for client name {name!r} and no default key")
+        return key
     env = (os.environ if environ is None else environ).get(PSK_ENV)
     return parse_key(env, f"${PSK_ENV}") if env else None
 
@@ -80,16 +89,23 @@ class ClientAuth:
         self._codec: SealedCodec | None = None
 
     @property
+    def keys(self) -> SessionKeys | None:
+        """The session's keys, once the server's challenge was answered."""
+        return self._handshake.keys
+
+    @property
     def nonce(self) -> bytes:
         """What the hello carries in its ``auth`` field."""
         return self._handshake.nonce
 
-    def answer(self, challenge: AuthChallenge, sock: socket.socket) -> AuthProof:
+    def answer(self, challenge: AuthChallenge,
+               sock: socket.socket | Callable[[Packet], object]) -> AuthProof:
         """Our proof; raises :class:`AuthRefused` if the server does not know the key.
 
         Before raising, a ``Disconnect(AUTH_FAILED)`` goes to the server over ``sock`` (the
-        handshake's TCP or UDP socket), so it can count and log the refusal: the client
-        refuses first, and never sends a proof to a server that has not proven the key.
+        handshake's UDP socket, or a function sending a packet on the TCP connection, TLS
+        or not), so it can count and log the refusal: the client refuses first, and never
+        sends a proof to a server that has not proven the key.
         """
         try:
             proof = self._handshake.answer(challenge)
@@ -98,7 +114,9 @@ class ClientAuth:
                                  "proof: the two sides have different keys")
             codec = PacketCodec()
             with contextlib.suppress(OSError):
-                if sock.type == socket.SOCK_STREAM:
+                if not isinstance(sock, socket.socket):
+                    sock(goodbye)
+                elif sock.type == socket.SOCK_STREAM:
                     sock.sendall(codec.encode_frame(goodbye))
                 else:
                     sock.send(codec.encode_datagram(goodbye, 0))

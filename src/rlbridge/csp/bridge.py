@@ -1,16 +1,11 @@
 """``Bridge``: the client SDK's front door, a small facade over its parts.
 
-``Bridge.connect`` opens a :class:`~rlbridge.csp.connection.Connection` (sockets, receive
-thread, watchdog) and a :class:`~rlbridge.csp.sender.SendLoop` (send thread). ``subscribe``
-and ``publish`` bind a topic at run time (message type + field) and return CSP channels
-(:mod:`rlbridge.csp.bridge_channels`). The caller's thread never touches a socket after
-``connect``: reads and writes only move values through ring buffers.
-
-With ``reconnect`` on (the default) a :class:`~rlbridge.csp.reconnect.ReconnectSupervisor`
-opens a new session whenever one ends and :meth:`Bridge._bind_again` binds every channel under
-its old id; control code keeps its channels and notices only through the link state
-(:mod:`rlbridge.csp.link_events`) and each channel's fail-safe (:mod:`rlbridge.csp.failsafe`).
-docs/reliability.md tells the whole story.
+``connect`` opens a :class:`~rlbridge.csp.connection.Connection` (sockets, receive thread,
+watchdog) and a :class:`~rlbridge.csp.sender.SendLoop` (send thread); ``subscribe`` and
+``publish`` bind topics at run time and return CSP channels; after ``connect`` the caller's
+thread only moves values through ring buffers. With ``reconnect`` a
+:class:`~rlbridge.csp.reconnect.ReconnectSupervisor` opens a new session when one ends and
+binds every channel again under its old id (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -19,6 +14,7 @@ import contextlib
 import itertools
 import logging
 import os
+import ssl
 import sys
 import threading
 from pathlib import Path
@@ -37,6 +33,7 @@ from rlbridge.csp.io_priority import IoPriority
 from rlbridge.csp.link_events import LinkEvents
 from rlbridge.csp.reconnect import Backoff, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
+from rlbridge.tls import client_tls
 from rlbridge.wire import RemoteError, TopicClose, TopicConnect
 from rlbridge.wire.packets import Reliability
 
@@ -86,28 +83,30 @@ class Bridge(BridgeStatus):
         timeout: float = 5.0,
         switch_interval: float | None = DEFAULT_SWITCH_INTERVAL,
         reconnect: bool | Backoff = True,
-        psk: bytes | None = None,
+        psk: bytes | str | None = None,
         psk_file: str | Path | None = None,
         idle: IdleSpec | tuple[IdleSpec, IdleSpec] = "park",
+        tls: bool | ssl.SSLContext = False,
+        ca: str | Path | None = None,
+        fingerprint: str | None = None,
+        client_cert: tuple[str | Path, str | Path] | None = None,
     ) -> Bridge:
         """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
 
-        ``reconnect``: when the session ends (server restart, network outage noticed by the
-        watchdog), open a new one with backoff and bind every channel again, by itself.
-        ``True`` uses :class:`~rlbridge.csp.reconnect.Backoff` defaults (50 ms doubling to
-        2 s); pass ``Backoff(max_delay=...)`` to tune it; ``False`` ends the bridge with its
-        first session (channels then close and blocked readers get ``ChannelClosed``). The
-        first connect is not retried: it raises :class:`ConnectionFailed` at once.
+        ``reconnect``: when the session ends (server restart, outage seen by the watchdog),
+        open a new one with backoff and bind every channel again. ``True``: the
+        :class:`~rlbridge.csp.reconnect.Backoff` defaults (50 ms doubling to 2 s), or pass a
+        ``Backoff``; ``False`` ends the bridge with its first session (channels close, blocked
+        readers get ``ChannelClosed``). A failed first connect raises ``ConnectionFailed``.
 
         ``send_rate_hz`` starts the SDK's send loop: buffered values go out at that rate
-        without anyone calling :meth:`send` (thesis figure 5.10). ``nodelay`` disables Nagle's
-        algorithm on this client's TCP socket (the server has ``--nodelay`` for its side).
-        ``switch_interval`` shortens CPython's process-wide GIL switch interval (5 ms by
-        default) to this many seconds, never lengthens it: a control loop that wakes while
-        another Python thread computes then waits at most that long for the GIL (docs/gil.md).
-        ``None`` leaves the interpreter's setting alone. ``psk`` (raw bytes), else ``psk_file``
-        (hex), else ``$RLBRIDGE_PSK`` (hex) is the pre-shared key for a server that requires
-        one; a wrong key raises :class:`~rlbridge.csp.auth.AuthRefused` (docs/security.md).
+        without anyone calling :meth:`send` (thesis figure 5.10). ``nodelay``: no Nagle on this
+        client's socket. ``switch_interval`` shortens CPython's GIL switch interval (5 ms by
+        default; ``None``: left alone), never lengthens it: a control loop waking while another
+        thread computes waits at most that long for the GIL (docs/gil.md). Security
+        (docs/security.md): the key is ``psk`` (hex), else ``psk_file``, else
+        ``$RLBRIDGE_PSK``; TLS is ``tls=True``, ``ca=``, ``fingerprint=`` (pin) or an
+        ``ssl.SSLContext``; ``client_cert=(cert, key)`` for mutual TLS.
         ``idle``: how the send and receive threads wait for work (:mod:`rlbridge.csp.idle`):
         ``"park"`` (block in the kernel), ``"spin"`` (poll 20 us, yield 200 us, then park),
         ``"busy"`` (poll, never park), an ``IdleStrategy``, or a ``(send, receive)`` pair;
@@ -116,10 +115,11 @@ class Bridge(BridgeStatus):
         send_idle, receive_idle = idle_pair(idle)
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
             sys.setswitchinterval(switch_interval)
-        key = resolve_key(psk, psk_file)  # before any socket exists: a bad key leaks nothing
-        conn = Connection(host, port, name=name or f"rlbridge-{os.getpid()}", nodelay=nodelay,
-                          control=control, timeout=timeout)
-        conn.psk = key
+        name = name or f"rlbridge-{os.getpid()}"
+        key = resolve_key(psk, psk_file, name=name)  # before any socket: a bad key leaks nothing
+        secure = client_tls(tls, ca=ca, fingerprint=fingerprint, client_cert=client_cert)
+        conn = Connection(host, port, name=name, nodelay=nodelay, control=control, timeout=timeout)
+        conn.psk, conn.tls = key, secure
         conn.idle = receive_idle
         ack = conn.open()
         try:

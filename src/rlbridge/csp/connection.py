@@ -33,6 +33,8 @@ from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.csp.session_owner import Control, LinkHandler, ValuesHandler
+from rlbridge.csp.stream_guard import StreamGuard
+from rlbridge.tls import ClientTls
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     ConnectAck,
@@ -47,6 +49,7 @@ from rlbridge.wire import (
     TopicConnect,
 )
 from rlbridge.wire.link import LinkMonitor, LinkState
+from rlbridge.wire.seal import sealed_codec, tls_datagram_keys
 
 # ConnectionFailed and ConnectionClosed are defined in session_errors (the handshake raises
 # them too); this is the place to import them from, with Control, Connection's parameter.
@@ -68,6 +71,9 @@ class Connection:
         #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.
         self.psk: bytes | None = None
         self.auth: ClientAuth | None = None
+        #: TLS settings (rlbridge.tls), and what protects the current session's TCP stream.
+        self.tls: ClientTls | None = None
+        self.guard = StreamGuard()
         #: Datagrams the receive thread refused, by reason (bad_mac, replayed, bad_token, ...).
         self.datagrams_dropped: collections.Counter[str] = collections.Counter()
         self.tcp: socket.socket | None = None
@@ -148,12 +154,16 @@ class Connection:
             self._handshaking = True
         self.auth = ClientAuth(self.psk, self.name) if self.psk else None
         self.codec = PacketCodec()  # unsealed until this handshake's keys exist (reopening)
+        self.guard.reset()
         hello = Hello(PROTOCOL_VERSION, self.name, self.auth.nonce if self.auth else b"")
         try:
             ack, self._leftover = (handshake.open_tcp(self, hello, self._wake_r)
                                    if self.control == "tcp" else handshake.open_udp(self, hello))
             if self.auth is not None:
                 self.codec = self.auth.sealed(ack)
+            elif self.guard.tls is not None and ack.datagram_key:
+                self.codec = sealed_codec(tls_datagram_keys(ack.datagram_key, ack.token),
+                                          server=False)
             return ack
         except OSError as exc:
             self._close_session_sockets()
@@ -222,12 +232,22 @@ class Connection:
 
     # -- sending (any SRT thread) ------------------------------------------------------------
     def send_tcp(self, data: bytes | bytearray) -> None:
+        """Write frames to the TCP connection (through TLS when on), whole, in call order."""
         tcp = self.tcp
         if tcp is None:
             raise ConnectionClosed("this session has no TCP connection")
         with self.tcp_lock:
-            tcp.sendall(data)
-            self.tcp_bytes_out += len(data)
+            data = self.guard.protect(data)  # in the lock: records leave in counter order
+            if data:
+                tcp.sendall(data)
+                self.tcp_bytes_out += len(data)
+
+    def tcp_received(self, data: bytes) -> bytes:
+        """The plaintext of bytes the TCP socket read (all of it: none left inside TLS)."""
+        plain, reply = self.guard.open(data)
+        if reply:  # e.g. a key update's answer: out in order with everything else
+            self.send_tcp(b"")
+        return plain
 
     def send_udp(self, data: bytes) -> None:
         udp = self.udp

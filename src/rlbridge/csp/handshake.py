@@ -20,10 +20,12 @@ from typing import TYPE_CHECKING
 
 from rlbridge.csp.auth import refused
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
+from rlbridge.csp.tls_client import TlsFailed, plaintext_refused, start_tls
 from rlbridge.wire import (
     AuthChallenge,
     ConnectAck,
     ConnectError,
+    ErrorCode,
     FrameDecoder,
     Heartbeat,
     Hello,
@@ -31,6 +33,7 @@ from rlbridge.wire import (
     Packet,
     RemoteProtocolError,
 )
+from rlbridge.wire.records import RecordOpener, SealedStreamDecoder, stream_sealers
 
 if TYPE_CHECKING:
     from rlbridge.csp.session_owner import SessionOwner
@@ -48,21 +51,37 @@ def open_tcp(conn: SessionOwner, hello: Hello,
     conn.tcp = sock = connect_tcp(conn, wake)
     if conn.nodelay:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    sock.sendall(conn.codec.encode_frame(hello))
-    decoder = FrameDecoder(conn.codec)
+    where = f"{conn.host}:{conn.port}"
+    if conn.tls is not None:
+        conn.guard.tls = start_tls(conn, sock, wake)
+    conn.send_tcp(conn.codec.encode_frame(hello))
+    sealed = conn.auth is not None and conn.tls is None  # records after the proof
+    decoder = SealedStreamDecoder(conn.codec) if sealed else FrameDecoder(conn.codec)
+    conn.guard.decoder = decoder
     deadline = time.monotonic() + conn.timeout
     while True:
         sock.settimeout(max(0.01, deadline - time.monotonic()))
         try:
             data = sock.recv(65536)
         except TimeoutError:
-            raise ConnectionFailed(
-                f"no answer from {conn.host}:{conn.port} within {conn.timeout} s") from None
+            raise ConnectionFailed(f"no answer from {where} within {conn.timeout} s") from None
         if not data:
-            raise ConnectionFailed(f"{conn.host}:{conn.port} closed the connection")
-        packets = decoder.feed(data)
+            raise ConnectionFailed(f"{where} closed the connection")
+        if conn.tls is None and (wants_tls := plaintext_refused(data, where)) is not None:
+            raise wants_tls
+        try:
+            packets = decoder.feed(conn.tcp_received(data))
+        except RemoteProtocolError as exc:
+            if conn.tls is not None:
+                raise TlsFailed(f"{where} refused the TLS session: {exc.reason}") from None
+            raise ConnectionFailed(f"{where} sent something that is not rlbridge protocol: "
+                                   f"{exc.reason}") from None
         if conn.auth is not None and packets and isinstance(packets[0], AuthChallenge):
-            sock.sendall(conn.codec.encode_frame(conn.auth.answer(packets[0], sock)))
+            proof = conn.auth.answer(
+                packets[0], lambda p: conn.send_tcp(conn.codec.encode_frame(p)))
+            conn.send_tcp(conn.codec.encode_frame(proof))
+            if isinstance(decoder, SealedStreamDecoder):
+                seal_stream(conn, decoder)
             packets = packets[1:]
         if packets:
             first = packets[0]
@@ -71,9 +90,24 @@ def open_tcp(conn: SessionOwner, hello: Hello,
     if isinstance(first, Malformed):
         raise ConnectionFailed(f"server sent an invalid packet: {first.error.reason}")
     ack = expect_ack(first)
+    if isinstance(decoder, SealedStreamDecoder) and decoder.installed and not decoder.records:
+        from rlbridge.csp.auth import AuthRefused
+
+        raise AuthRefused(int(ErrorCode.AUTH_FAILED), f"{where} sent the session's ack "
+                          "unsealed: not the server that proved the key (someone in between)")
     leftover = packets[1:]
     conn.udp = udp_socket(conn.host, conn.port)
     return ack, leftover
+
+
+def seal_stream(conn: SessionOwner, decoder: SealedStreamDecoder) -> None:
+    """After our proof: records both ways (the ack is the server's first sealed record)."""
+    assert conn.auth is not None
+    assert conn.auth.keys is not None
+    sealer, opener_key = stream_sealers(conn.auth.keys, server=False)
+    decoder.install(RecordOpener(opener_key), strict=False)
+    with conn.tcp_lock:
+        conn.guard.sealer = sealer
 
 
 def open_udp(conn: SessionOwner, hello: Hello) -> tuple[ConnectAck, Leftover]:

@@ -68,7 +68,7 @@ class Receiver:
     def run(self) -> None:
         """The thread's body: packets that came with the ack first, then the loop."""
         conn, generation = self._conn, self._generation
-        decoder = FrameDecoder(conn.codec)
+        decoder = conn.guard.decoder or FrameDecoder(conn.codec)
         link = conn.link
         assert link is not None
         assert conn.ack is not None
@@ -102,7 +102,7 @@ class Receiver:
                         if not data:
                             conn.end_session("server closed the TCP connection", generation)
                             return
-                        for packet in decoder.feed(data):
+                        for packet in decoder.feed(conn.tcp_received(data)):
                             if isinstance(packet, Malformed):
                                 log.warning("malformed packet from server: %s",
                                             packet.error.reason)

@@ -32,6 +32,8 @@ from rlbridge.wire.link import LinkMonitor, LinkState
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
     from rlbridge.csp.idle import IdleStrategy
+    from rlbridge.csp.stream_guard import StreamGuard
+    from rlbridge.tls import ClientTls
 
 __all__ = ["Answers", "Control", "LinkHandler", "SessionOwner", "ValuesHandler"]
 
@@ -68,6 +70,7 @@ class SessionOwner(Protocol):
     tcp: socket.socket | None
     udp: socket.socket | None
     tcp_bytes_out: int
+    tcp_lock: threading.Lock
     # -- the session's state (the receive thread reads and counts)
     datagrams_dropped: collections.Counter[str]
     reported_link: LinkState
@@ -76,6 +79,12 @@ class SessionOwner(Protocol):
 
     @property
     def auth(self) -> ClientAuth | None: ...
+
+    @property
+    def tls(self) -> ClientTls | None: ...
+
+    @property
+    def guard(self) -> StreamGuard: ...
 
     @property
     def ack(self) -> ConnectAck | None: ...
@@ -109,6 +118,8 @@ class SessionOwner(Protocol):
     def send_control(self, packet: Packet) -> None: ...
 
     def send_tcp(self, data: bytes | bytearray) -> None: ...
+
+    def tcp_received(self, data: bytes) -> bytes: ...
 
     def send_udp_packet(self, packet: Packet) -> None: ...
 

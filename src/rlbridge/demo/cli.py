@@ -6,6 +6,7 @@ The command only turns options into a :class:`~rlbridge.demo.run.DemoOptions` an
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
@@ -18,6 +19,8 @@ from rlbridge.demo.plot import DEFAULT_NAME, resolve_path
 
 ROLES = ("all", "bridge", "controller")
 DEFAULT_PORT = 7411
+#: The key file a bridge on an address other than loopback makes and uses by default.
+DEMO_KEY = "rlbridge-demo.key"
 
 
 def register_demo(app: typer.Typer) -> None:
@@ -59,6 +62,11 @@ def register_demo(app: typer.Typer) -> None:
         namespace: Annotated[str, typer.Option(help="Topic namespace.")] = "/pan_tilt",
         connect_timeout: Annotated[float, typer.Option(
             help="controller: keep trying to reach the server this long (s).")] = 30.0,
+        psk_file: Annotated[Path | None, typer.Option(
+            help="Key file. bridge/all: made (a new random key, mode 600) if missing; "
+                 "controller: the key to connect with. Default for a bridge on an address "
+                 f"other than loopback: ./{DEMO_KEY} (without $RLBRIDGE_PSK).",
+            show_default=False)] = None,
         lost_exit: Annotated[float, typer.Option(
             help="controller: exit with status 3 after the link was lost this long (s); "
                  "0: never, reconnect and resume.")]
@@ -73,6 +81,8 @@ def register_demo(app: typer.Typer) -> None:
         from rlbridge.demo.plot import PlotUnavailable
         from rlbridge.demo.run import DemoOptions, run_demo
         from rlbridge.demo.vision import Dropout
+        from rlbridge.server.config import is_loopback
+        from rlbridge.wire.auth import PSK_ENV
 
         if role not in ROLES:
             raise fail(f"--role must be one of {', '.join(ROLES)}, not '{role}'", 2)
@@ -82,6 +92,9 @@ def register_demo(app: typer.Typer) -> None:
             seconds = 5.0 if role == "all" else 0.0
         if seconds < 0:
             raise fail("--seconds must be >= 0", 2)
+        if (psk_file is None and role != "controller" and not is_loopback(host)
+                and not os.environ.get(PSK_ENV)):
+            psk_file = Path(DEMO_KEY)  # secure by default: a bridge others can reach has a key
         chosen: Literal["all", "bridge", "controller"] = role  # type: ignore[assignment]
         middleware: Literal["inproc", "ros2"] = adapter  # type: ignore[assignment]
         options = DemoOptions(
@@ -98,6 +111,7 @@ def register_demo(app: typer.Typer) -> None:
             report=report,
             connect_timeout=connect_timeout,
             lost_exit=lost_exit,
+            psk_file=psk_file,
         )
         try:
             result = run_demo(options, sys.stdout)

@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
+from rlbridge import keyfile
 from rlbridge.demo.controller import PanTiltController
 from rlbridge.demo.dashboard import WINDOW, AnsiDashboard, LineReport, Status, View, states_line
 from rlbridge.demo.loop import ControllerState
@@ -65,6 +66,8 @@ class DemoOptions:
     connect_timeout: float = 30.0
     lost_exit: float = 0.0
     """Exit with status 3 after the link was lost this long (s); 0: never, ride it out."""
+    psk_file: Path | None = None
+    """The key file: the bridge side makes one if it is missing, the controller reads it."""
 
 
 @dataclass
@@ -139,9 +142,12 @@ def run_demo(options: DemoOptions, out: TextIO) -> DemoResult:
 def _run_middleware(opts: DemoOptions, stop: threading.Event, out: TextIO) -> DemoResult:
     topics = Topics(opts.namespace)
     with ExitStack() as stack:
+        if opts.psk_file is not None and keyfile.create(opts.psk_file):
+            out.write(f"made a new key file {opts.psk_file}: give the controller a copy "
+                      "(--psk-file)\n")
         mw = stack.enter_context(middleware_side(
             host=opts.host, port=opts.port, adapter=opts.adapter, topics=topics,
-            vision_start=opts.vision_start, dropout=opts.dropout))
+            vision_start=opts.vision_start, dropout=opts.dropout, psk_file=opts.psk_file))
         address = f"{opts.host}:{mw.port}"
         out.write(f"bridge server on {address} ({opts.adapter}); vision node publishing "
                   f"{topics.setpoint('pan')}, {topics.setpoint('tilt')} at 30 Hz\n")
@@ -150,7 +156,7 @@ def _run_middleware(opts: DemoOptions, stop: threading.Event, out: TextIO) -> De
             stack.enter_context(switch_interval(0.0005))
             local = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(opts.host, opts.host)
             bridge = connect_controller(local, mw.port, timeout=opts.connect_timeout,
-                                        stop=stop)
+                                        stop=stop, psk_file=opts.psk_file)
             stack.callback(bridge.close)
             controller = PanTiltController(bridge, topics=topics).start()
             stack.callback(controller.close)  # idempotent; runs first on an error
@@ -195,7 +201,7 @@ def _run_controller(opts: DemoOptions, stop: threading.Event, out: TextIO) -> De
     with ExitStack() as stack:
         stack.enter_context(switch_interval(0.0005))
         bridge = connect_controller(opts.host, opts.port, timeout=opts.connect_timeout,
-                                    stop=stop)
+                                    stop=stop, psk_file=opts.psk_file)
         stack.callback(bridge.close)
         out.write(f"controller connected to {address}: 1 kHz loop running\n")
         out.flush()

@@ -17,9 +17,11 @@ import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 from rlbridge.adapters import MiddlewareAdapter, load_adapter
+from rlbridge.csp.auth import AuthRefused
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.connection import ConnectionFailed
 from rlbridge.demo.monitor import Monitor, Trace
@@ -48,7 +50,8 @@ class MiddlewareSide:
 @contextmanager
 def middleware_side(*, host: str = "127.0.0.1", port: int = 0, adapter: AdapterName = "inproc",
                     topics: Topics | None = None, vision_start: float = 0.5,
-                    dropout: Dropout | None = None) -> Iterator[MiddlewareSide]:
+                    dropout: Dropout | None = None,
+                    psk_file: Path | None = None) -> Iterator[MiddlewareSide]:
     """Start the adapter, the server on it, and the vision and monitor nodes; stop them after.
 
     The server gets ``nodelay=True``: the status and diagnostics it forwards over TCP are small
@@ -57,7 +60,8 @@ def middleware_side(*, host: str = "127.0.0.1", port: int = 0, adapter: AdapterN
     with ExitStack() as stack:
         mw = load_adapter(adapter, node_name="rlbridge_pan_tilt")
         stack.callback(mw.close)
-        config = ServerConfig(host=host, port=port, adapter=adapter, nodelay=True)
+        config = ServerConfig(host=host, port=port, adapter=adapter, nodelay=True,
+                              psk_file=psk_file)
         server = stack.enter_context(ServerThread(config, adapter=mw))
         trace = Trace()
         monitor = Monitor(mw, trace, topics=topics)
@@ -70,19 +74,25 @@ def middleware_side(*, host: str = "127.0.0.1", port: int = 0, adapter: AdapterN
 
 def connect_controller(host: str, port: int, *, timeout: float = 30.0,
                        stop: threading.Event | None = None,
-                       name: str = "pan-tilt-controller") -> Bridge:
+                       name: str = "pan-tilt-controller",
+                       psk_file: Path | None = None) -> Bridge:
     """``Bridge.connect`` again and again (backing off to 1 s) until it works or ``timeout``.
 
     Raises :class:`~rlbridge.csp.connection.ConnectionFailed` with the last reason when the
-    time is up or ``stop`` is set.
+    time is up or ``stop`` is set. A key file that does not exist yet (the bridge side makes
+    it when it starts) is waited for like a server that does not answer yet.
     """
     deadline = time.monotonic() + timeout
     delay = 0.1
     while True:
         remaining = deadline - time.monotonic()
         try:
-            return Bridge.connect(host, port, nodelay=True, name=name,
+            if psk_file is not None and not psk_file.exists():
+                raise ConnectionFailed(f"no key file {psk_file} yet")
+            return Bridge.connect(host, port, nodelay=True, name=name, psk_file=psk_file,
                                   timeout=min(2.0, max(0.2, remaining)))
+        except AuthRefused:
+            raise  # a wrong key or certificate: trying again will not help
         except ConnectionFailed as exc:
             remaining = deadline - time.monotonic()
             if remaining <= 0:

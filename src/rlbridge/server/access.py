@@ -1,9 +1,9 @@
 """Who may connect: pre-shared keys (from a file or the environment) and client networks.
 
 Keys never come from the command line (they would show in ``ps`` and shell history): the
-server reads ``--psk-file`` or, without one, the ``RLBRIDGE_PSK`` environment variable. The
-file holds one key per line, in hex; a line ``<client-name> <hex>`` gives that client its own
-key, a bare ``<hex>`` line is the key for every other client name. ``#`` starts a comment.
+server reads ``--psk-file`` or, without one, the ``RLBRIDGE_PSK`` environment variable (hex).
+The file's format, with the per-client rules that :mod:`rlbridge.server.authz` applies, is
+:mod:`rlbridge.keyfile`'s, the same one the SDK reads.
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+from rlbridge import keyfile
+from rlbridge.keyfile import Entry
 from rlbridge.wire.auth import PSK_ENV, parse_key
 
 log = logging.getLogger("rlbridge.server")
@@ -35,48 +37,51 @@ class KeyStore:
         """The key client ``name`` must prove, or None when no key would let it in."""
         return self._per_client.get(name, self._default)
 
+    def identity(self, name: str) -> str | None:
+        """``name``, when a proof for it shows the client holds *that name's* own key."""
+        return name if name in self._per_client else None
+
+    @classmethod
+    def of(cls, entries: dict[str, Entry]) -> KeyStore | None:
+        """The keys among a key file's lines (None if every line is ``-``)."""
+        default = entries.get(keyfile.DEFAULT)
+        per_client = {n: e.key for n, e in entries.items()
+                      if n != keyfile.DEFAULT and e.key is not None}
+        key = default.key if default is not None else None
+        return cls(key, per_client) if key is not None or per_client else None
+
     @classmethod
     def parse(cls, text: str, source: str) -> KeyStore:
-        default: bytes | None = None
-        per_client: dict[str, bytes] = {}
-        for lineno, raw in enumerate(text.splitlines(), 1):
-            line = raw.split("#", 1)[0].strip()
-            if not line:
-                continue
-            where = f"{source}, line {lineno}"
-            match line.split():
-                case [key]:
-                    if default is not None:
-                        raise ValueError(f"{where}: a second default key")
-                    default = parse_key(key, where)
-                case [name, key]:
-                    if name in per_client:
-                        raise ValueError(f"{where}: a second key for client {name!r}")
-                    per_client[name] = parse_key(key, where)
-                case _:
-                    raise ValueError(f"{where}: expected '<hex key>' or '<client-name> <hex key>'")
-        if default is None and not per_client:
+        store = cls.of(keyfile.parse(text, source))
+        if store is None:
             raise ValueError(f"{source}: no key in the file")
-        return cls(default, per_client)
+        return store
 
     @classmethod
     def load(cls, path: Path | None, environ: Mapping[str, str] = os.environ
              ) -> KeyStore | None:
         """Keys from ``path``, else from ``$RLBRIDGE_PSK``, else None (no authentication)."""
-        if path is not None:
-            try:
-                text = path.read_text()
-                mode = path.stat().st_mode
-            except OSError as exc:
-                raise ValueError(f"cannot read the key file {path}: {exc.strerror}") from None
-            if mode & 0o077:
-                log.warning("key file %s is readable by others (mode %o); chmod 600 it",
-                            path, mode & 0o777)
-            return cls.parse(text, str(path))
-        env = environ.get(PSK_ENV)
-        if env:
-            return cls(parse_key(env, f"${PSK_ENV}"))
-        return None
+        return load(path, environ)[0]
+
+
+def load(path: Path | None, environ: Mapping[str, str] = os.environ
+         ) -> tuple[KeyStore | None, dict[str, Entry]]:
+    """Keys and rules from ``path``, else a key from ``$RLBRIDGE_PSK``, else neither."""
+    if path is not None:
+        text = keyfile.read(path)
+        try:
+            mode = path.stat().st_mode
+        except OSError as exc:
+            raise ValueError(f"cannot read the key file {path}: {exc.strerror}") from None
+        if mode & 0o077:
+            log.warning("key file %s is readable by others (mode %o); chmod 600 it",
+                        path, mode & 0o777)
+        entries = keyfile.parse(text, str(path))
+        return KeyStore.of(entries), entries
+    env = environ.get(PSK_ENV)
+    if env:
+        return KeyStore(parse_key(env, f"${PSK_ENV}")), {}
+    return None, {}
 
 
 class AllowList:

@@ -18,7 +18,9 @@ from types import TracebackType
 from typing import Any
 
 from rlbridge.adapters import MiddlewareAdapter, load_adapter
-from rlbridge.server.access import AllowList, KeyStore
+from rlbridge.server.access import AllowList
+from rlbridge.server.access import load as load_keys
+from rlbridge.server.authz import Access
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
@@ -28,6 +30,7 @@ from rlbridge.server.runner import run_on_loop
 from rlbridge.server.session import ServerContext
 from rlbridge.server.tcp import TcpConnection
 from rlbridge.server.udp import UdpEndpoint
+from rlbridge.tls import TlsError, server_context
 from rlbridge.wire import PacketCodec
 
 log = logging.getLogger("rlbridge.server")
@@ -95,15 +98,28 @@ class Server:
         self._stop = asyncio.Event()
         cfg = self.config
         try:  # before the adapter and the sockets: a bad key file is the operator's to fix
-            keys = KeyStore.load(cfg.psk_file)
-        except ValueError as exc:
+            keys, entries = load_keys(cfg.psk_file)
+            tls = (server_context(cfg.tls_cert, cfg.tls_key, cfg.tls_client_ca)
+                   if cfg.tls_cert is not None and cfg.tls_key is not None else None)
+        except (ValueError, TlsError) as exc:
             raise ServerError(str(exc)) from None
+        exposed = not cfg.loopback and keys is None and tls is None
+        if exposed and not cfg.insecure:
+            raise ServerError(
+                f"refusing to listen on {cfg.host} without TLS or a key: anyone who can reach "
+                "it could read and write your topics; give --psk-file (or $RLBRIDGE_PSK) or "
+                "--tls-cert and --tls-key, or --insecure to accept that")
+        if exposed:
+            log.warning("listening on %s with --insecure: no TLS, no key; anyone who can reach "
+                        "it can read and write your topics", cfg.host)
         adapter = self._adapter or load_adapter(
             cfg.adapter, node_name=cfg.node_name, namespace=cfg.namespace,
             parameters={"use_tcp": cfg.tcp, "use_udp": cfg.udp, "disable_nagle": cfg.nodelay},
         )
         ctx = ServerContext(cfg, adapter, PacketCodec(), loop, LoopHandoff(loop),
-                            keys=keys, allow=AllowList(cfg.allow))
+                            keys=keys, allow=AllowList(cfg.allow), tls=tls,
+                            access=Access(entries, authenticated=keys is not None
+                                          or cfg.tls_client_ca is not None))
         self.registry = registry = SessionRegistry(ctx)
         tcp_server: asyncio.Server | None = None
         udp_transport: asyncio.DatagramTransport | None = None
@@ -125,7 +141,7 @@ class Server:
             # After the handlers: whoever sees this line may stop the server with a signal.
             log.info("%s", listening_line(
                 cfg.host, port, tcp_server is not None, udp_transport is not None,
-                adapter.name, "pre-shared key" if keys is not None else "none",
+                adapter.name, _authentication(keys is not None, tls is not None, cfg),
                 self.address.metrics_port))
             if started is not None:
                 started(self.address)
@@ -199,6 +215,18 @@ class Server:
         if self.address is not None:
             log.info("rlbridge stopped: %d session(s) served",
                      registry.ctx.counters.get("sessions_opened", 0))
+
+
+def _authentication(keyed: bool, tls: bool, cfg: ServerConfig) -> str:
+    """The listening line's authentication mode, e.g. ``TLS (mutual) + pre-shared key``."""
+    parts = []
+    if tls:
+        parts.append("TLS (mutual)" if cfg.tls_client_ca is not None else "TLS")
+    if keyed:
+        parts.append("pre-shared key")
+    if parts:
+        return " + ".join(parts)
+    return "none" if cfg.loopback else "none (--insecure)"
 
 
 class ServerThread:

@@ -40,6 +40,15 @@ class ServerConfig(BaseModel):
     # -- access and limits (docs/security.md) --
     psk_file: Path | None = Field(
         None, description="Pre-shared keys; without it $RLBRIDGE_PSK, without both no auth.")
+    tls_cert: Path | None = Field(
+        None, description="TLS certificate (PEM); with tls_key, TCP clients must use TLS 1.3.")
+    tls_key: Path | None = Field(None, description="The TLS certificate's private key (PEM).")
+    tls_client_ca: Path | None = Field(
+        None, description="Mutual TLS: clients need a certificate from this CA; its common "
+        "name is the client's identity.")
+    insecure: bool = Field(
+        False, description="Allow an address other than loopback without TLS or a key "
+        "(the server then warns at start).")
     allow: tuple[str, ...] = Field(
         (), description="Client networks allowed in (CIDR or address); empty: any.")
     max_rate: float | None = Field(
@@ -61,10 +70,31 @@ class ServerConfig(BaseModel):
         description="Serve /metrics, /healthz and /status on this port of host."
     )
 
+    @property
+    def loopback(self) -> bool:
+        """True when ``host`` is a loopback address (only this machine can connect)."""
+        return is_loopback(self.host)
+
     @model_validator(mode="after")
     def _check(self) -> ServerConfig:
         if not (self.tcp or self.udp):
             raise ValueError("enable at least one transport: tcp or udp")
         if self.timeout_ms <= self.heartbeat_ms:
             raise ValueError("timeout_ms must be longer than heartbeat_ms")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("TLS needs both a certificate and its key (--tls-cert and "
+                             "--tls-key)")
+        if self.tls_client_ca is not None and self.tls_cert is None:
+            raise ValueError("--tls-client-ca needs TLS: add --tls-cert and --tls-key")
         return self
+
+
+def is_loopback(host: str) -> bool:
+    """``localhost`` or a loopback address; any other name or address (0.0.0.0, ::, a LAN
+    address, a host name) reaches beyond this machine."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False

@@ -35,6 +35,11 @@ def refusal(session: SessionOwner, req: TopicConnect) -> tuple[ErrorCode, str] |
     if len(req.topic) > cfg.max_topic_length:
         return ErrorCode.LIMIT, (f"topic name of {len(req.topic)} characters is longer than "
                                  f"the server's limit of {cfg.max_topic_length}")
+    forbidden = session.ctx.access.refusal(session.identity, req.direction, req.topic)
+    if forbidden is not None:
+        session.ctx.count("topic_not_allowed")
+        session.topics_refused += 1
+        return ErrorCode.NOT_ALLOWED, forbidden
     return None
 
 

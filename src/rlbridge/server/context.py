@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.server.access import AllowList, KeyStore
+from rlbridge.server.authz import Access
 from rlbridge.server.config import ServerConfig
 from rlbridge.server.flow import FlowTable
 from rlbridge.server.handoff import LoopHandoff
@@ -37,6 +39,10 @@ class ServerContext:
     #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
     handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
     allow: AllowList = field(default_factory=lambda: AllowList(()))
+    #: Who may publish and subscribe to what, and see whose Stats (server/authz.py).
+    access: Access = field(default_factory=Access)
+    #: TLS on the TCP listener (``--tls-cert``): every connection runs it (server/tls_side.py).
+    tls: ssl.SSLContext | None = None
     #: Server totals and every session's counters (set by the registry; see ``Stats``).
     report: Callable[[], dict[str, Any]] | None = None
     #: Rate-limited warnings for the operator: wrong keys, malformed packets, refusals.

@@ -49,9 +49,19 @@ class Gate:
         return ConnectError(int(ErrorCode.NOT_ALLOWED),
                             f"client address {host} is not in this server's allow-list")
 
-    def hello(self, hello: Hello) -> Outcome:
-        """A session, a refusal, or (keys configured) the handshake to send a challenge for."""
-        keys = self._registry.ctx.keys
+    def hello(self, hello: Hello, *, udp: bool = False) -> Outcome:
+        """A session, a refusal, or (keys configured) the handshake to send a challenge for.
+
+        A server whose only protection is TLS refuses UDP hellos: a session opened over UDP
+        would have no keys at all (a TCP session's datagrams get theirs over TLS).
+        """
+        ctx = self._registry.ctx
+        keys = ctx.keys
+        if keys is None and udp and ctx.tls is not None:
+            ctx.count("udp_hello_refused")
+            return ConnectError(int(ErrorCode.AUTH_FAILED), "this server protects sessions "
+                                "with TLS: open the session over TCP with TLS (its UDP "
+                                "channels get their keys over it)")
         if keys is None:
             return self._registry.open(hello)
         key = keys.key_for(hello.name)
@@ -72,6 +82,9 @@ class Gate:
         result = self._registry.open(hello)
         if isinstance(result, Session):
             result.codec = sealed_codec(keys, server=True)
+            result.keys = keys
+            store = self._registry.ctx.keys
+            result.identity = store.identity(hello.name) if store is not None else None
             self._registry.ctx.count("sessions_authenticated")
         return result
 

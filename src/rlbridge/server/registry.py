@@ -61,7 +61,7 @@ class SessionRegistry:
         self.ctx.count("sessions_opened")
         return session
 
-    def ack(self, session: Session) -> ConnectAck:
+    def ack(self, session: Session, datagram_key: bytes = b"") -> ConnectAck:
         cfg = self.ctx.config
         return ConnectAck(
             session=session.id,
@@ -69,6 +69,7 @@ class SessionRegistry:
             heartbeat_ms=cfg.heartbeat_ms,
             timeout_ms=cfg.timeout_ms,
             limits=Limits(cfg.max_packet, cfg.max_channels, cfg.max_batch),
+            datagram_key=datagram_key,
         )
 
     def stats(self) -> dict[str, Any]:

@@ -46,6 +46,7 @@ from rlbridge.wire import (
     Value,
 )
 from rlbridge.wire.link import LinkMonitor
+from rlbridge.wire.seal import SessionKeys
 
 __all__ = ["CHANNEL_TOTALS", "ServerContext", "Session"]
 
@@ -74,6 +75,10 @@ class Session:
         self.id = session_id
         self.token = token
         self.name = name
+        #: Who the client proved to be: its mutual-TLS certificate's common name, or the name
+        #: its own pre-shared key is filed under; None when nothing proved a name
+        #: (authorization then applies the default rules: server/authz.py).
+        self.identity: str | None = None
         self._on_closed = on_closed
         cfg = ctx.config
         self.link = LinkMonitor(
@@ -89,11 +94,15 @@ class Session:
         self.tcp_bytes_in = 0  # of those, on TCP (heartbeats skip a busy TCP connection)
         self.malformed = 0
         self.errors_sent = 0
+        #: Topic-connects refused by the key file's rules (server/authz.py).
+        self.topics_refused = 0
         #: Totals of channels closed before now, so a session's counters never go back.
         self._retired: dict[str, int] = dict.fromkeys(CHANNEL_TOTALS, 0)
         self.closed = False
         #: Seals and opens this session's datagrams (the gate swaps in a SealedCodec).
         self.codec: PacketCodec = ctx.codec
+        #: The keys of a pre-shared-key session (the TCP connection seals its records).
+        self.keys: SessionKeys | None = None
         self.rate = (None if cfg.max_rate is None
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
         #: What the last LossReport said per publish channel (only changes are sent), and
@@ -345,7 +354,10 @@ class Session:
             report = self.ctx.report()
             body["server"] = report["server"]
             if sink is not None and sink is self.tcp:
-                body["sessions"] = report["sessions"]
+                sessions = report["sessions"]
+                if not self.ctx.access.sees_all(self.identity):  # only its own (authz.py)
+                    sessions = [s for s in sessions if s["session"] == self.id]
+                body["sessions"] = sessions
         self.send_control(Stats(body), sink)
 
     def _retire(self, channel: dict[str, Any]) -> None:
@@ -371,6 +383,7 @@ class Session:
         return {
             "session": self.id,
             "name": self.name,
+            "identity": self.identity,
             "state": link.state.value,
             "rtt_us": link.rtt_ns / 1000 if link.rtt_ns >= 0 else None,
             "packets_in": self.packets_in,
@@ -379,6 +392,7 @@ class Session:
             "tcp_queued_bytes": getattr(self.tcp, "queued", 0),
             "malformed": self.malformed,
             "errors_sent": self.errors_sent,
+            "topics_refused": self.topics_refused,
             **totals,
             "channels": channels,
         }

@@ -32,6 +32,9 @@ class SessionOwner(Protocol):
     outbound: dict[int, Outbound]
     tcp_bytes_in: int
     closed: bool
+    #: Who the client proved to be (authorization, server/authz.py), and its refusals.
+    identity: str | None
+    topics_refused: int
 
     def close(self, reason: str, *, notify: bool = True) -> None: ...
 

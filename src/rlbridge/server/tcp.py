@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import socket
 from typing import cast
 
 from rlbridge.server.gate import Gate
+from rlbridge.server.guarded import GuardedTransport
 from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
+from rlbridge.server.tls_side import ServerTls
 from rlbridge.wire import (
     AuthProof,
     ConnectError,
@@ -21,9 +24,12 @@ from rlbridge.wire import (
     FrameDecoder,
     Hello,
     Malformed,
+    PacketCodec,
     RemoteProtocolError,
 )
 from rlbridge.wire.auth import ServerHandshake
+from rlbridge.wire.records import RecordOpener, SealedStreamDecoder, stream_sealers
+from rlbridge.wire.seal import KEY_SIZE, sealed_codec, tls_datagram_keys
 
 log = logging.getLogger("rlbridge.server")
 
@@ -43,7 +49,8 @@ class TcpConnection(asyncio.Protocol):
     def __init__(self, registry: SessionRegistry) -> None:
         self._registry = registry
         ctx = registry.ctx
-        self._decoder = FrameDecoder(ctx.codec, ctx.config.max_packet)
+        self._decoder: FrameDecoder | SealedStreamDecoder = FrameDecoder(
+            ctx.codec, ctx.config.max_packet)
         self._transport: asyncio.Transport | None = None
         self._sink: TcpSink | None = None
         self._session: Session | None = None
@@ -52,6 +59,11 @@ class TcpConnection(asyncio.Protocol):
         #: The hello and its handshake while a key-requiring server waits for the proof.
         self._pending: tuple[Hello, ServerHandshake] | None = None
         self._deadline: asyncio.TimerHandle | None = None
+        self._tls: ServerTls | None = None
+        self._guarded: GuardedTransport | None = None
+        #: Set when the keys were installed mid-read: records after the proof then wait in
+        #: the decoder and are read at the end of this ``data_received``.
+        self._refeed = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = t = cast(asyncio.Transport, transport)
@@ -63,18 +75,29 @@ class TcpConnection(asyncio.Protocol):
             # without --nodelay it has to be turned back on to mean what the option says.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, int(ctx.config.nodelay))
         t.set_write_buffer_limits(high=ctx.config.max_write_buffer)
-        self._sink = TcpSink(t, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
         peer = t.get_extra_info("peername")
         refused = self._gate.allowed(peer[0] if peer else "?", "TCP connection")
-        if refused is not None:
-            self._sink.send(refused)
+        if refused is not None:  # in plain protocol, before any TLS: nothing to protect
+            TcpSink(t, ctx.codec, ctx.config.max_write_buffer).send(refused)
             t.close()
             return
+        out: asyncio.Transport = t
+        if ctx.tls is not None:
+            self._tls = ServerTls(ctx.tls, t, ctx, self._peer)
+            out = self._tls.transport
+        elif ctx.keys is not None:
+            # Plain frames until the proof, sealed records after (wire/records.py).
+            self._guarded = out = GuardedTransport(t, GuardedTransport.plain)
+            self._decoder = SealedStreamDecoder(ctx.codec, ctx.config.max_packet,
+                                                stop_after=AuthProof)
+        self._sink = TcpSink(out, ctx.codec, ctx.config.max_write_buffer, ctx.loop)
         # A connection that never completes its hello (or its proof) must not hold a socket.
         self._deadline = ctx.loop.call_later(HELLO_TIMEOUT, self._no_hello)
         ctx.handshaking.add(t)
 
     def data_received(self, data: bytes) -> None:
+        if self._sink is None:  # refused at connect (allow-list): nothing more is read
+            return
         if len(data) >= YIELD_AFTER_BYTES and self._transport is not None:
             # Fairness: uvloop (libuv) reads a busy socket up to 32 times in one loop
             # iteration; a flooding client would hold the loop for seconds, starving other
@@ -82,10 +105,16 @@ class TcpConnection(asyncio.Protocol):
             # heartbeats sit unread). Pause after a large chunk, resume on the next iteration.
             self._transport.pause_reading()
             self._registry.ctx.loop.call_soon(self._resume_reading)
+        if self._tls is not None:
+            plain = self._tls.received(data)
+            if not plain:
+                return
+            data = plain
         try:
             packets = self._decoder.feed(data)
         except RemoteProtocolError as exc:
-            self._registry.ctx.count("malformed")
+            self._registry.ctx.count("tcp_rejected_records" if exc.code == ErrorCode.AUTH_FAILED
+                                     else "malformed")
             self._fatal(exc.code, exc.reason)
             return
         if self._session is not None:
@@ -113,6 +142,9 @@ class TcpConnection(asyncio.Protocol):
                 self._fatal(ErrorCode.UNEXPECTED,
                             f"expected {wanted}, got {type(packet).__name__}")
                 return
+        if self._refeed:
+            self._refeed = False
+            self.data_received(b"")
 
     def _hello(self, hello: Hello) -> None:
         assert self._sink is not None
@@ -144,10 +176,23 @@ class TcpConnection(asyncio.Protocol):
             self._transport.close()
             return
         result.attach_tcp(self._sink, self._transport.close)
+        if self._tls is not None and self._tls.identity is not None:
+            result.identity = self._tls.identity  # a certificate outranks a key's name
+        if self._guarded is not None and result.keys is not None:
+            sealer, opener_key = stream_sealers(result.keys, server=True)
+            self._guarded.protect_with(sealer.seal)
+            assert isinstance(self._decoder, SealedStreamDecoder)
+            self._decoder.install(RecordOpener(opener_key), strict=True)
+            self._refeed = True
         self._session = result
         log.log(session_level(hello.name), "session %d (%s) opened over TCP from %s", result.id,
                 hello.name, self._peer)
-        self._sink.send(self._registry.ack(result))
+        secret = b""
+        if self._tls is not None and type(result.codec) is PacketCodec:
+            # No key handshake gave this session datagram keys: hand it a secret inside TLS.
+            secret = os.urandom(KEY_SIZE)
+            result.codec = sealed_codec(tls_datagram_keys(secret, result.token), server=True)
+        self._sink.send(self._registry.ack(result, secret))
         result.acknowledged()
 
     def _fatal(self, code: ErrorCode, reason: str) -> None:

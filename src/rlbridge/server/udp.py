@@ -152,7 +152,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         if pending is not None and pending.hello == hello:  # its challenge was lost
             self._send(pending.handshake.challenge, addr)
             return
-        result = self._gate.hello(hello)
+        result = self._gate.hello(hello, udp=True)
         if isinstance(result, ServerHandshake):
             self._pending.pop(addr, None)
             self._pending[addr] = _Pending(hello, result)

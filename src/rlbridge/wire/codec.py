@@ -30,6 +30,8 @@ DEFAULT_MAX_PACKET = 1 << 20
 #: A UDP datagram cannot be larger than this on IPv4.
 MAX_DATAGRAM = 65507
 FLAG_MAC = 0x01
+#: First two bytes of a TLS handshake or alert record (TLS 1.0-1.3 all say 0x03 there).
+_TLS_STARTS = (b"\x16\x03", b"\x15\x03")
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,6 +132,13 @@ def _salvage(body: bytes | memoryview) -> tuple[int | None, int | None]:
 
 def check_header(magic: bytes, version: int) -> None:
     """Refuse a header that is not ours, or ours in a version this code does not speak."""
+    if magic in _TLS_STARTS:
+        raise RemoteProtocolError(
+            ErrorCode.MALFORMED,
+            "a TLS handshake on a port without TLS: connect without TLS, or start the server "
+            "with --tls-cert and --tls-key",
+            fatal=True,
+        )
     if magic != MAGIC:
         raise RemoteProtocolError(
             ErrorCode.MALFORMED,

@@ -58,7 +58,9 @@ class ConnectAck(_Packet, tag=2, frozen=True):
     heartbeat_ms: U32
     timeout_ms: U32
     limits: Limits
-    challenge: Bytes32 = b""
+    #: Over TLS: the 32-byte secret the session's datagram keys derive from (wire/seal.py);
+    #: empty otherwise (a pre-shared key derives them from the handshake instead).
+    datagram_key: Bytes32 = b""
 
 
 class ConnectError(_Packet, tag=3, frozen=True):
