@@ -30,12 +30,21 @@ from rlbridge.wire import (
     Credit,
     Disconnect,
     Error,
+    GoalCancel,
+    GoalResult,
+    GoalSend,
     Heartbeat,
     Hello,
     Limits,
     LossReport,
     Packet,
     PacketCodec,
+    RosLoss,
+    ServiceCall,
+    ServiceOffer,
+    ServiceReply,
+    ServiceRequest,
+    ServiceResult,
     Stats,
     TopicAck,
     TopicClose,
@@ -48,6 +57,7 @@ from rlbridge.wire.records import RecordSealer
 
 HERE = Path(__file__).parent / "corpus"
 F64 = "std_msgs/msg/Float64"
+SET_BOOL = "std_srvs/srv/SetBool"
 CODEC = PacketCodec()
 
 EVERY_TYPE: list[Packet] = [
@@ -72,6 +82,15 @@ EVERY_TYPE: list[Packet] = [
     LossReport([ChannelLoss(1, 10, 2, 12, 0), ChannelLoss(3, 0, 0, 0, 5)]),
     TopicConnect(4, "subscribe", "/a", F64, buffer_size=8, flow=True),
     TopicAck(5, F64, 0.0, credit=4096),
+    ServiceCall(1, "/s", SET_BOOL, {"data": True}, 50),
+    ServiceResult(1, 0, {"success": True, "message": ""}),
+    ServiceOffer(4, "/s", SET_BOOL),
+    ServiceRequest(4, 1, {"data": True}),
+    ServiceReply(4, 1, 0, {"success": True}),
+    GoalSend(5, "/fib", "test_msgs/action/Fibonacci", {"order": 3}, 50),
+    GoalCancel(5),
+    GoalResult(5, 4, {"sequence": [0, 1]}),
+    RosLoss(2, 3),
 ]
 
 #: A session's life as a client drives it: publish and subscribe on both transports.
@@ -93,6 +112,13 @@ SESSION: list[Packet] = [
     LossReport([ChannelLoss(5, 1, 0, 1)]),  # a server's packet, from a client
     Heartbeat(5, 0),
     Stats(),
+    ServiceOffer(4, "/s", SET_BOOL),
+    ServiceCall(1, "/nobody", SET_BOOL, {"data": True}, 20),
+    ServiceCall(2, "/s", "std_srvs/srv/Nope", {}, 20),
+    ServiceReply(4, 99, 0, {"success": True}),  # no such request
+    GoalSend(5, "/fib", "test_msgs/action/Fibonacci", {"order": 3}, 20),
+    GoalCancel(9),
+    TopicClose(4),
     TopicClose(2),
     Disconnect(0, "bye"),
 ]
@@ -141,6 +167,12 @@ BAD: list[bytes] = [
     b"\x15\x03\x03\x00\x02\x02\x46",  # a TLS alert
     FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 40) + bytes(40),  # a record that won't open
     FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, 0xFFFF_FFFF),  # an absurd record
+    frame(body(20, 1, "/s", SET_BOOL, [1, 2])),  # a service request that is not a map
+    frame(body(20, 1, "", SET_BOOL, {})),  # empty service name
+    frame(body(24, 4, 1, 0, {"success": "very"})),  # a reply that does not fit
+    frame(body(25, 5, "/fib", "x", {"order": 1}, -1)),  # negative timeout
+    frame(body(27, 5, 4, {})),  # a server-only packet from a client
+    frame(body(28, 2, -3)),  # negative loss
 ]
 
 

@@ -184,8 +184,12 @@ def build_app() -> typer.Typer:
     ``scripts/gen_docs.py`` both build the app through this function.
     """
     from rlbridge.bench.cli import bench_app
+    from rlbridge.cli_ros import action_app, param_app, service_app
     from rlbridge.demo.cli import register_demo
 
+    app.add_typer(service_app, name="service")
+    app.add_typer(param_app, name="param")
+    app.add_typer(action_app, name="action")
     app.add_typer(bench_app, name="bench")
     register_demo(app)
     from rlbridge.tls.cli import tls_app

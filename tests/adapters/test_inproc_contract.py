@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from contract import AdapterContract
+from contract_services import ServiceContract
 
 from rlbridge.adapters.base import MiddlewareAdapter
 from rlbridge.adapters.inproc import InProcessBus
 
 
-class TestInProcessContract(AdapterContract):
+class TestInProcessContract(AdapterContract, ServiceContract):
     timeout = 2.0
 
     def make_adapter(self) -> MiddlewareAdapter:

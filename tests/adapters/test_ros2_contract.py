@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 from contract import AdapterContract
+from contract_services import ServiceContract
 
 from rlbridge.adapters.base import MiddlewareAdapter
 
@@ -16,7 +17,10 @@ ros2 = pytest.importorskip(
 pytestmark = pytest.mark.ros2
 
 
-class TestRos2Contract(AdapterContract):
+class TestRos2Contract(AdapterContract, ServiceContract):
+    #: ROS 2 services have no error reply: a failing provider leaves the caller to time out.
+    provider_failure = "TIMEOUT"
+
     @pytest.fixture(autouse=True)
     def _scoped_discovery(self, ros_env: int) -> None:
         self.domain_id = ros_env

@@ -42,7 +42,7 @@ def test_stats_table_json_and_metrics(cli: Any, cli_server: Callable[..., Any],
                   if line.startswith("ID") and "rlbridge-topic-echo" in lines[i + 1])
     assert lines[header].split() == ["ID", "NAME", "STATE", "RTT_US", "PKTS_IN", "BYTES_IN",
                                      "BYTES_OUT", "VALUES_IN", "VALUES_OUT", "DROPPED", "LATE",
-                                     "MALFORMED"]
+                                     "MALFORMED", "ROS_LOST"]
     session_row = lines[header + 1].split()
     assert session_row[1:3] == ["rlbridge-topic-echo", "connected"]
     assert session_row[8:10] == ["5", "0"]  # values out, dropped

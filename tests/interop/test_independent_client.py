@@ -187,7 +187,7 @@ def test_shortest_and_longer_forms_are_accepted(client: ic.IndependentClient) ->
     client.send_tcp([ic.TAG_TOPIC_CONNECT, 1, "subscribe", topic, F64])  # field, transport...
     assert client.recv_tag(ic.TAG_TOPIC_ACK).fields == (1, F64, 0.0, None, None)
     client.send_tcp([ic.TAG_TOPIC_CONNECT, 2, "publish", topic, F64, "data", "tcp", 1, None,
-                     10, 0, 0, False, False, False, "a future field"])
+                     10, 0, 0, False, False, False, "volatile", "a future field"])
     assert client.recv_tag(ic.TAG_TOPIC_ACK).field(1) == 2
     client.send_tcp([ic.TAG_VALUE, 2, 0, 0, 1.25, "extra"])
     assert client.collect(1, 1) == [1.25]

@@ -29,6 +29,9 @@ from rlbridge.wire import (
     Error,
     ErrorCode,
     FrameDecoder,
+    GoalCancel,
+    GoalResult,
+    GoalSend,
     Heartbeat,
     Hello,
     Limits,
@@ -37,6 +40,12 @@ from rlbridge.wire import (
     Packet,
     PacketCodec,
     RemoteProtocolError,
+    RosLoss,
+    ServiceCall,
+    ServiceOffer,
+    ServiceReply,
+    ServiceRequest,
+    ServiceResult,
     Stats,
     TopicAck,
     TopicClose,
@@ -112,6 +121,20 @@ packet_strategies: dict[type, st.SearchStrategy[Any]] = {
     LossReport: st.builds(LossReport, st.lists(
         st.builds(ChannelLoss, U32, U64, U64, U64, U64), max_size=5)),
 }
+#: Services, actions and ROS-side loss (tags 20-28).
+fields = st.dictionaries(text(max_size=6), values, max_size=4)
+packet_strategies.update({
+    ServiceCall: st.builds(ServiceCall, U32, text(1, 40), text(1, 40), fields, U32),
+    ServiceResult: st.builds(ServiceResult, U32, U16, st.none() | fields, text(max_size=100)),
+    ServiceOffer: st.builds(ServiceOffer, U32, text(1, 40), text(1, 40)),
+    ServiceRequest: st.builds(ServiceRequest, U32, U64, fields),
+    ServiceReply: st.builds(ServiceReply, U32, U64, U16, st.none() | fields,
+                            text(max_size=100)),
+    GoalSend: st.builds(GoalSend, U32, text(1, 40), text(1, 40), fields, U32),
+    GoalCancel: st.builds(GoalCancel, U32),
+    GoalResult: st.builds(GoalResult, U32, U16, st.none() | fields, text(max_size=100)),
+    RosLoss: st.builds(RosLoss, U32, U64),
+})
 PACKET_TYPES: tuple[type, ...] = Packet.__args__  # type: ignore[attr-defined]
 packets: st.SearchStrategy[Packet] = st.one_of(*packet_strategies.values())
 
@@ -140,6 +163,15 @@ SAMPLES: list[Packet] = [
     AuthChallenge(b"n" * 16, b"p" * 32),
     AuthProof(b"q" * 32),
     Bundle([Value(1, 44, -5, 1.5), Batch(2, 0, [1, 2], [None, "y"])]),
+    ServiceCall(1, "/arm/enable", "std_srvs/srv/SetBool", {"data": True}, 2000),
+    ServiceResult(1, 0, {"success": True, "message": ""}),
+    ServiceOffer(5, "/home", "std_srvs/srv/Trigger"),
+    ServiceRequest(5, 9, {}),
+    ServiceReply(5, 9, 0, {"success": True, "message": "homed"}),
+    GoalSend(6, "/fibonacci", "test_msgs/action/Fibonacci", {"order": 5}),
+    GoalCancel(6),
+    GoalResult(6, 4, {"sequence": [0, 1, 1, 2, 3, 5]}),
+    RosLoss(2, 17),
 ]
 
 

@@ -73,4 +73,5 @@ def test_codes_are_stable() -> None:
         "UNKNOWN_CHANNEL": 14, "CHANNEL_IN_USE": 15, "BAD_TOPIC": 16, "PACKAGE_MISSING": 17,
         "LIMIT": 20, "AUTH_FAILED": 21, "NOT_ALLOWED": 22, "TRANSPORT_DISABLED": 23,
         "SHUTTING_DOWN": 30, "INTERNAL": 31,
+        "NO_SERVICE": 40, "TIMEOUT": 41, "SERVICE_FAILED": 42, "GOAL_REJECTED": 43,
     }

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
 Reliability = Literal["reliable", "best_effort"]
+Durability = Literal["volatile", "transient_local", "match"]
 
 #: Called with a batch of values, in order. Adapters may call it from any thread (the ROS 2
 #: adapter calls it from its executor thread); the server hops to its event loop itself.
@@ -29,6 +30,10 @@ class QoS:
 
     reliability: Reliability = "reliable"
     depth: int = 10
+    #: ``transient_local``: a publisher keeps its last ``depth`` values for late subscribers
+    #: (a latched topic) and a subscription asks for them. ``match``: a subscription takes
+    #: the durability and reliability of the publishers already on the topic.
+    durability: Durability = "volatile"
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,6 +78,10 @@ class Publisher(Protocol):
     def close(self) -> None:
         """Release the publisher; further publishes are a programming error."""
 
+    #: Values the middleware refused to take (the ROS 2 adapter's rmw errors); the server
+    #: reports them per channel as ``ros_lost``.
+    failed: int
+
 
 @runtime_checkable
 class Subscription(Protocol):
@@ -80,6 +89,52 @@ class Subscription(Protocol):
 
     def close(self) -> None:
         """Stop delivering; after it returns the callback is not called again."""
+
+    #: Messages the middleware lost before delivering them (ROS 2: a full subscription
+    #: queue, counted from sequence gaps); the server reports them per channel as ``ros_lost``.
+    lost: int
+
+
+class ServiceReply(Protocol):
+    """How a provided service answers one request: exactly once, from any thread.
+
+    ``send`` raises :class:`BindingError` (``BAD_VALUE``) for a response that does not fit
+    the service's response type; the request then stays open for another answer or ``fail``.
+    """
+
+    def send(self, response: dict[str, Any]) -> None:
+        """Answer with ``response`` (a dict of the response type's fields)."""
+
+    def fail(self, reason: str) -> None:
+        """The provider could not answer; the caller gets ``SERVICE_FAILED`` (or, on ROS 2,
+        which has no error reply, no answer: its own timeout)."""
+
+
+#: Called with a request (a dict) and its reply; may run on any thread and must not block.
+ServiceHandler = Callable[[dict[str, Any], ServiceReply], None]
+
+
+@runtime_checkable
+class ServiceServer(Protocol):
+    """A service provided through the middleware, until closed."""
+
+    def close(self) -> None:
+        """Stop serving; requests not answered yet fail (or, on ROS 2, go unanswered)."""
+
+
+#: Called with each feedback message of a goal (a dict), on any thread.
+GoalFeedback = Callable[[dict[str, Any]], None]
+#: Called once when a goal ends: its final status (``GoalStatus``: 4 succeeded, 5 canceled,
+#: 6 aborted) and its result (a dict), on any thread.
+GoalDone = Callable[[int, dict[str, Any]], None]
+
+
+@runtime_checkable
+class GoalHandle(Protocol):
+    """An accepted action goal."""
+
+    def cancel(self) -> None:
+        """Ask the action server to cancel it; the result then says whether it did."""
 
 
 @runtime_checkable
@@ -108,6 +163,36 @@ class MiddlewareAdapter(Protocol):
 
     def topics(self) -> list[tuple[str, str]]:
         """The topics the middleware knows now, as ``(name, msg_type)`` sorted by name."""
+
+    def call_service(
+        self, service: str, srv_type: str, request: dict[str, Any], timeout: float
+    ) -> dict[str, Any]:
+        """Call ``service`` and wait (at most ``timeout`` s) for the response; blocking.
+
+        Raises :class:`BindingError`: ``UNKNOWN_TYPE`` (no such service type), ``BAD_VALUE``
+        (the request does not fit it), ``BAD_TOPIC`` (not a service name), ``NO_SERVICE``
+        (no server within the timeout), ``TIMEOUT`` (a server, but no answer) or
+        ``SERVICE_FAILED`` (the server said it failed).
+        """
+
+    def serve_service(
+        self, service: str, srv_type: str, handler: ServiceHandler
+    ) -> ServiceServer:
+        """Provide ``service``: ``handler`` gets each request; raise ``BindingError`` if not."""
+
+    def services(self) -> list[tuple[str, str]]:
+        """The services the middleware knows now, as ``(name, srv_type)`` sorted by name."""
+
+    def send_goal(
+        self, action: str, action_type: str, goal: dict[str, Any], feedback: GoalFeedback,
+        done: GoalDone, timeout: float,
+    ) -> GoalHandle:
+        """Send an action goal; blocks until it is accepted (at most ``timeout`` s).
+
+        Raises :class:`BindingError`: ``UNKNOWN_TYPE``, ``BAD_VALUE``, ``NO_SERVICE`` (no
+        action server), ``TIMEOUT``, ``GOAL_REJECTED``. Feedback and the end come through
+        the callbacks.
+        """
 
     def close(self) -> None:
         """Close every publisher and subscription and release the middleware."""

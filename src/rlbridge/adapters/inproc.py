@@ -12,11 +12,23 @@ Only when they bind different fields of one type is each value rebuilt through a
 from __future__ import annotations
 
 import threading
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from rlbridge.adapters.base import BindingError, QoS, ValuesCallback, ValueSpec
+from rlbridge.adapters.base import (
+    BindingError,
+    GoalDone,
+    GoalFeedback,
+    GoalHandle,
+    QoS,
+    ServiceHandler,
+    ServiceServer,
+    ValuesCallback,
+    ValueSpec,
+)
+from rlbridge.adapters.inproc_services import InProcessServices
 from rlbridge.adapters.msgtypes import TypeRegistry, get_path, split_path, with_path
 
 _Convert = Callable[[Sequence[Any]], Sequence[Any]]
@@ -48,6 +60,8 @@ class _Subscriber:
     callback: ValuesCallback
     topic: _Topic
     closed: bool = False
+    #: Synchronous delivery loses nothing (the Subscription Protocol's counter).
+    lost: int = 0
 
     def close(self) -> None:
         self.topic.remove_subscriber(self)
@@ -58,10 +72,16 @@ class _Publisher:
     spec: ValueSpec
     topic: _Topic
     closed: bool = False
+    #: The bus refuses nothing it validated (the Publisher Protocol's counter).
+    failed: int = 0
+    #: ``transient_local`` publishers keep their last ``depth`` values for late subscribers.
+    latched: deque[Any] | None = None
 
     def publish(self, values: Sequence[Any]) -> None:
         if self.closed:
             raise RuntimeError(f"publisher on {self.topic.name} is closed")
+        if self.latched is not None:
+            self.latched.extend(values)
         self.topic.deliver(self.spec, values)
 
     def close(self) -> None:
@@ -78,19 +98,22 @@ class _Topic:
     bus: InProcessBus
     subscribers: tuple[_Subscriber, ...] = ()
     publishers: int = 0
+    latching: list[_Publisher] = field(default_factory=list)
     converters: dict[tuple[str | None, str | None], _Convert] = field(default_factory=dict)
 
     def deliver(self, spec: ValueSpec, values: Sequence[Any]) -> None:
         if not values:
             return
         for sub in self.subscribers:  # a tuple: subscribe/close during delivery is safe
-            if sub.closed:
-                continue
-            key = (spec.field, sub.spec.field)
-            convert = self.converters.get(key)
-            if convert is None:
-                convert = self.converters[key] = _converter(spec, sub.spec, self.template)
-            sub.callback(values if convert is _same else convert(values))
+            if not sub.closed:
+                self.deliver_to(sub, spec, values)
+
+    def deliver_to(self, sub: _Subscriber, spec: ValueSpec, values: Sequence[Any]) -> None:
+        key = (spec.field, sub.spec.field)
+        convert = self.converters.get(key)
+        if convert is None:
+            convert = self.converters[key] = _converter(spec, sub.spec, self.template)
+        sub.callback(values if convert is _same else convert(values))
 
     def remove_subscriber(self, sub: _Subscriber) -> None:
         with self.bus.lock:
@@ -106,6 +129,8 @@ class _Topic:
                 return
             pub.closed = True
             self.publishers -= 1
+            if pub in self.latching:  # as in ROS: a latched value lives with its publisher
+                self.latching.remove(pub)
             self.bus.forget_if_unused(self)
 
 
@@ -119,6 +144,8 @@ class InProcessBus:
         self.lock = threading.Lock()
         self._topics: dict[str, _Topic] = {}
         self._closed = False
+        #: Services provided by clients (through the server); see :mod:`.inproc_services`.
+        self.service_table = InProcessServices()
 
     def resolve(self, msg_type: str, field: str | None) -> ValueSpec:
         return self.registry.resolve(msg_type, field)
@@ -145,10 +172,16 @@ class InProcessBus:
         self, topic: str, msg_type: str, field: str | None, qos: QoS
     ) -> _Publisher:
         spec = self.resolve(msg_type, field)
+        if qos.durability == "match":
+            raise BindingError("BAD_VALUE", "durability 'match' is for subscriptions")
         with self.lock:
             t = self._topic(topic, spec)
             t.publishers += 1
-        return _Publisher(spec, t)
+            pub = _Publisher(spec, t)
+            if qos.durability == "transient_local":
+                pub.latched = deque(maxlen=max(1, qos.depth))
+                t.latching.append(pub)
+        return pub
 
     def subscribe(
         self, topic: str, msg_type: str, field: str | None, qos: QoS, callback: ValuesCallback
@@ -158,11 +191,38 @@ class InProcessBus:
             t = self._topic(topic, spec)
             sub = _Subscriber(spec, callback, t)
             t.subscribers = (*t.subscribers, sub)
+            # transient_local (or matching a latched publisher): the values kept so far first
+            history = [(p.spec, list(p.latched)) for p in t.latching
+                       if p.latched and qos.durability != "volatile"]
+        for pub_spec, values in history:
+            t.deliver_to(sub, pub_spec, values)
         return sub
 
     def topics(self) -> list[tuple[str, str]]:
         with self.lock:
             return sorted((t.name, t.msg_type) for t in self._topics.values())
+
+    def call_service(
+        self, service: str, srv_type: str, request: dict[str, Any], timeout: float
+    ) -> dict[str, Any]:
+        return self.service_table.call(service, srv_type, request, timeout)
+
+    def serve_service(
+        self, service: str, srv_type: str, handler: ServiceHandler
+    ) -> ServiceServer:
+        if self._closed:
+            raise BindingError("INTERNAL", "the in-process bus is closed")
+        return self.service_table.serve(service, srv_type, handler)
+
+    def services(self) -> list[tuple[str, str]]:
+        return self.service_table.listing()
+
+    def send_goal(
+        self, action: str, action_type: str, goal: dict[str, Any], feedback: GoalFeedback,
+        done: GoalDone, timeout: float,
+    ) -> GoalHandle:
+        raise BindingError("NO_SERVICE", f"no action server for '{action}': the in-process "
+                           "bus has no actions (serve with --adapter ros2)")
 
     def forget_if_unused(self, topic: _Topic) -> None:
         """Drop a topic nobody uses any more (ROS forgets it too); the caller holds the lock."""
@@ -177,6 +237,7 @@ class InProcessBus:
                     sub.closed = True
                 t.subscribers = ()
             self._topics.clear()
+        self.service_table.clear()
 
 
 def _check_topic_name(topic: str) -> None:

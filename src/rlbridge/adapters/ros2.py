@@ -29,7 +29,18 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
-from rlbridge.adapters.base import BindingError, QoS, ValuesCallback, ValueSpec
+from rlbridge.adapters.base import (
+    BindingError,
+    GoalDone,
+    GoalFeedback,
+    GoalHandle,
+    QoS,
+    ServiceHandler,
+    ServiceServer,
+    ValuesCallback,
+    ValueSpec,
+)
+from rlbridge.adapters.ros2_actions import Ros2Actions
 from rlbridge.adapters.ros2_endpoints import MAX_BATCH, Ros2Publisher, Ros2Subscription
 from rlbridge.adapters.ros2_rclpy import (
     Context,
@@ -37,7 +48,8 @@ from rlbridge.adapters.ros2_rclpy import (
     Node,
     SingleThreadedExecutor,
 )
-from rlbridge.adapters.ros2_topics import TopicClaims, creation_error, qos_profile
+from rlbridge.adapters.ros2_services import Ros2Services
+from rlbridge.adapters.ros2_topics import TopicClaims, creation_error, matching, qos_profile
 from rlbridge.adapters.ros2_types import MessageCatalog
 
 __all__ = ["JOIN_TIMEOUT_S", "MAX_BATCH", "ParameterValue", "Ros2Adapter", "Ros2Publisher",
@@ -70,7 +82,7 @@ class Ros2Adapter:
         domain_id: int | None = None,
     ) -> None:
         self.catalog = MessageCatalog()
-        self._lock = threading.RLock()
+        self.lock = threading.RLock()
         self._publishers: set[Ros2Publisher] = set()
         self._subscriptions: set[Ros2Subscription] = set()
         self._closed = False
@@ -89,6 +101,8 @@ class Ros2Adapter:
             )
             self._declare(parameters or {})
             self._claims = TopicClaims(self.node)
+            self._services = Ros2Services(self)
+            self._actions = Ros2Actions(self)
             self._executor = SingleThreadedExecutor(context=self._context)
             self._executor.add_node(self.node)
         except BaseException:
@@ -137,7 +151,7 @@ class Ros2Adapter:
     ) -> Ros2Publisher:
         codec = self.catalog.channel(msg_type, field)
         profile = qos_profile(qos)
-        with self._lock, self._claimed(topic, codec.spec.msg_type) as full:
+        with self.lock, self._claimed(topic, codec.spec.msg_type) as full:
             ros = self.node.create_publisher(codec.msg_cls, full, profile)
             pub = Ros2Publisher(self, full, codec, ros)
             self._publishers.add(pub)
@@ -152,8 +166,11 @@ class Ros2Adapter:
         callback: ValuesCallback,
     ) -> Ros2Subscription:
         codec = self.catalog.channel(msg_type, field)
+        if qos.durability == "match":
+            qos = matching(qos, self.node.get_publishers_info_by_topic(
+                self.full_topic_name(topic)))
         profile = qos_profile(qos)
-        with self._lock, self._claimed(topic, codec.spec.msg_type) as full:
+        with self.lock, self._claimed(topic, codec.spec.msg_type) as full:
             sub = Ros2Subscription(self, full, codec, callback)
             sub.ros = self.node.create_subscription(codec.msg_cls, full, sub.on_message, profile)
             self._subscriptions.add(sub)
@@ -161,7 +178,7 @@ class Ros2Adapter:
 
     def topics(self) -> list[tuple[str, str]]:
         """The ROS graph's topics as this node sees them, plus this adapter's own bindings."""
-        with self._lock:
+        with self.lock:
             if self._closed:
                 return []
             found = {
@@ -172,9 +189,29 @@ class Ros2Adapter:
             found.update(self._claims.bound())
         return sorted(found)
 
+    def call_service(
+        self, service: str, srv_type: str, request: dict[str, Any], timeout: float
+    ) -> dict[str, Any]:
+        return self._services.call(service, srv_type, request, timeout)
+
+    def serve_service(
+        self, service: str, srv_type: str, handler: ServiceHandler
+    ) -> ServiceServer:
+        return self._services.serve(service, srv_type, handler)
+
+    def services(self) -> list[tuple[str, str]]:
+        with self.lock:
+            return [] if self._closed else self._services.listing()
+
+    def send_goal(
+        self, action: str, action_type: str, goal: dict[str, Any], feedback: GoalFeedback,
+        done: GoalDone, timeout: float,
+    ) -> GoalHandle:
+        return self._actions.send_goal(action, action_type, goal, feedback, done, timeout)
+
     def close(self) -> None:
         """Stop every endpoint, stop and join the executor thread, destroy node and context."""
-        with self._lock:
+        with self.lock:
             if self._closed:
                 return
             self._closed = True
@@ -182,6 +219,8 @@ class Ros2Adapter:
             self._subscriptions.clear()
             self._publishers.clear()
             self._claims.clear()
+            self._services.clear()
+            self._actions.clear()
         for sub in subscriptions:
             sub.stop()
         for pub in publishers:
@@ -200,6 +239,21 @@ class Ros2Adapter:
         """Expand ``topic`` against the node (relative names get the namespace) and check it."""
         return self._claims.full_name(topic)
 
+    def check_open(self) -> None:
+        """Raise the ``BindingError`` of a closed adapter (called under the lock)."""
+        if self._closed:
+            raise BindingError("INTERNAL", "the ros2 adapter is closed")
+
+    def release_service(self, provider: Any) -> None:
+        """Destroy a provided service (from its ``close()``)."""
+        with self.lock:
+            if provider not in self._services.providers:
+                return
+            self._services.providers.discard(provider)
+        ros = provider.ros
+        if ros is not None:
+            self._on_executor_thread(lambda: self.node.destroy_service(ros))
+
     @contextlib.contextmanager
     def _claimed(self, topic: str, msg_type: str) -> Iterator[str]:
         """Claim ``topic`` for the endpoint created in the block; a failure there undoes it."""
@@ -217,24 +271,24 @@ class Ros2Adapter:
 
     def release_publisher(self, pub: Ros2Publisher) -> None:
         """Destroy a publisher (from its ``close()``), then forget its topic when unused."""
-        with self._lock:
+        with self.lock:
             if pub not in self._publishers:
                 return  # the adapter is closed (or closing) and destroys it with the node
             self._publishers.discard(pub)
         self._on_executor_thread(lambda: self.node.destroy_publisher(pub.ros))
-        with self._lock:
+        with self.lock:
             self._claims.release(pub.topic)
 
     def release_subscription(self, sub: Ros2Subscription) -> None:
         """Destroy a subscription (from its ``close()``), then forget its topic when unused."""
-        with self._lock:
+        with self.lock:
             if sub not in self._subscriptions:
                 return
             self._subscriptions.discard(sub)
         ros = sub.ros
         if ros is not None:
             self._on_executor_thread(lambda: self.node.destroy_subscription(ros))
-        with self._lock:
+        with self.lock:
             self._claims.release(sub.topic)
 
     def _on_executor_thread(self, action: Callable[[], object]) -> None:

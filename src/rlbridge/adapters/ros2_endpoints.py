@@ -10,6 +10,12 @@
   executor wake-up and one adapter callback with a batch, in order, instead of one per message
   (the thesis's "decode a complete packet at the moment it arrives", for the other direction).
   The server hops to its event loop itself.
+* Loss in the subscription's own queue (KEEP_LAST: a full queue drops its oldest message) is
+  counted exactly, from the sequence numbers rmw gives each message: every publisher numbers
+  its messages, so a gap between two messages of one publisher is that many messages lost
+  before this subscription took them (``lost``). Counting starts at the first message of
+  each publisher (a volatile subscription never sees what came before it matched). An rmw
+  that gives no sequence numbers (they are an rmw_fastrtps feature) leaves ``lost`` at 0.
 
 Both are created and destroyed by :class:`~rlbridge.adapters.ros2.Ros2Adapter`, which owns the
 node; an endpoint's ``close()`` stops it here and asks the adapter to destroy it.
@@ -121,6 +127,9 @@ class Ros2Subscription:
         self.delivered = 0
         self.batches = 0
         self.errors = 0
+        #: Messages lost before this subscription took them (sequence gaps; module doc).
+        self.lost = 0
+        self._last_seq: dict[bytes, int] = {}
         self._adapter = adapter
         self._msg_cls = codec.msg_cls
         self._decode = codec.decode
@@ -131,9 +140,13 @@ class Ros2Subscription:
         self._closed = False
         self.ros: RclpySubscription[Any] | None = None  # set by the adapter right after
 
-    def on_message(self, msg: Any) -> None:
-        """Executor thread: decode ``msg`` plus whatever is queued behind it, deliver once."""
+    def on_message(self, msg: Any, info: Any) -> None:
+        """Executor thread: decode ``msg`` plus whatever is queued behind it, deliver once.
+
+        Two parameters, so rclpy passes the message info (sequence numbers) too.
+        """
         try:
+            self._count_gap(info)
             batch = [self._decode(msg)]
             self._drain(batch)
             with self._lock:
@@ -159,9 +172,25 @@ class Ros2Subscription:
                     taken: tuple[Any, Any] | None = handle.take_message(cls, False)
                     if taken is None:
                         return
+                    self._count_gap(taken[1])
                     batch.append(decode(taken[0]))
         except InvalidHandle:  # destroyed by close() on another thread: deliver what we have
             return
+
+    def _count_gap(self, info: Any) -> None:
+        """Count the messages of this message's publisher that never reached us."""
+        try:
+            seq = info["publication_sequence_number"]
+            gid = info["publisher_gid"]["data"]
+        except (KeyError, TypeError):
+            return
+        if seq is None:
+            return
+        last = self._last_seq.get(gid)
+        if last is not None and seq > last + 1:
+            self.lost += seq - last - 1
+        if last is None or seq > last:
+            self._last_seq[gid] = seq
 
     def stop(self) -> bool:
         """Stop delivering (waits for a running callback); ``True`` if it was open."""

@@ -25,6 +25,7 @@ try:
         importlib.import_module("rosidl_generator_py")  # untyped; only its side effect counts
 
     from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.action.client import ActionClient as RclpyActionClient
     from rclpy.context import Context
     from rclpy.exceptions import InvalidHandle, InvalidTopicNameException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -32,6 +33,7 @@ try:
     from rclpy.node import Node
     from rclpy.publisher import Publisher as RclpyPublisher
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.service import Service as RclpyService
     from rclpy.subscription import Subscription as RclpySubscription
     from rclpy.validate_full_topic_name import validate_full_topic_name
 except ImportError as exc:  # pragma: no cover - exercised only where rclpy is missing
@@ -41,7 +43,8 @@ except ImportError as exc:  # pragma: no cover - exercised only where rclpy is m
 
 __all__ = [
     "Context", "DurabilityPolicy", "ExternalShutdownException", "HistoryPolicy", "InvalidHandle",
-    "InvalidTopicNameException", "Node", "QoSProfile", "RCLError", "RclpyPublisher",
-    "RclpySubscription", "ReliabilityPolicy", "SingleThreadedExecutor", "expand_topic_name",
-    "validate_full_topic_name",
+    "InvalidTopicNameException", "Node", "QoSProfile", "RCLError", "RclpyActionClient",
+    "RclpyPublisher",
+    "RclpyService", "RclpySubscription", "ReliabilityPolicy", "SingleThreadedExecutor",
+    "expand_topic_name", "validate_full_topic_name",
 ]

@@ -8,8 +8,9 @@ sends to the client as is.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from rlbridge.adapters.base import BindingError, QoS
 from rlbridge.adapters.ros2_rclpy import (
@@ -36,12 +37,39 @@ def creation_error(topic: str, msg_type: str, exc: RuntimeError) -> BindingError
     return BindingError(code, f"rclpy cannot bind '{topic}' as {msg_type}: {reason}")
 
 
-def qos_profile(qos: QoS) -> QoSProfile:
-    """The rclpy profile of a binding: KEEP_LAST(depth), volatile, reliable or best effort.
+_DURABILITY: Mapping[str, DurabilityPolicy] = {
+    "volatile": DurabilityPolicy.VOLATILE,
+    "transient_local": DurabilityPolicy.TRANSIENT_LOCAL,
+}
 
-    KEEP_LAST is what keeps a publisher from ever waiting on a slow reader; volatile matches
-    the bridge's model (a late joiner gets the next value, not history).
+
+def matching(qos: QoS, publishers: Sequence[Any]) -> QoS:
+    """``durability="match"``: the QoS a subscription needs to hear every publisher found,
+    as ``ros2 topic echo`` chooses it: transient local and reliable only if all of them are
+    (a transient-local reader does not match a volatile writer; a reliable reader does not
+    match a best-effort writer). No publisher yet: volatile, and the reliability asked for.
     """
+    if not publishers:
+        return QoS(qos.reliability, qos.depth, "volatile")
+    profiles = [p.qos_profile for p in publishers]
+    latched = all(p.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in profiles)
+    reliable = all(p.reliability == ReliabilityPolicy.RELIABLE for p in profiles)
+    return QoS("reliable" if reliable else "best_effort", qos.depth,
+               "transient_local" if latched else "volatile")
+
+
+def qos_profile(qos: QoS) -> QoSProfile:
+    """The rclpy profile of a binding: KEEP_LAST(depth), reliable or best effort, volatile
+    or transient local (``match`` is resolved by :func:`matching` first).
+
+    KEEP_LAST is what keeps a publisher from ever waiting on a slow reader; volatile is the
+    bridge's default model (a late joiner gets the next value, not history); transient local
+    makes a latched topic (a map, a robot description): a late joiner gets the last ``depth``.
+    """
+    durability = _DURABILITY.get(qos.durability)
+    if durability is None:
+        raise BindingError("BAD_VALUE", f"QoS durability '{qos.durability}' is not 'volatile' "
+                           "or 'transient_local' here")
     reliability = _RELIABILITY.get(qos.reliability)
     if reliability is None:
         raise BindingError(
@@ -53,7 +81,7 @@ def qos_profile(qos: QoS) -> QoSProfile:
         history=HistoryPolicy.KEEP_LAST,
         depth=qos.depth,
         reliability=reliability,
-        durability=DurabilityPolicy.VOLATILE,
+        durability=durability,
     )
 
 

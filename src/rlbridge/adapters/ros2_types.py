@@ -113,6 +113,15 @@ class MessageCatalog:
                 found = self._codecs[name] = self._build(*self.message_class(name))
             return found
 
+    def class_codec(self, name: str, cls: type[Any]) -> MessageCodec:
+        """The codec of a message class found another way (a service's request or response,
+        an action's goal), cached under ``name`` like the types found by name."""
+        with self._lock:
+            found = self._codecs.get(name)
+            if found is None:
+                found = self._codecs[name] = self._build(name, cls)
+            return found
+
     # -- channels
 
     def resolve(self, msg_type: str, field: str | None) -> ValueSpec:

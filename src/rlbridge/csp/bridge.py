@@ -23,6 +23,7 @@ from typing import Any, Literal
 
 from rlbridge.csp.auth import resolve_key
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
+from rlbridge.csp.bridge_services import ServiceMethods
 from rlbridge.csp.bridge_status import BridgeStatus
 from rlbridge.csp.channel import _MISSING
 from rlbridge.csp.connection import Connection, ConnectionClosed, Control
@@ -35,7 +36,7 @@ from rlbridge.csp.reconnect import Backoff, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
 from rlbridge.tls import client_tls
 from rlbridge.wire import RemoteError, TopicClose, TopicConnect
-from rlbridge.wire.packets import Reliability
+from rlbridge.wire.packets import Durability, Reliability
 
 log = logging.getLogger("rlbridge.client")
 
@@ -47,7 +48,7 @@ DEFAULT_SWITCH_INTERVAL: float | None = None
 holds a short one while it runs (``rlbridge.csp.gil``); measured in docs/gil.md."""
 
 
-class Bridge(BridgeStatus):
+class Bridge(BridgeStatus, ServiceMethods):
     """A session with a bridge server. Thread-safe for SRT code; see the module docstring."""
 
     def __init__(self, conn: Connection, send_loop: SendLoop,
@@ -65,6 +66,7 @@ class Bridge(BridgeStatus):
             conn, backoff, self._bind_again)
         conn.keep_alive = self._supervisor is not None
         conn.on_values = self._on_values
+        conn.on_ros_loss = self._on_ros_loss
         conn.on_link_change = self._events.emit
         conn.on_session_end = self._on_session_end
         conn.on_credit = self._feedback.on_credit
@@ -155,6 +157,7 @@ class Bridge(BridgeStatus):
         max_age_ms: int = 0,
         reliability: Reliability | None = None,
         depth: int = 10,
+        durability: Durability = "volatile",
         on_lost: OnLost = "hold",
         flow: bool | None = None,
     ) -> IncomingChannel:
@@ -163,9 +166,11 @@ class Bridge(BridgeStatus):
         Policies (docs/policies.md): ``redundancy=k`` (UDP) repeats the previous k values in
         each datagram; ``latest=True`` delivers the newest value instead of a backlog;
         ``max_age_ms`` drops values older than that on arrival (``health().expired``).
-        ``reliability`` (``"reliable"`` / ``"best_effort"``) and ``depth`` are the middleware
-        QoS of the server's subscription (ROS 2); ``None`` picks by transport: best effort
-        for UDP channels, reliable for TCP ones.
+        ``reliability`` (``"reliable"`` / ``"best_effort"``), ``depth`` and ``durability``
+        are the middleware QoS of the server's subscription (ROS 2); ``reliability=None``
+        picks by transport (best effort for UDP, reliable for TCP); ``durability=
+        "transient_local"`` receives a latched topic's last values, ``"match"`` copies the
+        QoS of the topic's publishers (as ``ros2 topic echo`` does).
 
         Non-blocking channels return the latest value on every read (or ``initial`` before the
         first one; with neither, ``NoValueYet``); blocking channels wait for a new value.
@@ -196,7 +201,7 @@ class Bridge(BridgeStatus):
             ack = self._conn.request_topic(TopicConnect(
                 ch_id, "subscribe", topic, msg_type, field, transport, buffer_size,
                 max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-                reliability=reliability, depth=depth, flow=flow))
+                reliability=reliability, depth=depth, flow=flow, durability=durability))
         except BaseException:
             with self._lock:
                 self._incoming.pop(ch_id, None)
@@ -220,6 +225,7 @@ class Bridge(BridgeStatus):
         max_age_ms: int = 0,
         reliability: Reliability | None = None,
         depth: int = 10,
+        durability: Durability = "volatile",
         max_rate_hz: float | None = None,
         adapt_rate: bool = False,
         flow: bool | None = None,
@@ -237,7 +243,9 @@ class Bridge(BridgeStatus):
         reports first-hop loss and raises it back (``health().rate_limit_hz``). ``flow``:
         send only what the topic's subscribers have room for (default: on for TCP channels
         that are not ``latest``; ``wait_writable()`` then paces a writer that must lose
-        nothing). docs/policies.md says what each promises.
+        nothing). docs/policies.md says what each promises. ``durability``
+        (``transient_local``: a latched topic, its last ``depth`` values kept for late
+        subscribers) is the publisher's middleware durability, as in :meth:`subscribe`.
         """
         flow = _flow(flow, transport, latest, True)
         ch_id = next(self._ids)
@@ -249,7 +257,8 @@ class Bridge(BridgeStatus):
         ack = self._conn.request_topic(TopicConnect(
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
             max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-            reliability=reliability, depth=depth, flow=flow, loss_report=True))
+            reliability=reliability, depth=depth, flow=flow, loss_report=True,
+            durability=durability))
         channel.bound(ack)
         with self._lock:
             self._outgoing[ch_id] = channel
@@ -334,7 +343,8 @@ class Bridge(BridgeStatus):
                 if outgoing is not None and credit is not None:
                     outgoing.on_credit(credit)
             except RemoteError as exc:
-                log.warning("channel %d (%s) not bound again: %s", req.channel, req.topic, exc)
+                name = req.topic if isinstance(req, TopicConnect) else getattr(req, "service", "")
+                log.warning("channel %d (%s) not bound again: %s", req.channel, name, exc)
                 with self._lock:
                     # Not ``a or b``: an empty channel is falsy (``len`` is its buffered count).
                     channel: IncomingChannel | OutgoingChannel | None = self._incoming.pop(

@@ -57,7 +57,7 @@ class IncomingChannel(Channel[Any]):
     __slots__ = ("_arrived", "_clock", "_credit_bell", "_credit_step", "_delivered",
                  "_jitter", "_link", "_max_age_ns", "_one_way", "_overtaken", "_tracker",
                  "channel_id", "credited", "expired", "field", "last_stamp_ns", "latest",
-                 "msg_type", "topic", "transport")  # fmt: skip
+                 "msg_type", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, blocking: bool, buffer_size: int,
@@ -70,6 +70,8 @@ class IncomingChannel(Channel[Any]):
                          initial=_MISSING if initial is _MISSING else (0, initial),
                          name=f"{topic} [{msg_type} {field or '<message>'}] in")
         self.channel_id = channel_id
+        #: The server's count of this channel's values lost on the ROS side (-1: none yet).
+        self.ros_lost = -1
         self.topic = topic
         self.msg_type = msg_type
         self.field = field
@@ -239,4 +241,5 @@ class IncomingChannel(Channel[Any]):
             values=self._delivered,
             clock_error_ns=self._clock.error_bound_ns,
             clock_offset_ns=self._clock.offset_ns,
+            ros_lost=self.ros_lost,
         )

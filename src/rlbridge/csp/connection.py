@@ -31,6 +31,7 @@ from rlbridge.csp.idle import PARK, IdleStrategy
 from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
+from rlbridge.csp.services import ServiceCalls
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.csp.session_owner import Control, LinkHandler, ValuesHandler
 from rlbridge.csp.stream_guard import StreamGuard
@@ -40,11 +41,13 @@ from rlbridge.wire import (
     ConnectAck,
     Disconnect,
     Error,
+    GoalSend,
     Hello,
     LossReport,
     Malformed,
     Packet,
     PacketCodec,
+    ServiceOffer,
     TopicAck,
     TopicConnect,
 )
@@ -97,6 +100,8 @@ class Connection:
         self.on_loss: Callable[[LossReport], None] | None = None
         #: How the receive thread waits for a readable socket (csp/idle.py).
         self.idle: IdleStrategy = PARK
+        #: ``(channel, ros_lost)``: the server's count of a channel's ROS-side loss (``RosLoss``).
+        self.on_ros_loss: Callable[[int, int], None] | None = None
         #: Called with the reason when a session ends (before any reconnect), and once more,
         #: with ``final=True``, when the connection is closed for good.
         self.on_session_end: Callable[[str, bool], None] | None = None
@@ -112,6 +117,8 @@ class Connection:
         self._generation = 0
         #: Control requests waiting for answers, and the bindings a new session makes again.
         self.requests = Requests(self)
+        #: Service calls in flight and the channels of provided services.
+        self.services: ServiceCalls = ServiceCalls(self)
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = socket.socketpair()
         #: The link state last reported through ``on_link_change``.
@@ -272,7 +279,7 @@ class Connection:
         assert self.ack is not None
         self.send_udp(self.codec.encode_datagram(packet, self.ack.token, self.udp_flags))
 
-    def request_topic(self, req: TopicConnect) -> TopicAck:
+    def request_topic(self, req: TopicConnect | ServiceOffer | GoalSend) -> TopicAck:
         """Send a topic-connect and wait for its answer; retransmit while the control is UDP.
 
         While the connection is reconnecting, waits for the next session (within ``timeout``);
@@ -289,7 +296,7 @@ class Connection:
                     ports[name] = sock.getsockname()[1]
         return ports
 
-    def bindings(self) -> list[TopicConnect]:
+    def bindings(self) -> list[TopicConnect | ServiceOffer | GoalSend]:
         """The acknowledged bindings, oldest first (to bind again after a reconnect)."""
         return self.requests.bindings()
 
@@ -303,9 +310,10 @@ class Connection:
             return self._state_changed.wait_for(lambda: self.up or self.closed.is_set(),
                                                 timeout) and self.up
 
-    def request_stats(self) -> dict[str, object]:
-        """Ask the server for its counters and topic list (``rlbridge stats``, ``topic list``)."""
-        return self.requests.stats()
+    def request_stats(self, ask: dict[str, object] | None = None) -> dict[str, object]:
+        """Ask the server for its counters and topic list (``rlbridge stats``, ``topic list``);
+        ``ask={"services": True}`` adds the service list."""
+        return self.requests.stats(ask)
 
     @property
     def link_state(self) -> LinkState:
@@ -347,6 +355,7 @@ class Connection:
         if self.on_session_end is not None:
             self.on_session_end(reason, final)
         self.requests.session_ended()
+        self.services.session_ended(final)
 
     def close(self) -> None:
         """Say goodbye, stop the receive thread, close the sockets; idempotent.

@@ -52,3 +52,7 @@ class ChannelHealth(msgspec.Struct, frozen=True, gc=False):
     #: ``TypeError``) and by the server (an ``Error(BAD_VALUE)`` counting them); server side,
     #: the values of a publish channel it refused.
     rejected: int = 0
+    #: Values lost on the middleware side of the server, as the server reports them
+    #: (``RosLoss``, every heartbeat period): incoming, messages its ROS subscription's
+    #: full queue dropped; outgoing, accepted values ROS refused. ``-1``: none reported yet.
+    ros_lost: int = -1

@@ -48,7 +48,7 @@ class OutgoingChannel:
                  "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
                  "_overtaken", "_refused", "_rejected", "_ring", "_space", "_within", "_writer",
                  "channel_id", "deferred", "field", "flow", "immediate", "latest", "msg_type",
-                 "pacing", "redundancy", "topic", "transport")  # fmt: skip
+                 "pacing", "redundancy", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
@@ -62,6 +62,8 @@ class OutgoingChannel:
         if max_age_ms < 0:
             raise ValueError(f"max_age_ms must be >= 0 (0: no limit), got {max_age_ms}")
         self.channel_id = channel_id
+        #: The server's count of this channel's values lost on the ROS side (-1: none yet).
+        self.ros_lost = -1
         self.topic = topic
         self.msg_type = msg_type
         self.field = field
@@ -318,7 +320,7 @@ class OutgoingChannel:
             expired=self._expired, values=ring.written,
             clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns,
             arrived=base_received + (hop.received if hop else 0) if reported else -1,
-            rate_limit_hz=rate, rejected=self._rejected + self._refused)
+            rate_limit_hz=rate, rejected=self._rejected + self._refused, ros_lost=self.ros_lost)
 
     @property
     def closed(self) -> bool:

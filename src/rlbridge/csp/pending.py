@@ -18,8 +18,10 @@ import msgspec
 
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.wire import (
+    GoalSend,
     LocalProtocolError,
     Packet,
+    ServiceOffer,
     Stats,
     TopicAck,
     TopicConnect,
@@ -46,29 +48,38 @@ class Requests:
         self._conn = conn
         self._pending: dict[int, _Pending] = {}
         #: Every binding the server acknowledged, by channel: what a new session binds again.
-        self._bindings: dict[int, TopicConnect] = {}
+        self._bindings: dict[int, TopicConnect | ServiceOffer | GoalSend] = {}
         self._stats_waiters: list[_Pending] = []
         self._lock = threading.Lock()
 
-    def topic(self, req: TopicConnect) -> TopicAck:
-        """See :meth:`rlbridge.csp.connection.Connection.request_topic`."""
+    def topic(self, req: TopicConnect | ServiceOffer | GoalSend) -> TopicAck:
+        """See :meth:`rlbridge.csp.connection.Connection.request_topic`.
+
+        A service offer binds a channel like a topic-connect (and is bound again after a
+        reconnect the same way); ``what`` names either in errors.
+        """
         conn = self._conn
+        what = (f"topic-connect for {req.topic}" if isinstance(req, TopicConnect)
+                else f"service offer of {req.service}" if isinstance(req, ServiceOffer)
+                else f"goal for {req.action}")
+        # A goal's answer waits for the action server (up to its timeout) on the server.
+        patience = conn.timeout + (req.timeout_ms / 1000 if isinstance(req, GoalSend) else 0)
         try:  # Structs are not validated when built: check locally, before the network
-            msgspec.convert(msgspec.to_builtins(req), TopicConnect)
+            msgspec.convert(msgspec.to_builtins(req), type(req))
         except msgspec.ValidationError as exc:
-            raise LocalProtocolError(f"invalid topic-connect for {req.topic!r}: {exc}") from None
+            raise LocalProtocolError(f"invalid {what}: {exc}") from None
         pending = _Pending(threading.Event())
         with self._lock:
             self._pending[req.channel] = pending
         try:
-            deadline = time.monotonic() + conn.timeout
+            deadline = time.monotonic() + patience
             while pending.answer is None:
                 if conn.closed.is_set():
                     raise ConnectionClosed(f"connection closed: {conn.close_reason}")
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise ConnectionFailed(
-                        f"no answer to the topic-connect for {req.topic} within {conn.timeout} s")
+                        f"no answer to the {what} within {patience:g} s")
                 if not conn.wait_up(left):
                     continue
                 pending.done.clear()
@@ -87,7 +98,7 @@ class Requests:
             raise error_from_code(answer.code, answer.reason, channel=answer.channel)
         raise ConnectionClosed(f"connection closed: {conn.close_reason}")
 
-    def stats(self) -> dict[str, object]:
+    def stats(self, ask: dict[str, object] | None = None) -> dict[str, object]:
         """See :meth:`rlbridge.csp.connection.Connection.request_stats`."""
         conn = self._conn
         if not conn.wait_up(conn.timeout):
@@ -96,7 +107,7 @@ class Requests:
         pending = _Pending(threading.Event())
         with self._lock:
             self._stats_waiters.append(pending)
-        conn.send_control(Stats())
+        conn.send_control(Stats(ask or {}))
         if not pending.done.wait(conn.timeout) or not isinstance(pending.answer, Stats):
             raise ConnectionFailed(f"no statistics from the server within {conn.timeout} s")
         return pending.answer.body
@@ -123,7 +134,7 @@ class Requests:
             for pending in self._pending.values():
                 pending.done.set()
 
-    def bindings(self) -> list[TopicConnect]:
+    def bindings(self) -> list[TopicConnect | ServiceOffer | GoalSend]:
         """See :meth:`rlbridge.csp.connection.Connection.bindings`."""
         with self._lock:
             return list(self._bindings.values())

@@ -29,11 +29,15 @@ from rlbridge.wire import (
     Disconnect,
     Error,
     FrameDecoder,
+    GoalResult,
     Heartbeat,
     LossReport,
     Malformed,
     Packet,
     RemoteProtocolError,
+    RosLoss,
+    ServiceRequest,
+    ServiceResult,
     Stats,
     TopicAck,
     TopicError,
@@ -219,6 +223,9 @@ class Receiver:
                 link.on_receive(now)
                 if conn.on_loss is not None:
                     conn.on_loss(packet)
+            case ServiceResult() | ServiceRequest() | GoalResult() | RosLoss():
+                link.on_receive(now)
+                self._service_packet(packet)
             case ConnectError():
                 conn.end_session(f"server ended the session: {packet.reason}", conn.generation)
             case Disconnect():
@@ -226,6 +233,20 @@ class Receiver:
                                  conn.generation)
             case _:
                 link.on_receive(now)
+
+    def _service_packet(self, packet: ServiceResult | ServiceRequest | GoalResult | RosLoss
+                        ) -> None:
+        """Services, goals and ROS-side loss (csp/services.py, csp/bridge_services.py)."""
+        conn = self._conn
+        if isinstance(packet, ServiceResult):
+            conn.services.on_result(packet)
+        elif isinstance(packet, ServiceRequest):
+            conn.services.on_request(packet)
+        elif isinstance(packet, GoalResult):
+            self._flush_values()  # the goal's feedback before its end
+            conn.services.on_goal_result(packet)
+        elif conn.on_ros_loss is not None:
+            conn.on_ros_loss(packet.channel, packet.ros_lost)
 
     def _gather(self, channel: int, first_seq: int, stamps: list[int],
                 values: list[object]) -> None:

@@ -20,9 +20,12 @@ from typing import TYPE_CHECKING, Literal, Protocol
 from rlbridge.wire import (
     ConnectAck,
     Error,
+    GoalResult,
     LossReport,
     Packet,
     PacketCodec,
+    ServiceRequest,
+    ServiceResult,
     Stats,
     TopicAck,
     TopicError,
@@ -35,7 +38,8 @@ if TYPE_CHECKING:
     from rlbridge.csp.stream_guard import StreamGuard
     from rlbridge.tls import ClientTls
 
-__all__ = ["Answers", "Control", "LinkHandler", "SessionOwner", "ValuesHandler"]
+__all__ = ["Answers", "Control", "LinkHandler", "ServiceAnswers", "SessionOwner",
+           "ValuesHandler"]
 
 #: The transport of the control packets (hello, topic-connect, stats requests).
 Control = Literal["tcp", "udp"]
@@ -51,6 +55,16 @@ class Answers(Protocol):
     def answer(self, packet: TopicAck | TopicError) -> None: ...
 
     def answer_stats(self, packet: Stats) -> None: ...
+
+
+class ServiceAnswers(Protocol):
+    """Where the receive thread hands service results, requests and goal results."""
+
+    def on_result(self, packet: ServiceResult) -> None: ...
+
+    def on_request(self, packet: ServiceRequest) -> None: ...
+
+    def on_goal_result(self, packet: GoalResult) -> None: ...
 
 
 class SessionOwner(Protocol):
@@ -108,6 +122,12 @@ class SessionOwner(Protocol):
 
     @property
     def requests(self) -> Answers: ...
+
+    @property
+    def services(self) -> ServiceAnswers: ...
+
+    @property
+    def on_ros_loss(self) -> Callable[[int, int], None] | None: ...
 
     @property
     def generation(self) -> int: ...

@@ -150,6 +150,7 @@ class Server:
             if metrics is not None:
                 await metrics.close()
             await self._shutdown(registry, tcp_server, udp_transport)
+            ctx.workers.shutdown(wait=False, cancel_futures=True)
             if self._adapter is None:
                 adapter.close()
             if install_signal_handlers:

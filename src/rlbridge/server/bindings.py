@@ -170,7 +170,13 @@ class Inbound:
         return {"direction": "publish", "topic": self.request.topic,
                 "transport": self.request.transport, "values_in": self.values_in,
                 "bad_values": self.bad_values, "malformed": self.malformed,
-                "late": t.duplicates + t.stale, "lost": t.lost, "duplicates": t.duplicates}
+                "late": t.duplicates + t.stale, "lost": t.lost, "duplicates": t.duplicates,
+                "ros_lost": self.ros_lost}
+
+    @property
+    def ros_lost(self) -> int:
+        """Accepted values the middleware refused to take (never silently: counted here)."""
+        return getattr(self._publisher, "failed", 0)
 
     def close(self) -> None:
         if self.credit is not None:
@@ -206,6 +212,7 @@ class Outbound:
         self._latest = request.latest
         self._held: tuple[int, Any] | None = None
         self._timer: asyncio.TimerHandle | None = None
+        self._ros_lost = 0
         #: The client's credit and the backlog, for a flow-controlled channel (server/flow.py).
         self.credit: OutboundCredit | None = None
 
@@ -328,11 +335,17 @@ class Outbound:
         stats: dict[str, Any] = {
             "direction": "subscribe", "topic": self.request.topic,
             "transport": self.request.transport, "values_out": self.values_out,
-            "dropped": self.dropped}
+            "dropped": self.dropped, "ros_lost": self.ros_lost}
         if self.credit is not None:
             stats["backlog"] = self.credit.waiting
             stats["credit_limit"] = self.credit.limit
         return stats
+
+    @property
+    def ros_lost(self) -> int:
+        """Messages the middleware lost before the server's subscription took them."""
+        return self._ros_lost if self.subscription is None else getattr(
+            self.subscription, "lost", 0)
 
     def close(self) -> None:
         credit = self.credit
@@ -347,5 +360,6 @@ class Outbound:
             self._held = None
             self.dropped += 1
         if self.subscription is not None:
+            self._ros_lost = self.ros_lost
             self.subscription.close()
             self.subscription = None

@@ -32,6 +32,9 @@ def refusal(session: SessionOwner, req: TopicConnect) -> tuple[ErrorCode, str] |
         return ErrorCode.TRANSPORT_DISABLED, "TCP channel on a session without a TCP connection"
     if req.transport == "udp" and session.ctx.udp_transport is None:
         return ErrorCode.TRANSPORT_DISABLED, "this server runs without UDP (--no-udp)"
+    if req.durability == "match" and req.direction == "publish":
+        return ErrorCode.BAD_VALUE, ("durability 'match' is for subscribing (it copies the "
+                                     "publishers'); publish with 'volatile' or 'transient_local'")
     if len(req.topic) > cfg.max_topic_length:
         return ErrorCode.LIMIT, (f"topic name of {len(req.topic)} characters is longer than "
                                  f"the server's limit of {cfg.max_topic_length}")
@@ -51,7 +54,7 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
     """
     ctx = session.ctx
     default_rel: Reliability = "reliable" if req.transport == "tcp" else "best_effort"
-    qos = QoS(req.reliability or default_rel, req.depth)
+    qos = QoS(req.reliability or default_rel, req.depth, req.durability)
     adapter = ctx.adapter
     spec = adapter.resolve(req.msg_type, req.field)
     flow = ctx.flows.topic(req.topic) if wants_flow(req) else None

@@ -10,6 +10,7 @@ import asyncio
 import logging
 import ssl
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -52,6 +53,9 @@ class ServerContext:
     ledger: Ledger = field(default_factory=Ledger)
     #: Flow-controlled bindings by topic (server/flow.py): credit crosses sessions here.
     flows: FlowTable = field(default_factory=FlowTable)
+    #: Threads for blocking middleware work: service calls (server/services.py).
+    workers: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(
+        max_workers=32, thread_name_prefix="server-call"))
 
     def count(self, name: str, n: int = 1) -> None:
         """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""

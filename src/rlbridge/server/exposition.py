@@ -42,6 +42,8 @@ SERVER = {
                    "Values refused for not being of their channel's type."),
     "malformed": ("rlbridge_malformed_packets_total", "Packets of sessions that did not decode."),
     "errors_sent": ("rlbridge_errors_sent_total", "Error packets sent to clients."),
+    "ros_lost": ("rlbridge_values_ros_lost_total", "Values lost on the ROS side: messages a "
+                 "full subscription queue dropped, values ROS refused to take."),
     "handoff_dropped_batches": ("rlbridge_handoff_dropped_batches_total",
                                 "Middleware batches dropped on their way to the event loop."),
 }
@@ -65,6 +67,8 @@ CHANNEL = {
     "malformed": ("malformed_packets_total", "Packets for the channel that did not decode."),
     "expired": ("values_expired_total", "Values older than max_age_ms, dropped."),
     "overtaken": ("values_overtaken_total", "Values replaced by a newer one (latest)."),
+    "ros_lost": ("values_ros_lost_total", "Values lost on the ROS side: subscribe, messages "
+                 "the server's subscription queue dropped; publish, values ROS refused."),
 }
 #: Per channel gauges in nanoseconds, exposed in seconds: ns key -> (suffix, help).
 CHANNEL_SECONDS = {

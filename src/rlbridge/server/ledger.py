@@ -25,7 +25,7 @@ MAX_CHANNELS = 512
 SESSION_COUNTERS = ("packets_in", "bytes_in", "bytes_out", "malformed", "errors_sent")
 #: Channel counters that are totals; health numbers such as ``rtt_ns`` are gauges.
 CHANNEL_COUNTERS = ("values_in", "values_out", "dropped", "late", "lost", "duplicates",
-                    "bad_values", "malformed", "expired", "overtaken")
+                    "bad_values", "malformed", "expired", "overtaken", "ros_lost")
 
 ChannelKey = tuple[str, str, str, str]  # client, topic, direction, transport
 

@@ -11,16 +11,19 @@ from collections.abc import Sequence
 from typing import Any
 
 SERVER_KEYS = ("sessions", "sessions_opened", "values_in", "values_out", "dropped", "late",
-               "malformed", "bad_values", "errors_sent", "packets_in", "bytes_in", "bytes_out")
+               "malformed", "bad_values", "errors_sent", "packets_in", "bytes_in", "bytes_out",
+               "ros_lost")
 SESSION_COLUMNS = (("id", "session"), ("name", "name"), ("state", "state"),
                    ("rtt_us", "rtt_us"), ("pkts_in", "packets_in"),
                    ("bytes_in", "bytes_in"), ("bytes_out", "bytes_out"),
                    ("values_in", "values_in"), ("values_out", "values_out"),
-                   ("dropped", "dropped"), ("late", "late"), ("malformed", "malformed"))
+                   ("dropped", "dropped"), ("late", "late"), ("malformed", "malformed"),
+                   ("ros_lost", "ros_lost"))
 CHANNEL_COLUMNS = (("ch", "channel"), ("dir", "direction"), ("via", "transport"),
                    ("topic", "topic"), ("values_in", "values_in"),
                    ("values_out", "values_out"), ("dropped", "dropped"), ("late", "late"),
-                   ("malformed", "malformed"), ("bad_values", "bad_values"))
+                   ("malformed", "malformed"), ("bad_values", "bad_values"),
+                   ("ros_lost", "ros_lost"))
 
 
 def _cell(value: Any) -> str:

@@ -25,6 +25,7 @@ from rlbridge.server.context import ServerContext
 from rlbridge.server.loss_reports import LossReporter
 from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
+from rlbridge.server.reach import REACH_PACKETS, SessionReach
 from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
@@ -54,7 +55,7 @@ __all__ = ["CHANNEL_TOTALS", "Session"]
 log = logging.getLogger("rlbridge.server")
 
 #: Per-channel counters a session (and the server) also reports as totals.
-CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values")
+CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values", "ros_lost")
 
 TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
 
@@ -106,6 +107,8 @@ class Session:
                      else RateLimiter(cfg.max_rate, time.monotonic_ns()))
         self._loss = LossReporter()
         self._watchdog = SessionWatchdog(self)
+        #: Services, goals and ROS-side loss reports (server/reach.py).
+        self.reach = SessionReach(self)
 
     # -- transports ------------------------------------------------------------------------
     def attach_tcp(self, sink: PacketSink, close: Callable[[], None]) -> None:
@@ -188,7 +191,9 @@ class Session:
             case TopicClose(channel=ch):
                 self._close_channel(ch)
             case Stats():
-                self._send_stats(sink)
+                self._send_stats(sink, packet)
+            case _ if isinstance(packet, REACH_PACKETS):
+                self.reach.handle(packet, sink)
             case Disconnect():
                 self.close("client said goodbye", notify=False)
             case _:
@@ -275,6 +280,10 @@ class Session:
     def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
         ch = req.channel
         existing = self.inbound.get(ch) or self.outbound.get(ch)
+        if self.reach.owns(ch):
+            self.send_control(TopicError(ch, int(ErrorCode.CHANNEL_IN_USE),
+                                         f"channel {ch} is already connected"), via)
+            return
         if existing is not None and existing.request == req:
             # A retransmitted request (its ack was lost on UDP): answer it again.
             self.send_control(ack_for(existing), via)
@@ -298,6 +307,10 @@ class Session:
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
         self.send_control(ack_for(binding), via)
 
+    def report_loss(self) -> None:
+        """See :meth:`SessionReach.report_loss` (the watchdog's heartbeat calls it)."""
+        self.reach.report_loss()
+
     def loss_reports(self) -> list[LossReport]:
         """The first hop of every publish channel whose counts moved since the last report.
 
@@ -310,7 +323,8 @@ class Session:
         binding: Inbound | Outbound | None = self.inbound.pop(ch, None) or self.outbound.pop(
             ch, None)
         if binding is None:
-            self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
+            if not self.reach.withdraw(ch):
+                self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
         self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
         self._loss.forget(ch)
@@ -336,6 +350,7 @@ class Session:
             self.ctx.flows.release(binding.request.topic)
         self.inbound.clear()
         self.outbound.clear()
+        self.reach.close()
         if self._close_tcp is not None:
             self._close_tcp()
         log.log(session_level(self.name), "session %d (%s) closed: %s", self.id, self.name,
@@ -343,7 +358,7 @@ class Session:
         self._on_closed(self)
 
     # -- counters --------------------------------------------------------------------------
-    def _send_stats(self, sink: PacketSink | None) -> None:
+    def _send_stats(self, sink: PacketSink | None, ask: Stats | None = None) -> None:
         """Answer ``Stats``: this session, and over TCP every session and the server totals.
 
         A datagram cannot hold a thousand channels' counters, so a UDP control path gets this
@@ -351,6 +366,8 @@ class Session:
         """
         body: dict[str, Any] = {"session": self.stats(), "server": dict(self.ctx.counters),
                                 "topics": [list(t) for t in self.ctx.adapter.topics()]}
+        if ask is not None and ask.body.get("services"):
+            body["services"] = [list(t) for t in self.ctx.adapter.services()]
         if self.ctx.report is not None:
             report = self.ctx.report()
             body["server"] = report["server"]
@@ -370,7 +387,8 @@ class Session:
         """One dict per channel id (as a string: JSON keys); other counters go into these."""
         rtt = self.link.rtt_ns
         return {**{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.inbound.items()},
-                **{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.outbound.items()}}
+                **{str(c): {**b.stats(), **b.health(rtt)} for c, b in self.outbound.items()},
+                **self.reach.channel_stats()}
 
     def stats(self) -> dict[str, Any]:
         """This session's counters; value totals include channels already closed."""
@@ -395,6 +413,7 @@ class Session:
             "errors_sent": self.errors_sent,
             "topics_refused": self.topics_refused,
             **totals,
+            **self.reach.stats(),
             "channels": channels,
         }
 

@@ -1,4 +1,5 @@
-"""A session as its parts see it: what the watchdog and the topic-connects use of it.
+"""A session as its parts see it: what the watchdog, the topic-connects, the service calls and
+the goals use of it.
 
 :class:`~rlbridge.server.session.Session` routes packets and owns two parts: its watchdog
 (:mod:`rlbridge.server.watchdog`) and the decisions about what may be connected and what an
@@ -15,7 +16,7 @@ from typing import Protocol
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.context import ServerContext
 from rlbridge.server.sinks import PacketSink, UdpSink
-from rlbridge.wire import LossReport, Packet
+from rlbridge.wire import ErrorCode, LossReport, Packet
 from rlbridge.wire.link import LinkMonitor
 
 __all__ = ["SessionOwner"]
@@ -36,8 +37,16 @@ class SessionOwner(Protocol):
     identity: str | None
     topics_refused: int
 
+    id: int
+    name: str
+
     def close(self, reason: str, *, notify: bool = True) -> None: ...
 
     def send_control(self, packet: Packet, via: PacketSink | None = None) -> None: ...
+
+    def error(self, code: ErrorCode, reason: str, channel: int | None = None,
+              via: PacketSink | None = None) -> None: ...
+
+    def report_loss(self) -> None: ...
 
     def loss_reports(self) -> list[LossReport]: ...

@@ -67,6 +67,7 @@ class SessionWatchdog:
             for report in s.loss_reports() if sinks else ():
                 sinks[-1].send(report)
             self._tcp_bytes_at_heartbeat = self._tcp_traffic()
+            s.report_loss()
         self._arm()
 
     def _tcp_traffic(self) -> tuple[int, int]:

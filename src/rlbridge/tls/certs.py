@@ -79,6 +79,18 @@ def issue(common_name: str, *, names: Iterable[str] = (), ca: Issued | None = No
                .not_valid_before(start)
                .not_valid_after(start + datetime.timedelta(days=days))
                .add_extension(x509.BasicConstraints(ca=is_ca, path_length=None), critical=True))
+    # Key identifiers and key usage: Python 3.13 verifies with VERIFY_X509_STRICT, which refuses
+    # a chain without them ("Missing Authority Key Identifier").
+    issuer_key = ca.key.public_key() if ca else key.public_key()
+    builder = (builder
+               .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()),
+                              critical=False)
+               .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(issuer_key),
+                              critical=False)
+               .add_extension(x509.KeyUsage(
+                   digital_signature=True, content_commitment=False, key_encipherment=False,
+                   data_encipherment=False, key_agreement=False, key_cert_sign=is_ca,
+                   crl_sign=is_ca, encipher_only=False, decipher_only=False), critical=True))
     alt = _alt_names(names)
     if alt:
         builder = builder.add_extension(x509.SubjectAlternativeName(alt), critical=False)

@@ -31,6 +31,10 @@ class ErrorCode(IntEnum):
     TRANSPORT_DISABLED = 23
     SHUTTING_DOWN = 30
     INTERNAL = 31
+    NO_SERVICE = 40
+    TIMEOUT = 41
+    SERVICE_FAILED = 42
+    GOAL_REJECTED = 43
 
 
 class RlbridgeError(Exception):
@@ -108,6 +112,26 @@ class ServerShuttingDown(RemoteError):
     """The server is stopping; reconnect later."""
 
 
+class ServiceError(RemoteError):
+    """A service call failed; the subclass says how."""
+
+
+class NoServiceError(ServiceError):
+    """No server provides the service (within the call's timeout)."""
+
+
+class ServiceTimeout(ServiceError, TimeoutError):
+    """The service has a server, but it did not answer within the call's timeout."""
+
+
+class ServiceFailed(ServiceError):
+    """The server failed to answer (it said so, or its answer did not fit the type)."""
+
+
+class GoalRejected(ServiceError):
+    """The action server rejected the goal."""
+
+
 _BY_CODE: dict[int, type[RemoteError]] = {
     ErrorCode.UNKNOWN_TYPE: UnknownTypeError,
     ErrorCode.PACKAGE_MISSING: UnknownTypeError,
@@ -121,6 +145,10 @@ _BY_CODE: dict[int, type[RemoteError]] = {
     ErrorCode.AUTH_FAILED: AuthenticationFailed,
     ErrorCode.NOT_ALLOWED: AuthenticationFailed,
     ErrorCode.SHUTTING_DOWN: ServerShuttingDown,
+    ErrorCode.NO_SERVICE: NoServiceError,
+    ErrorCode.TIMEOUT: ServiceTimeout,
+    ErrorCode.SERVICE_FAILED: ServiceFailed,
+    ErrorCode.GOAL_REJECTED: GoalRejected,
 }
 
 

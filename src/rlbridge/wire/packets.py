@@ -28,6 +28,7 @@ Bytes32 = Annotated[bytes, msgspec.Meta(max_length=64)]
 Direction = Literal["subscribe", "publish"]
 Transport = Literal["tcp", "udp"]
 Reliability = Literal["reliable", "best_effort"]
+Durability = Literal["volatile", "transient_local", "match"]
 
 
 class _Packet(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=False):
@@ -91,6 +92,9 @@ class TopicConnect(_Packet, tag=4, frozen=True):
     flow: bool = False
     #: Publish: the client wants ``LossReport`` packets for this channel (first-hop counts).
     loss_report: bool = False
+    #: ``transient_local``: a latched topic (late subscribers get the last ``depth`` values);
+    #: ``match`` (subscribe only): the durability and reliability of the topic's publishers.
+    durability: Durability = "volatile"
 
 
 class TopicAck(_Packet, tag=5, frozen=True):
@@ -202,6 +206,99 @@ class AuthProof(_Packet, tag=15, frozen=True):
     proof: Mac
 
 
+ServiceName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
+
+
+class ServiceCall(_Packet, tag=20, frozen=True):
+    """Client -> server: call a middleware service; answered by one ``ServiceResult``.
+
+    ``call`` is the client's number for the call (its answer carries it back); ``request`` is
+    a map of the request type's fields; the server gives up after ``timeout_ms``.
+    """
+
+    call: U32
+    service: ServiceName
+    srv_type: TypeName
+    request: dict[str, Any]
+    timeout_ms: U32 = 5000
+
+
+class ServiceResult(_Packet, tag=21, frozen=True):
+    """Server -> client: the answer to ``ServiceCall`` ``call``: ``code`` 0 and ``response``,
+    or an error code (``NO_SERVICE``, ``TIMEOUT``, ``BAD_VALUE``, ...) and ``reason``."""
+
+    call: U32
+    code: U16 = 0
+    response: dict[str, Any] | None = None
+    reason: Reason = ""
+
+
+class ServiceOffer(_Packet, tag=22, frozen=True):
+    """Client -> server: provide ``service`` on channel ``channel`` (answered like a
+    topic-connect: ``TopicAck`` or ``TopicError``; ``TopicClose`` withdraws it)."""
+
+    channel: U32
+    service: ServiceName
+    srv_type: TypeName
+
+
+class ServiceRequest(_Packet, tag=23, frozen=True):
+    """Server -> client: a request to the service offered on ``channel``; answer it with a
+    ``ServiceReply`` carrying the same ``request_id``."""
+
+    channel: U32
+    request_id: U64
+    request: dict[str, Any]
+
+
+class ServiceReply(_Packet, tag=24, frozen=True):
+    """Client -> server: the response to ``request_id`` (``code`` 0), or the provider's failure
+    (``code`` ``SERVICE_FAILED`` and ``reason``)."""
+
+    channel: U32
+    request_id: U64
+    code: U16 = 0
+    response: dict[str, Any] | None = None
+    reason: Reason = ""
+
+
+class GoalSend(_Packet, tag=25, frozen=True):
+    """Client -> server: send an action goal; channel ``channel`` then carries its feedback
+    (``Value`` packets of dicts). Answered with ``TopicAck`` (accepted) or ``TopicError``
+    (``NO_SERVICE``, ``GOAL_REJECTED``, ...); the end comes as ``GoalResult``."""
+
+    channel: U32
+    action: ServiceName
+    action_type: TypeName
+    goal: dict[str, Any]
+    timeout_ms: U32 = 5000
+
+
+class GoalCancel(_Packet, tag=26, frozen=True):
+    """Client -> server: ask the action server to cancel the goal on ``channel``."""
+
+    channel: U32
+
+
+class GoalResult(_Packet, tag=27, frozen=True):
+    """Server -> client: the goal on ``channel`` ended: ``status`` as ROS 2's GoalStatus
+    (4 succeeded, 5 canceled, 6 aborted; 0 with ``reason``: lost) and its ``result``."""
+
+    channel: U32
+    status: U16
+    result: dict[str, Any] | None = None
+    reason: Reason = ""
+
+
+class RosLoss(_Packet, tag=28, frozen=True):
+    """Server -> client: the total of values of ``channel`` lost on the middleware side so
+    far (a ROS subscription's full queue, values rmw refused); sent when it grows, at most
+    once per heartbeat period. The client shows it as ``health().ros_lost``."""
+
+    channel: U32
+    ros_lost: U64
+
+
 # Tags of new packet kinds are allocated per line of work, so that parallel branches never
 # reuse a number (tags are the wire format): 16-19 security (TLS/AEAD/authorization),
 # 20-29 ROS 2 services/actions/parameters, 30-31 value rejection, 32-33 UDP bundles,
@@ -256,6 +353,8 @@ Packet = (
     Hello | ConnectAck | ConnectError | TopicConnect | TopicAck | TopicError | TopicClose
     | Value | Batch | Heartbeat | Disconnect | Error | Stats | AuthChallenge | AuthProof
     | Bundle | Credit | LossReport
+    | ServiceCall | ServiceResult | ServiceOffer | ServiceRequest | ServiceReply
+    | GoalSend | GoalCancel | GoalResult | RosLoss
 )
 
 #: Packets a value path carries; everything else is control.

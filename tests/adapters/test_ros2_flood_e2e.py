@@ -1,0 +1,120 @@
+"""No uncounted loss on the ROS side: the two floods of issue #16, every lost value counted.
+
+In a private network namespace (:mod:`reach_netns`), with real rclpy nodes:
+
+* node -> client: an rclpy node publishes a burst as fast as it can; the server's ROS
+  subscription has the default depth (10), so its queue overflows while the executor thread
+  is busy. Every message after the first one the server took is either delivered to the SDK
+  or counted in ``ros_lost`` (sequence gaps), in ``rlbridge stats`` and ``health()``.
+* client -> node: the SDK floods a TCP channel; the server hands each accepted value to
+  rclpy (or counts ROS's refusal in ``ros_lost``); the slow node receives each or sees its
+  gap (its own queue of 10 overflowing), counted by the node from the same sequence numbers.
+
+The assertions are sums that must hold whatever the timing; how much was lost is printed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+
+import pytest
+from reach_netns import World, world
+
+from rlbridge.csp.bridge import Bridge
+
+pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(240)]
+
+INT64 = "std_msgs/msg/Int64"
+N = 20_000
+
+
+@pytest.fixture(scope="module")
+def flood_world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
+    with world("flood", tmp_path_factory.mktemp("ros_log")) as made:
+        yield made
+
+
+@pytest.fixture
+def sdk(flood_world: World) -> Iterator[Bridge]:
+    bridge = flood_world.connect("flood-sdk")
+    try:
+        yield bridge
+    finally:
+        bridge.close()
+
+
+def channel_stats(bridge: Bridge, channel: int) -> dict[str, int]:
+    return bridge.server_stats()["session"]["channels"][str(channel)]
+
+
+def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
+    ch = sdk.subscribe("/flood/down", INT64, transport="tcp", blocking=True,
+                       buffer_size=4 * N)
+    peer = flood_world.peer("flood", "/flood/down", str(N), watch=r"^probes (\d+)")
+    try:
+        first = ch.read(timeout=60)  # a probe: the server's subscription is matched
+        assert first < 0
+        assert peer.proc.stdin is not None
+        peer.proc.stdin.write("go\n")
+        peer.proc.stdin.flush()
+        probes = int(peer.wait_ready().group(1))
+        received = [first]
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # until nothing more arrives for 2 s
+            got = ch.read_many()
+            if got:
+                received += got
+                continue
+            try:
+                received.append(ch.read(timeout=2.0))
+            except TimeoutError:
+                break
+    finally:
+        peer.stop()
+    stats = channel_stats(sdk, ch.channel_id)
+    expected = (probes + first) + N  # probes after the first one (-k), then the burst
+    lost = stats["ros_lost"]
+    print(f"node->client: {N} published, {len(received) - 1} delivered, {lost} lost in the "
+          "server's ROS subscription queue (depth 10)")
+    assert ch.health().overwritten == 0
+    assert stats["dropped"] == 0
+    assert (len(received) - 1) + lost == expected
+    assert received[-1] == N - 1 or lost > 0
+    deadline = time.monotonic() + 10  # the RosLoss report, once per heartbeat period
+    while ch.health().ros_lost != lost and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert ch.health().ros_lost == lost if lost else ch.health().ros_lost in (-1, 0)
+    totals = sdk.server_stats()["server"]
+    assert totals["ros_lost"] >= lost
+
+
+def test_client_to_node_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
+    node = flood_world.peer("count", "/flood/up", "10", str(N - 1), watch=r"^first (-?\d+)")
+    out = sdk.publish("/flood/up", INT64, transport="tcp", buffer_size=4 * N)
+    try:
+        probes = 0
+        while node.match is None and probes < 1200:  # until the node took one (discovery)
+            probes += 1
+            out.write(-probes)
+            time.sleep(0.05)
+        first = int(node.wait_ready().group(1))
+        for i in range(N):
+            out.write(i)
+        sdk.send(wait=True)
+        assert node.proc.wait(120) == 0, node.log
+    finally:
+        node.stop()
+    result = json.loads(node.lines[-1])
+    stats = channel_stats(sdk, out.channel_id)
+    handed = stats["values_in"] - stats["ros_lost"]
+    print(f"client->node: {N} written, {stats['values_in']} accepted by the server, "
+          f"{stats['ros_lost']} refused by ROS, {result['received']} received by the node, "
+          f"{result['gaps']} lost in the node's queue (depth 10)")
+    assert out.statistics().overwritten == 0
+    assert stats["values_in"] == probes + N
+    # Every value after the node's first: received by the node, or a gap the node counted.
+    after_first = (probes + first) + N
+    assert (result["received"] - 1) + result["gaps"] + stats["ros_lost"] == after_first
+    assert handed == stats["values_in"] - stats["ros_lost"]

@@ -1,0 +1,76 @@
+"""ROS-side loss counted through the real ROS 2 adapter, all the way to the client.
+
+One server with the ROS 2 adapter (in this process, on the ``ros_env`` domain), a second
+adapter as "another node" publishing a burst onto a topic an SDK channel subscribes to with
+the default depth (10). Every message after the first the server took is delivered to the
+client or counted in ``ros_lost``: in the server's stats, its metrics, ``rlbridge stats``'s
+table and the client's ``health()`` (the ``RosLoss`` report).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+import urllib.request
+from collections.abc import Callable
+
+import pytest
+
+from rlbridge.adapters.base import QoS
+from rlbridge.csp.bridge import Bridge
+from rlbridge.server import ServerThread
+from rlbridge.server.report import format_stats
+
+ros2 = pytest.importorskip("rlbridge.adapters.ros2", exc_type=ImportError)
+
+pytestmark = [pytest.mark.ros2, pytest.mark.timeout(120)]
+
+N = 5000
+
+
+def test_a_burst_is_delivered_or_counted(ros_env: int,
+                                         unique_topic: Callable[[str], str]) -> None:
+    topic = unique_topic("burst")
+    with ros2.Ros2Adapter("h16a_loss_server", domain_id=ros_env) as server_side, \
+            ros2.Ros2Adapter("h16a_loss_node", domain_id=ros_env) as node, \
+            ServerThread(adapter=server_side, metrics_port=0, heartbeat_ms=50,
+                         timeout_ms=5000) as srv, \
+            Bridge.connect("127.0.0.1", srv.port, name="loss", reconnect=False) as bridge:
+        ch = bridge.subscribe(topic, "std_msgs/msg/Int64", transport="tcp", blocking=True,
+                              buffer_size=4 * N)
+        pub = node.create_publisher(topic, "std_msgs/msg/Int64", "data", QoS(depth=N))
+        first = None
+        probes = 0
+        deadline = time.monotonic() + 30
+        while first is None and time.monotonic() < deadline:  # discovery
+            probes += 1
+            pub.publish([-probes])
+            with contextlib.suppress(TimeoutError):
+                first = ch.read(timeout=0.1)
+        assert first is not None
+        assert first < 0
+        pub.publish(list(range(N)))
+        received: list[int] = []
+        while True:
+            try:
+                received.append(ch.read(timeout=2.0))
+            except TimeoutError:
+                break
+        channel = bridge.server_stats()["session"]["channels"][str(ch.channel_id)]
+        lost = channel["ros_lost"]
+        print(f"{N} published in one go, {len(received)} delivered, {lost} counted lost")
+        # After the first message the server took: each probe (-k) and burst value delivered,
+        # or counted.
+        assert len(received) + lost == (probes + first) + N
+        assert [v for v in received if v >= 0] == sorted(v for v in received if v >= 0)
+        deadline = time.monotonic() + 10
+        while ch.health().ros_lost != lost and lost and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if lost:
+            assert ch.health().ros_lost == lost
+            assert "ros_lost" in format_stats(bridge.server_stats())
+            port = srv.server.address.metrics_port
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as r:
+                text = r.read().decode()
+            assert any(line.startswith("rlbridge_channel_values_ros_lost_total{")
+                       and line.endswith(f" {lost}") for line in text.splitlines()), text
