@@ -110,12 +110,10 @@ class Bridge(BridgeStatus, ServiceMethods):
         (docs/security.md): the key is ``psk`` (hex), else ``psk_file``, else
         ``$RLBRIDGE_PSK``; TLS is ``tls=True``, ``ca=``, ``fingerprint=`` (pin) or an
         ``ssl.SSLContext``; ``client_cert=(cert, key)`` for mutual TLS.
-        ``bundles=False``: one datagram per UDP channel both ways, not one per send round
-        (for a server older than bundles, docs/protocol.md 6.16).
-        ``idle``: how the send and receive threads wait for work (:mod:`rlbridge.csp.idle`):
-        ``"park"`` (block in the kernel), ``"spin"`` (poll 20 us, yield 200 us, then park),
-        ``"busy"`` (poll, never park), an ``IdleStrategy``, or a ``(send, receive)`` pair;
-        what each costs in latency and CPU: docs/concepts.md.
+        ``bundles=False``: a datagram per UDP channel, not a bundle per round (protocol.md 6.16).
+        ``idle``: how the send and receive threads wait (:mod:`rlbridge.csp.idle`): ``"park"``
+        (block in the kernel), ``"spin"`` (poll 20 us, yield 200 us, then park), ``"busy"``
+        (never park), an ``IdleStrategy`` or a ``(send, receive)`` pair; costs: docs/concepts.md.
         """
         send_idle, receive_idle = idle_pair(idle)
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
@@ -125,8 +123,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         secure = client_tls(tls, ca=ca, fingerprint=fingerprint, client_cert=client_cert)
         conn = Connection(host, port, name=name, nodelay=nodelay, control=control, timeout=timeout,
                           bundles=bundles)
-        conn.psk, conn.tls = key, secure
-        conn.idle = receive_idle
+        conn.psk, conn.tls, conn.idle = key, secure, receive_idle
         ack = conn.open()
         try:
             sender = SendLoop(conn, rate_hz=send_rate_hz, max_batch=ack.limits.max_batch,
