@@ -7,7 +7,8 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from rlbridge.server.context import ServerContext
-from rlbridge.server.session import CHANNEL_TOTALS, Session
+from rlbridge.server.session import Session
+from rlbridge.server.session_stats import CHANNEL_TOTALS
 from rlbridge.wire import PROTOCOL_VERSION, ConnectAck, ConnectError, ErrorCode, Hello, Limits
 
 #: Per-session counters the server also reports summed over all sessions, closed ones too.

@@ -26,6 +26,7 @@ from rlbridge.server.loss_reports import LossReporter
 from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.reach import REACH_PACKETS, SessionReach
+from rlbridge.server.session_stats import ChannelTotals, stats_reply
 from rlbridge.server.sinks import PacketSink, UdpSink
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
@@ -50,12 +51,9 @@ from rlbridge.wire.codec import PartlyMalformed
 from rlbridge.wire.link import LinkMonitor
 from rlbridge.wire.seal import SessionKeys
 
-__all__ = ["CHANNEL_TOTALS", "Session"]
+__all__ = ["Session"]
 
 log = logging.getLogger("rlbridge.server")
-
-#: Per-channel counters a session (and the server) also reports as totals.
-CHANNEL_TOTALS = ("values_in", "values_out", "dropped", "late", "bad_values", "ros_lost")
 
 TOPIC_CONNECT_TAG: int = TopicConnect.__struct_config__.tag  # type: ignore[assignment]
 
@@ -97,7 +95,7 @@ class Session:
         #: Topic-connects refused by the key file's rules (server/authz.py).
         self.topics_refused = 0
         #: Totals of channels closed before now, so a session's counters never go back.
-        self._retired: dict[str, int] = dict.fromkeys(CHANNEL_TOTALS, 0)
+        self._totals = ChannelTotals()
         self.closed = False
         #: Seals and opens this session's datagrams (the gate swaps in a SealedCodec).
         self.codec: PacketCodec = ctx.codec
@@ -235,7 +233,7 @@ class Session:
         binding = self.inbound.get(channel)
         if binding is None:
             n = 1 if isinstance(packet, Value) else len(packet.values)
-            self._retired["dropped"] += n
+            self._totals.retired["dropped"] += n
             self.ctx.count("dropped_unknown_channel", n)
             code = ErrorCode.UNKNOWN_CHANNEL
             what = "is bound for subscribing" if channel in self.outbound else "is not connected"
@@ -359,28 +357,13 @@ class Session:
 
     # -- counters --------------------------------------------------------------------------
     def _send_stats(self, sink: PacketSink | None, ask: Stats | None = None) -> None:
-        """Answer ``Stats``: this session, and over TCP every session and the server totals.
-
-        A datagram cannot hold a thousand channels' counters, so a UDP control path gets this
-        session's counters and the server's counters only.
-        """
-        body: dict[str, Any] = {"session": self.stats(), "server": dict(self.ctx.counters),
-                                "topics": [list(t) for t in self.ctx.adapter.topics()]}
-        if ask is not None and ask.body.get("services"):
-            body["services"] = [list(t) for t in self.ctx.adapter.services()]
-        if self.ctx.report is not None:
-            report = self.ctx.report()
-            body["server"] = report["server"]
-            if sink is not None and sink is self.tcp:
-                sessions = report["sessions"]
-                if not self.ctx.access.sees_all(self.identity):  # only its own (authz.py)
-                    sessions = [s for s in sessions if s["session"] == self.id]
-                body["sessions"] = sessions
-        self.send_control(Stats(body), sink)
+        reply = stats_reply(self.ctx, self.stats(), over_tcp=sink is not None and sink is self.tcp,
+                            sees_all=self.ctx.access.sees_all(self.identity),
+                            services=ask is not None and bool(ask.body.get("services")))
+        self.send_control(reply, sink)
 
     def _retire(self, channel: dict[str, Any]) -> None:
-        for key in CHANNEL_TOTALS:
-            self._retired[key] += channel.get(key, 0)
+        self._totals.retire(channel)
         self.ctx.ledger.retire_channel(self.name, channel)
 
     def channel_stats(self) -> dict[str, dict[str, Any]]:
@@ -395,10 +378,7 @@ class Session:
         now = time.monotonic_ns()
         link = self.link.stats(now)
         channels = self.channel_stats()
-        totals = dict(self._retired)
-        for channel in channels.values():
-            for key in CHANNEL_TOTALS:
-                totals[key] += channel.get(key, 0)
+        totals = self._totals.totals(channels)
         return {
             "session": self.id,
             "name": self.name,
