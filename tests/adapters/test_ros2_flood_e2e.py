@@ -22,6 +22,7 @@ from collections.abc import Iterator
 import pytest
 from reach_netns import World, world
 
+from conftest import JAZZY_LOSS_UNCOUNTED
 from rlbridge.csp.bridge import Bridge
 
 pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(240)]
@@ -49,6 +50,7 @@ def channel_stats(bridge: Bridge, channel: int) -> dict[str, int]:
     return bridge.server_stats()["session"]["channels"][str(channel)]
 
 
+@JAZZY_LOSS_UNCOUNTED
 def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
     ch = sdk.subscribe("/flood/down", INT64, transport="tcp", blocking=True,
                        buffer_size=4 * N)
