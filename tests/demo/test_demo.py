@@ -252,7 +252,8 @@ def test_demo_command_tracks_reports_states_and_writes_the_plot(scenarios: Proce
 
     for axis in ("pan", "tilt"):
         tracking = result["tracking"][axis]
-        assert tracking["samples"] >= 30, result["tracking"]
+        # ~150 on a quiet machine; a loaded one stretches the settling and the safe phase.
+        assert tracking["samples"] >= 10, result["tracking"]
         assert tracking["rms_mrad"] < TRACKS * STILL_RMS[axis] * 1e3, result["tracking"]
 
     # "--plot DIR/" for a DIR that did not exist: created, the default name inside it.

@@ -578,11 +578,13 @@ def test_watchdog_closes_a_silent_session() -> None:
 
 def test_answering_heartbeats_keeps_the_session() -> None:
     """Doc 11: a client heartbeating every period outlives many timeouts."""
-    with ServerThread(ServerConfig(port=0, heartbeat_ms=20, timeout_ms=100)) as srv, \
+    # Four timeouts long; a timeout of 500 ms, not 100, so that a loaded machine's stall of
+    # this process is not mistaken for a client that stopped answering.
+    with ServerThread(ServerConfig(port=0, heartbeat_ms=50, timeout_ms=500)) as srv, \
             Client(HOST, srv.port) as c:
         c.connect_tcp("alive", with_udp=False)
         assert not c.pump(lambda: c.tcp_eof or any(
-            p.tag == ic.TAG_DISCONNECT for p in c.backlog), timeout=0.4)
+            p.tag == ic.TAG_DISCONNECT for p in c.backlog), timeout=2.0)
         assert c.stats()["session"]["state"] == "connected"
 
 

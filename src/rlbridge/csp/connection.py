@@ -113,6 +113,9 @@ class Connection:
         self._state_lock = threading.Lock()
         self._state_changed = threading.Condition(self._state_lock)
         self._session_ended = False
+        #: Set by :meth:`close` before its goodbye: the server's hang-up that answers it is
+        #: not a lost link, and the session ends with the closing thread's reason.
+        self._closing = False
         self._handshaking = False
         self._generation = 0
         #: Control requests waiting for answers, and the bindings a new session makes again.
@@ -337,6 +340,8 @@ class Connection:
         with self._state_changed:
             if generation != self._generation or self.closed.is_set():
                 return
+            if self._closing and not final:
+                return
             was_up = self.state is ClientState.CONNECTED
             final = final or not self.keep_alive
             if not (was_up or final):
@@ -363,6 +368,8 @@ class Connection:
         Also aborts a reconnect handshake running in another thread: the sockets are then
         released by that thread when its handshake fails.
         """
+        with self._state_changed:
+            self._closing = True
         if self.up and self.ack is not None:
             with contextlib.suppress(OSError, ConnectionClosed):
                 self.send_control(Disconnect(0, "client closed"))
