@@ -12,11 +12,11 @@ A round with a single part goes out as that plain ``Value`` or ``Batch``, byte f
 sender without bundles writes; only two or more parts make a ``Bundle``. A peer that has not
 said it reads bundles (``bundles=False``) gets one datagram per part, as before.
 
-Without keys the bundle body is assembled from the parts' encodings (the prefix ``92 20``: a
-two-element array and tag 32, then the parts' array header), so each part is encoded exactly
-once; the bytes are the same as encoding a ``Bundle`` packet. A sealing codec seals the whole
-body, so it is given a ``Bundle`` packet to encode; its parts are encoded twice (once to
-measure them), the price of not knowing how the codec seals.
+The bundle body is assembled from the parts' encodings (the prefix ``92 20``: a two-element
+array and tag 32, then the parts' array header), so each part is encoded exactly once; the bytes
+are the same as encoding a ``Bundle`` packet. Without keys the datagram is the header and that
+body; a sealing codec seals the same body (``seal_body``), so sealing adds the AEAD and nothing
+else: no second encoding.
 
 A part larger than ``budget`` on its own is split when it is a batch (into consecutive batches
 that fit, the chunk length estimated once from the encoded size); a single value goes alone if
@@ -33,7 +33,8 @@ from collections.abc import Callable
 import msgspec
 
 from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC, PacketCodec
-from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Value
+from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Value
+from rlbridge.wire.seal import SealedCodec
 
 #: ``[32, parts]``: fixarray of 2, tag 32, then the parts' array: ``dc`` + u16 count (array16),
 #: or a fixarray ``0x90 | n`` when there are at most 15 parts.
@@ -69,11 +70,12 @@ class DatagramPacker:
         self.limit = budget if limit is None else limit
         self.bundles = bundles
         self._plain = type(codec) is PacketCodec
+        #: A sealing codec's ``seal_body`` (the datagram around an encoded body), else None.
+        self._seal = codec.seal_body if isinstance(codec, SealedCodec) else None
         self._header = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, flags, token)
         self._overhead = DATAGRAM_HEADER.size + (0 if self._plain else SEAL_MARGIN)
         self._encode = msgspec.msgpack.Encoder().encode
         self._bodies: list[bytes] = []
-        self._packets: list[ValuePacket] = []
         self._size = 0
         self._values = 0
         #: Datagrams handed to ``send``, and of those, bundles (two or more parts).
@@ -92,7 +94,7 @@ class DatagramPacker:
         if self._overhead + size > self.budget:
             return self._oversized(packet, body)
         if not self.bundles:
-            self._emit(body, packet)
+            self._emit(body)
             return 0
         bodies = self._bodies
         if bodies and (self._overhead + BUNDLE_OVERHEAD + self._size + size > self.budget
@@ -102,8 +104,6 @@ class DatagramPacker:
         bodies.append(body)
         self._size += size
         self._values += 1 if isinstance(packet, Value) else len(packet.values)
-        if not self._plain:
-            self._packets.append(packet)
         return 0
 
     def flush(self) -> None:
@@ -115,40 +115,36 @@ class DatagramPacker:
         bodies = self._bodies
         if not bodies:
             return
-        packets = self._packets
         self.discard()
         n = len(bodies)
         if n == 1:
-            self._emit(bodies[0], packets[0] if packets else None)
-        elif self._plain:
-            self.bundles_sent += 1
-            self.datagrams += 1
-            # The smallest array header, as msgspec writes it (the same bytes as encoding a
-            # Bundle): a fixarray up to 15 parts, else an array16.
-            count = _FIXARRAYS[n] if n < 16 else BUNDLE_PREFIX + _COUNT.pack(n)
+            self._emit(bodies[0])
+            return
+        self.bundles_sent += 1
+        self.datagrams += 1
+        # The smallest array header, as msgspec writes it (the same bytes as encoding a
+        # Bundle): a fixarray up to 15 parts, else an array16.
+        count = _FIXARRAYS[n] if n < 16 else BUNDLE_PREFIX + _COUNT.pack(n)
+        if self._seal is None:
             self._send(b"".join((self._header, count, *bodies)))
         else:
-            self.bundles_sent += 1
-            self.datagrams += 1
-            self._send(self.codec.encode_datagram(Bundle(packets), self.token, self._flags))
+            self._send(self._seal(b"".join((count, *bodies)), self.token, self._flags))
 
     def discard(self) -> int:
         """Forget what is gathered (the peer is gone); return how many values that was."""
         values = self._values
         self._bodies = []
-        self._packets = []
         self._size = 0
         self._values = 0
         return values
 
-    def _emit(self, body: bytes, packet: ValuePacket | None) -> None:
-        """One packet alone in a datagram (``packet`` is needed only by a sealing codec)."""
+    def _emit(self, body: bytes) -> None:
+        """One encoded packet alone in a datagram."""
         self.datagrams += 1
-        if self._plain:
+        if self._seal is None:
             self._send(self._header + body)
         else:
-            assert packet is not None
-            self._send(self.codec.encode_datagram(packet, self.token, self._flags))
+            self._send(self._seal(body, self.token, self._flags))
 
     def _oversized(self, packet: ValuePacket, body: bytes) -> int:
         """A part that does not fit ``budget`` alone: split a batch, send or refuse a value."""
@@ -166,5 +162,5 @@ class DatagramPacker:
         if self._overhead + len(body) > self.limit:
             return n
         self.flush()  # keep the order of parts
-        self._emit(body, packet)
+        self._emit(body)
         return 0
