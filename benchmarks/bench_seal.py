@@ -1,16 +1,21 @@
 """Per-datagram cost of sealing (counter + AEAD) next to plain datagrams, in the same run.
 
 Run: ``.venv/bin/python benchmarks/bench_seal.py [--repeats 7] [--number 20000]``. Prints a
-Markdown table (docs/security.md quotes it): median nanoseconds per datagram over interleaved
-repeats, for encode and decode of a one-value datagram and of a full ~1400-byte batch, plain vs
-sealed with ChaCha20-Poly1305 (what the protocol uses), and the AEAD alone for
-ChaCha20-Poly1305 and AES-256-GCM (the alternative considered).
+Markdown table (docs/security.md and docs/benchmarks.md quote it): median CPU nanoseconds per
+datagram (this thread's CPU clock, so waiting for a core under load is not counted) over
+interleaved repeats, plain vs sealed with ChaCha20-Poly1305, for the functions each end of the
+UDP value path runs per datagram: the sending side's ``DatagramPacker.add`` + ``flush`` (the
+SDK's send thread and the server's ``UdpSink`` alike), the server's decode (plain: the body
+after the checked header, as ``server/udp.py`` does; sealed: ``decode_datagram``), the SDK
+receive thread's ``decode_datagram``; the same for a full ~1400-byte batch; the replay window's
+check; and the AEAD alone for ChaCha20-Poly1305 and AES-256-GCM (the alternative considered).
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import os
 import statistics
 import time
@@ -20,7 +25,23 @@ from collections.abc import Callable
 from cryptography.hazmat.primitives.ciphers.aead import AESGCM, ChaCha20Poly1305
 
 from rlbridge.wire import Batch, PacketCodec, Value
-from rlbridge.wire.auth import SealedCodec
+from rlbridge.wire.auth import ReplayWindow, SealedCodec
+from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_BUNDLES
+
+
+def _pack(packer: DatagramPacker, packet: Value | Batch, sent: list[bytes]) -> None:
+    """What a send round does with one value packet: add, flush (one datagram)."""
+    packer.add(packet)
+    packer.flush()
+    sent.clear()
+
+
+def _server_decode(codec: PacketCodec, data: bytes) -> object:
+    """server/udp.py's decode of a live session's datagram (header already checked)."""
+    if type(codec) is PacketCodec:
+        return codec.decode_body(memoryview(data)[DATAGRAM_HEADER.size :])
+    return codec.decode_datagram(data)
 
 
 def cases() -> dict[str, tuple[Callable[[], object], Callable[[], object]]]:
@@ -31,19 +52,30 @@ def cases() -> dict[str, tuple[Callable[[], object], Callable[[], object]]]:
     one = Value(1, 42, 1_700_000_000_000_000_000, 1.2345)
     batch = Batch(1, 42, [1_700_000_000_000_000_000] * 76, [float(i) for i in range(76)])
     out: dict[str, tuple[Callable[[], object], Callable[[], object]]] = {}
+    sent: list[bytes] = []
+    plain_packer = DatagramPacker(plain, 7, 1400, sent.append, limit=65507, flags=FLAG_BUNDLES)
+    sealed_packer = DatagramPacker(sender, 7, 1400, sent.append, limit=65507,
+                                   flags=FLAG_BUNDLES)
     for label, packet in (("1 value", one), ("batch, 76 values", batch)):
-        plain_dgram = plain.encode_datagram(packet, 7)
-        sealed_dgram = sender.encode_datagram(packet, 7)
+        plain_dgram = plain.encode_datagram(packet, 7, FLAG_BUNDLES)
+        sealed_dgram = sender.encode_datagram(packet, 7, FLAG_BUNDLES)
         receiver = SealedCodec(key_b, key_a)
         receiver.window = _AlwaysNew()  # type: ignore[assignment]  # one datagram, replayed
-        out[f"encode, {label} ({len(plain_dgram)} B plain)"] = (
-            functools.partial(plain.encode_datagram, packet, 7),
-            functools.partial(sender.encode_datagram, packet, 7),
+        out[f"send: packer add + flush, {label} ({len(plain_dgram)} B plain)"] = (
+            functools.partial(_pack, plain_packer, packet, sent),
+            functools.partial(_pack, sealed_packer, packet, sent),
         )
-        out[f"decode, {label}"] = (
+        out[f"server receive: datagram -> packet, {label}"] = (
+            functools.partial(_server_decode, plain, plain_dgram),
+            functools.partial(_server_decode, receiver, sealed_dgram),
+        )
+        out[f"SDK receive: decode_datagram, {label}"] = (
             functools.partial(plain.decode_datagram, plain_dgram),
             functools.partial(receiver.decode_datagram, sealed_dgram),
         )
+    window, counters = ReplayWindow(), itertools.count(1)
+    out["replay window check (sealed only)"] = (
+        lambda: None, lambda: window.check(next(counters)))
     msg = plain.encode_datagram(one, 7)
     nonce, aad = bytes(12), msg[:12]
     chacha, gcm = ChaCha20Poly1305(key_a), AESGCM(key_a)
@@ -75,8 +107,8 @@ def main() -> None:
         a: list[float] = []
         b: list[float] = []
         for _ in range(args.repeats):  # interleaved: both see the same machine load
-            a.append(timeit.timeit(plain, number=args.number) / args.number * 1e9)
-            b.append(timeit.timeit(sealed, number=args.number) / args.number * 1e9)
+            a.append(_cpu_ns(plain, args.number))
+            b.append(_cpu_ns(sealed, args.number))
         ma, mb = statistics.median(a), statistics.median(b)
         print(f"| {name} | {ma:.0f} | {mb:.0f} | {mb - ma:+.0f} | {mb / ma:.2f} |")
     a_cold, b_cold = cold_hop(args.cold)
@@ -86,9 +118,14 @@ def main() -> None:
     print(f"\nload average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
 
 
+def _cpu_ns(call: Callable[[], object], number: int) -> float:
+    """CPU nanoseconds per call of ``call`` (this thread's clock: preemption not counted)."""
+    return timeit.Timer(call, timer=time.thread_time).timeit(number) / number * 1e9
+
+
 def cold_hop(samples: int) -> tuple[float, float]:
-    """Median ns of one datagram's encode + decode, plain and sealed, as a 1 kHz stream meets
-    them: 1 ms apart, with 8 MiB of other memory touched in between (the tight loops above
+    """Median CPU ns of one datagram's encode + decode, plain and sealed, as a 1 kHz stream
+    meets them: 1 ms apart, with 8 MiB of other memory touched in between (the tight loops above
     run with every cache warm, which a control stream's datagrams never find)."""
     key_a, key_b = os.urandom(32), os.urandom(32)
     plain, sender, receiver = PacketCodec(), SealedCodec(key_a, key_b), SealedCodec(key_b, key_a)
@@ -100,12 +137,12 @@ def cold_hop(samples: int) -> tuple[float, float]:
                 block[::4096] = b"\x01" * 256
             time.sleep(0.001)
             packet = Value(1, i, i, 1.5)
-            start = time.perf_counter_ns()
+            start = time.thread_time_ns()
             if name == "plain":
                 plain.decode_datagram(plain.encode_datagram(packet, 7))
             else:
                 receiver.decode_datagram(sender.encode_datagram(packet, 7))
-            samples_of.append(time.perf_counter_ns() - start)
+            samples_of.append(time.thread_time_ns() - start)
     return statistics.median(times["plain"]), statistics.median(times["sealed"])
 
 

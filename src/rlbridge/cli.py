@@ -17,12 +17,15 @@ from rlbridge.cli_options import (
     Host,
     Port,
     PskFileOpt,
+    TlsCertOpt,
+    TlsKeyOpt,
     TlsOpt,
     TransportOpt,
     check_log_level,
     checked_transport,
     configure_logging,
     option,
+    security,
 )
 from rlbridge.cli_topic import topic_app
 
@@ -140,6 +143,8 @@ def stats(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     psk_file: PskFileOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
     = False,
@@ -149,7 +154,7 @@ def stats(
     from rlbridge.server.report import format_stats
 
     with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+                        **security(tls, ca, fingerprint, tls_cert, tls_key, psk_file)) as bridge:
         body = bridge.server_stats()
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 

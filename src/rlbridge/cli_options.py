@@ -90,6 +90,27 @@ FingerprintOpt = Annotated[str | None, typer.Option(
 PskFileOpt = Annotated[str | None, typer.Option(
     "--psk-file", help="Key file in the server's format (this command's line, else the "
     "default line); without it $RLBRIDGE_PSK.")]
+TlsCertOpt = Annotated[str | None, typer.Option(
+    "--tls-cert", help="This client's TLS certificate (PEM), for a server started with "
+    "--tls-client-ca: mutual TLS, its common name is the client's identity (implies --tls; "
+    "needs --tls-key).")]
+TlsKeyOpt = Annotated[str | None, typer.Option(
+    "--tls-key", help="The key of --tls-cert (PEM).")]
+
+
+def security(tls: bool, ca: str | None, fingerprint: str | None, tls_cert: str | None,
+             tls_key: str | None, psk_file: str | None) -> dict[str, Any]:
+    """The client commands' security options as ``Bridge.connect`` keywords.
+
+    ``--tls-cert`` and ``--tls-key`` go together (else a one-line usage error, exit 2) and,
+    like ``--ca`` and ``--fingerprint``, turn TLS on.
+    """
+    if (tls_cert is None) != (tls_key is None):
+        raise fail("--tls-cert and --tls-key go together: give both for mutual TLS, or "
+                   "neither", 2)
+    return {"tls": tls or tls_cert is not None, "ca": ca, "fingerprint": fingerprint,
+            "client_cert": None if tls_cert is None else (tls_cert, tls_key),
+            "psk_file": psk_file}
 
 
 def checked_transport(value: str) -> str:

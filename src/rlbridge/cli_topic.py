@@ -23,10 +23,13 @@ from rlbridge.cli_options import (
     Host,
     Port,
     PskFileOpt,
+    TlsCertOpt,
+    TlsKeyOpt,
     TlsOpt,
     TransportOpt,
     checked_transport,
     option,
+    security,
 )
 
 topic_app = typer.Typer(help="Publish, echo, measure and list topics through a running server.",
@@ -56,6 +59,8 @@ def topic_pub(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     psk_file: PskFileOpt = None,
 ) -> None:
     """Publish VALUE on TOPIC through the bridge.
@@ -69,7 +74,7 @@ def topic_pub(
 
     parsed = _parse_value(value)
     with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+                        **security(tls, ca, fingerprint, tls_cert, tls_key, psk_file)) as bridge:
         out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport))  # type: ignore[arg-type]
         n = max(1, count) if rate > 0 else 1
         period = 1.0 / rate if rate > 0 else 0.0
@@ -101,13 +106,15 @@ def topic_echo(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     psk_file: PskFileOpt = None,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
     from rlbridge.csp.bridge import Bridge
 
     with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+                        **security(tls, ca, fingerprint, tls_cert, tls_key, psk_file)) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
                               transport=checked_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=4096)
@@ -159,6 +166,8 @@ def topic_hz(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     psk_file: PskFileOpt = None,
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
@@ -169,7 +178,7 @@ def topic_hz(
     from rlbridge.csp.errors import ChannelClosed
 
     with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+                        **security(tls, ca, fingerprint, tls_cert, tls_key, psk_file)) as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
                               transport=checked_transport(transport),  # type: ignore[arg-type]
                               blocking=True, buffer_size=65536)
@@ -216,6 +225,8 @@ def topic_list(
     tls: TlsOpt = False,
     ca: CaOpt = None,
     fingerprint: FingerprintOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     psk_file: PskFileOpt = None,
     show_types: Annotated[bool, option("--show-types", "Print types too.")]
     = False,
@@ -224,6 +235,6 @@ def topic_list(
     from rlbridge.csp.bridge import Bridge
 
     with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+                        **security(tls, ca, fingerprint, tls_cert, tls_key, psk_file)) as bridge:
         for name, msg_type in bridge.server_stats()["topics"]:
             typer.echo(f"{name} [{msg_type}]" if show_types else name)

@@ -7,6 +7,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from rlbridge.tls.certs import issue, make_ca
+
 
 def test_tls_init_serve_and_pin(cli: Any, cli_server: Callable[..., Any],
                                 tmp_path: Path) -> None:
@@ -71,3 +73,38 @@ def test_client_commands_take_the_servers_key_file(cli: Any, cli_server: Callabl
     missing = cli.run("stats", "-p", str(port))
     assert missing.returncode == 1
     assert "requires a pre-shared key" in missing.stderr
+
+
+def test_client_commands_take_a_client_certificate(cli: Any, cli_server: Callable[..., Any],
+                                                   tmp_path: Path) -> None:
+    """Mutual TLS from the command line: --tls-cert/--tls-key, as the server names them."""
+    ca = make_ca()
+    ca_file = tmp_path / "ca.crt"
+    ca.write(ca_file, tmp_path / "ca.key")
+    server_cert, server_key = tmp_path / "server.crt", tmp_path / "server.key"
+    issue("localhost", names=["127.0.0.1"], ca=ca).write(server_cert, server_key)
+    robot_cert, robot_key = tmp_path / "robot.crt", tmp_path / "robot.key"
+    issue("robot-7", ca=ca, client=True).write(robot_cert, robot_key)
+    rogue_cert, rogue_key = tmp_path / "rogue.crt", tmp_path / "rogue.key"
+    issue("robot-7", ca=make_ca("rogue"), client=True).write(rogue_cert, rogue_key)
+    port, _proc = cli_server("--tls-cert", str(server_cert), "--tls-key", str(server_key),
+                             "--tls-client-ca", str(ca_file))
+    ok = cli.run("stats", "--json", "-p", str(port), "--ca", str(ca_file),
+                 "--tls-cert", str(robot_cert), "--tls-key", str(robot_key))
+    assert ok.returncode == 0, ok.stderr
+    assert '"identity": "robot-7"' in ok.stdout
+    for cert, key in ((rogue_cert, rogue_key), (None, None)):
+        args = () if cert is None else ("--tls-cert", str(cert), "--tls-key", str(key))
+        bad = cli.run("topic", "list", "-p", str(port), "--ca", str(ca_file), *args)
+        assert bad.returncode == 1
+        assert bad.stderr.startswith("rlbridge: error: ")
+        assert bad.stderr.count("\n") == 1
+        assert "refused the TLS session" in bad.stderr, bad.stderr
+    half = cli.run("topic", "list", "-p", str(port), "--tls-cert", str(robot_cert))
+    assert half.returncode == 2
+    assert "--tls-key" in half.stderr
+    assert half.stderr.count("\n") == 1
+    # The server is unharmed: the right certificate still opens a session.
+    again = cli.run("topic", "list", "-p", str(port), "--ca", str(ca_file),
+                    "--tls-cert", str(robot_cert), "--tls-key", str(robot_key))
+    assert again.returncode == 0, again.stderr
