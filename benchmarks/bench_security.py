@@ -9,20 +9,28 @@ both read: with it every session is authenticated, its TCP stream travels as Cha
 records and its datagrams are sealed (docs/protocol.md section 16). Plain and keyed runs
 alternate within each repeat, so both see the same machine load; the report gives medians and
 the keyed/plain ratio per row (targets: throughput >= 0.8x, latency p50 within 10 %).
+
+A second table gives what TLS costs the TCP transport: batched throughput and 1 kHz latency
+(``TCP, nodelay``) of a server started with a certificate (``rlbridge tls init``'s) and clients
+that pin its fingerprint, against the plain column's TCP runs. ``--no-tls`` leaves it out.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 from rlbridge.bench import latency, throughput
 from rlbridge.bench.common import BenchError, Link, LoopbackLink
+from rlbridge.tls.certs import init_server
 from rlbridge.wire.auth import PSK_ENV
 
 
@@ -40,6 +48,43 @@ class KeyedLink:
     def popen(self, side: Any, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[bytes]:
         env = dict(kwargs.pop("env", None) or os.environ)
         env[PSK_ENV] = self._key
+        return self._inner.popen(side, argv, env=env, **kwargs)
+
+
+#: A client child's entry point with TLS: ``Bridge.connect`` pins the benchmark server's
+#: certificate (the roles call it without TLS options), then the usual ``worker_main``.
+_TLS_CHILD = (
+    "import os; from rlbridge.csp.bridge import Bridge; _connect = Bridge.connect\n"
+    "def connect(*args, **kwargs):\n"
+    "    kwargs.setdefault('fingerprint', os.environ['RLBRIDGE_BENCH_FINGERPRINT'])\n"
+    "    return _connect(*args, **kwargs)\n"
+    "Bridge.connect = connect\n"
+    "from rlbridge.bench.child import worker_main; worker_main()")
+
+
+class TlsLink:
+    """``inner`` whose server has a TLS certificate and whose clients pin its fingerprint."""
+
+    def __init__(self, inner: Link, cert: Path, key: Path, fingerprint: str) -> None:
+        self._inner = inner
+        self._files = {"tls_cert": str(cert), "tls_key": str(key)}
+        self._fingerprint = fingerprint
+        self.name = f"{inner.name} + TLS"
+
+    def address(self, side: Any) -> str:
+        return self._inner.address(side)
+
+    def popen(self, side: Any, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[bytes]:
+        # argv: python -c <entry> <module> <role> <json params> <lifetime> (bench/workers.py)
+        argv = list(argv)
+        if argv[4] == "server":
+            params = json.loads(argv[5])
+            params["config"] = {**params.get("config", {}), **self._files}
+            argv[5] = json.dumps(params)
+        else:
+            argv[2] = _TLS_CHILD
+        env = dict(kwargs.pop("env", None) or os.environ)
+        env["RLBRIDGE_BENCH_FINGERPRINT"] = self._fingerprint
         return self._inner.popen(side, argv, env=env, **kwargs)
 
 
@@ -72,51 +117,76 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=3.0, help="per throughput run")
     parser.add_argument("--batch", type=int, default=4096, help="write_many size")
     parser.add_argument("--samples", type=int, default=3000, help="per latency run (1 kHz)")
+    parser.add_argument("--no-tls", action="store_true", help="leave out the TLS table")
     args = parser.parse_args()
-    plain = _plain_link()
-    keyed = KeyedLink(LoopbackLink(), os.urandom(32).hex())
-    rows = [c for c in throughput.cases(args.batch) if c.key in ("rlb-tcp-batch",
-                                                                  "rlb-udp-batch")]
-    lat_case = next(c for c in latency.CASES if c.key == "rlb-udp")
+    with tempfile.TemporaryDirectory(prefix="rlbridge-bench-tls-") as tmp:
+        run(args, Path(tmp))
+
+
+def run(args: argparse.Namespace, tmp: Path) -> None:
+    tput_cases = {c.key: c for c in throughput.cases(args.batch)}
+    lat_cases = {c.key: c for c in latency.CASES}
+    udp_batch, tcp_batch = tput_cases["rlb-udp-batch"], tput_cases["rlb-tcp-batch"]
+    udp_lat, tcp_lat = lat_cases["rlb-udp"], lat_cases["rlb-tcp-nodelay"]
+    # What each column runs: (link, throughput rows, latency rows).
+    plan: dict[str, tuple[Link, list[throughput.Case], list[latency.Case]]] = {
+        "plain": (_plain_link(), [udp_batch, tcp_batch], [udp_lat]),
+        "keyed": (KeyedLink(LoopbackLink(), os.urandom(32).hex()), [udp_batch, tcp_batch],
+                  [udp_lat]),
+    }
+    if not args.no_tls:
+        cert, key, fingerprint = init_server(tmp / "tls")
+        plan["plain"][2].append(tcp_lat)
+        plan["tls"] = (TlsLink(LoopbackLink(), cert, key, fingerprint), [tcp_batch], [tcp_lat])
     tput: dict[tuple[str, str], list[float]] = {}
     cpu: dict[tuple[str, str], list[float]] = {}
-    p50: dict[str, list[float]] = {}
-    p99: dict[str, list[float]] = {}
-    retries: dict[str, int] = {"plain": 0, "keyed": 0}
+    p50: dict[tuple[str, str], list[float]] = {}
+    p99: dict[tuple[str, str], list[float]] = {}
+    retries = dict.fromkeys(plan, 0)
     load_before = os.getloadavg()
     for rep in range(args.repeats):
-        for name, link in (("plain", plain), ("keyed", keyed)):
-            for case in rows:
+        for name, (link, tput_rows, lat_rows) in plan.items():  # interleaved: same load
+            for case in tput_rows:
                 print(f"[{rep + 1}/{args.repeats}] {name} {case.label}", file=sys.stderr)
                 m = _retrying(lambda lk=link, c=case: throughput.measure(  # type: ignore[misc]
                     lk, c, count=50_000_000, seconds=args.seconds), retries, name)
                 tput.setdefault((case.key, name), []).append(m.rate)
                 cpu.setdefault((case.key, name), []).append(m.cpu["total"])
-            print(f"[{rep + 1}/{args.repeats}] {name} UDP 1 kHz latency", file=sys.stderr)
-            lm = _retrying(lambda lk=link: latency.measure(  # type: ignore[misc]
-                lk, lat_case, rate_hz=1000.0, count=args.samples), retries, name)
-            p50.setdefault(name, []).append(lm.p50)
-            p99.setdefault(name, []).append(lm.p99)
+            for lcase in lat_rows:
+                print(f"[{rep + 1}/{args.repeats}] {name} {lcase.label} 1 kHz latency",
+                      file=sys.stderr)
+                lm = _retrying(lambda lk=link, c=lcase: latency.measure(  # type: ignore[misc]
+                    lk, c, rate_hz=1000.0, count=args.samples), retries, name)
+                p50.setdefault((lcase.key, name), []).append(lm.p50)
+                p99.setdefault((lcase.key, name), []).append(lm.p99)
     load_after = os.getloadavg()
     print(f"Command: `{' '.join(['.venv/bin/python', *sys.argv])}`  ")
     print(f"Load average before {load_before[0]:.2f}, after {load_after[0]:.2f}; "
           f"medians of {args.repeats} interleaved repeats; runs repeated after a failure "
-          f"(a watchdog timeout under load): plain {retries['plain']}, keyed "
-          f"{retries['keyed']}.\n")
-    print("| path | plain | keyed (sealed) | keyed / plain |")
-    print("|---|---:|---:|---:|")
-    for case in rows:
-        a = statistics.median(tput[(case.key, "plain")])
-        b = statistics.median(tput[(case.key, "keyed")])
-        print(f"| {case.label}, values/s | {a:,.0f} | {b:,.0f} | {b / a:.2f} |")
-        a = statistics.median(cpu[(case.key, "plain")])
-        b = statistics.median(cpu[(case.key, "keyed")])
-        print(f"| {case.label}, CPU s per 1M values (3 processes) | {a:.2f} | {b:.2f} | "
-              f"{b / a:.2f} |")
-    for label, data in (("p50", p50), ("p99", p99)):
-        a, b = statistics.median(data["plain"]), statistics.median(data["keyed"])
-        print(f"| rlbridge UDP 1 kHz one-way latency {label}, us | {a:.0f} | {b:.0f} | "
-              f"{b / a:.2f} |")
+          f"(a watchdog timeout under load): "
+          + ", ".join(f"{k} {v}" for k, v in retries.items()) + ".\n")
+
+    def table(other: str, heading: str, tput_rows: list[throughput.Case],
+              lat_rows: list[latency.Case]) -> None:
+        med = statistics.median
+        print(f"| path | plain | {heading} | {other} / plain |")
+        print("|---|---:|---:|---:|")
+        for case in tput_rows:
+            a, b = med(tput[(case.key, "plain")]), med(tput[(case.key, other)])
+            print(f"| {case.label}, values/s | {a:,.0f} | {b:,.0f} | {b / a:.2f} |")
+            a, b = med(cpu[(case.key, "plain")]), med(cpu[(case.key, other)])
+            print(f"| {case.label}, CPU s per 1M values (3 processes) | {a:.2f} | {b:.2f} | "
+                  f"{b / a:.2f} |")
+        for lcase in lat_rows:
+            for label, data in (("p50", p50), ("p99", p99)):
+                a, b = med(data[(lcase.key, "plain")]), med(data[(lcase.key, other)])
+                print(f"| {lcase.label} 1 kHz one-way latency {label}, us | {a:.0f} | {b:.0f} "
+                      f"| {b / a:.2f} |")
+
+    table("keyed", "keyed (sealed)", [udp_batch, tcp_batch], [udp_lat])
+    if "tls" in plan:
+        print()
+        table("tls", "TLS", [tcp_batch], [tcp_lat])
 
 
 if __name__ == "__main__":
