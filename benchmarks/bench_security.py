@@ -13,6 +13,12 @@ the keyed/plain ratio per row (targets: throughput >= 0.8x, latency p50 within 1
 A second table gives what TLS costs the TCP transport: batched throughput and 1 kHz latency
 (``TCP, nodelay``) of a server started with a certificate (``rlbridge tls init``'s) and clients
 that pin its fingerprint, against the plain column's TCP runs. ``--no-tls`` leaves it out.
+
+``--diagnose`` adds a latency row that splits the keyed cost: keyed sessions whose
+ChaCha20-Poly1305 is replaced, in all three processes, by a stand-in that copies the bytes and
+appends a zero tag (no security at all: a measurement only). That row is everything sealing
+adds except the cipher call itself (handshake, counters, replay window, the sealed code
+paths); the rest of the keyed row's gap is the cipher.
 """
 
 from __future__ import annotations
@@ -88,6 +94,30 @@ class TlsLink:
         return self._inner.popen(side, argv, env=env, **kwargs)
 
 
+#: ``--diagnose``: every child first replaces ChaCha20-Poly1305 by a copy + zero tag (before
+#: rlbridge imports it), then runs the usual ``worker_main``. A measurement, never security.
+_NOOP_CIPHER_CHILD = (
+    "import cryptography.hazmat.primitives.ciphers.aead as aead\n"
+    "from cryptography.exceptions import InvalidTag\n"
+    "class NoopCipher:\n"
+    "    def __init__(self, key): pass\n"
+    "    def encrypt(self, nonce, data, aad): return bytes(data) + bytes(16)\n"
+    "    def decrypt(self, nonce, data, aad):\n"
+    "        if bytes(data[-16:]) != bytes(16): raise InvalidTag()\n"
+    "        return bytes(data[:-16])\n"
+    "aead.ChaCha20Poly1305 = NoopCipher\n"
+    "from rlbridge.bench.child import worker_main; worker_main()")
+
+
+class NoopCipherLink(KeyedLink):
+    """:class:`KeyedLink` whose processes seal with :data:`_NOOP_CIPHER_CHILD`'s stand-in."""
+
+    def popen(self, side: Any, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[bytes]:
+        argv = list(argv)
+        argv[2] = _NOOP_CIPHER_CHILD  # python -c <entry> ... (bench/workers.py)
+        return super().popen(side, argv, **kwargs)
+
+
 def _plain_link() -> Link:
     link = LoopbackLink()
     os.environ.pop(PSK_ENV, None)  # the plain column must really be plain
@@ -118,6 +148,8 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=4096, help="write_many size")
     parser.add_argument("--samples", type=int, default=3000, help="per latency run (1 kHz)")
     parser.add_argument("--no-tls", action="store_true", help="leave out the TLS table")
+    parser.add_argument("--diagnose", action="store_true",
+                        help="add keyed latency with a no-op cipher (module docstring)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="rlbridge-bench-tls-") as tmp:
         run(args, Path(tmp))
@@ -134,6 +166,9 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
         "keyed": (KeyedLink(LoopbackLink(), os.urandom(32).hex()), [udp_batch, tcp_batch],
                   [udp_lat]),
     }
+    if args.diagnose:
+        plan["noop-cipher"] = (NoopCipherLink(LoopbackLink(), os.urandom(32).hex()), [],
+                               [udp_lat])
     if not args.no_tls:
         cert, key, fingerprint = init_server(tmp / "tls")
         plan["plain"][2].append(tcp_lat)
@@ -184,6 +219,12 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
                       f"| {b / a:.2f} |")
 
     table("keyed", "keyed (sealed)", [udp_batch, tcp_batch], [udp_lat])
+    if "noop-cipher" in plan:
+        for label, data in (("p50", p50), ("p99", p99)):
+            a = statistics.median(data[(udp_lat.key, "plain")])
+            b = statistics.median(data[(udp_lat.key, "noop-cipher")])
+            print(f"| diagnostic: keyed, cipher replaced by a no-op, {udp_lat.label} 1 kHz "
+                  f"latency {label}, us | {a:.0f} | {b:.0f} | {b / a:.2f} |")
     if "tls" in plan:
         print()
         table("tls", "TLS", [tcp_batch], [tcp_lat])
