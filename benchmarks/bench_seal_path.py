@@ -1,21 +1,22 @@
-"""CPU per datagram on each end of the UDP value path, sealed vs plain: what the seal costs
-the hot path, in a figure that another process's load does not move.
+"""CPU per value of each thread on the UDP value path at 1 kHz, sealed vs plain, in one process.
 
 Run: ``.venv/bin/python benchmarks/bench_seal_path.py [--repeats 7] [--values 2000]``. Prints a
 Markdown table (docs/benchmarks.md quotes it).
 
 One process holds a real server (``ServerThread``, the in-process adapter), a publisher
 ``Bridge`` and a subscriber ``Bridge``, connected over loopback UDP: plain, or with a
-pre-shared key (server ``--psk-file``, SDK ``psk=``), with which every datagram is sealed
+pre-shared key (server ``psk_file``, SDK ``psk=``), with which every datagram is sealed
 (docs/protocol.md section 16). The publisher writes one value per millisecond (``--rate``), so
 each value is a datagram of its own both ways, as in the 1 kHz latency benchmark. For each of
 the three threads a value crosses, the table gives its CPU time per value: the publisher's send
-thread (encode, seal, ``send``), the server's event-loop thread (receive, open, decode,
-publish, encode, seal, ``sendto``) and the subscriber's receive thread (receive, open, decode,
-hand to the channel). CPU time is the kernel's per-thread run time
-(``/proc/self/task/<tid>/schedstat``, nanoseconds), not wall time: waiting for a core or for
-the GIL is not counted, so the figure holds on a loaded machine (caches shared with other
-work can still add misses). Plain and keyed runs alternate in every repeat; medians.
+thread (wake-up, encode, seal, ``send``), the server's event-loop thread (wake-up, receive,
+open, decode, publish, encode, seal, ``sendto``) and the subscriber's receive thread (wake-up,
+receive, open, decode, hand to the channel). CPU time is the kernel's per-thread run time
+(``/proc/self/task/<tid>/schedstat``, nanoseconds), not wall time, so waiting for a core or for
+the GIL is not counted; but at 1 kHz every wake-up meets caches that other processes have
+filled, so on a loaded machine a repeat can move by a third either way: read the medians of
+many repeats, and ``bench_seal.py`` for the per-datagram functions alone. Plain and keyed runs
+alternate in every repeat.
 """
 
 from __future__ import annotations
