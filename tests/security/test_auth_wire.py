@@ -13,6 +13,8 @@ from rlbridge.wire import (
     MAGIC,
     PROTOCOL_VERSION,
     AuthChallenge,
+    Batch,
+    Bundle,
     ErrorCode,
     RemoteProtocolError,
     Value,
@@ -28,7 +30,8 @@ from rlbridge.wire.auth import (
     parse_key,
     sealed_codec,
 )
-from rlbridge.wire.codec import FLAG_MAC, PacketCodec, peek_header
+from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire.codec import FLAG_BUNDLES, FLAG_MAC, PacketCodec, peek_header
 
 KEY = bytes(range(32))
 OTHER = bytes(range(1, 33))
@@ -178,6 +181,32 @@ def test_bad_body_inside_a_valid_seal_is_malformed_not_forged() -> None:
         server.decode_datagram(head + sealed)
     assert not isinstance(exc.value, DatagramRejected)
     assert (exc.value.code, exc.value.token, exc.value.channel) == (ErrorCode.MALFORMED, 77, 3)
+
+
+
+def test_packer_seals_exactly_the_bytes_the_codec_encodes() -> None:
+    """The packer seals the parts' own encodings (no second encoding): each datagram opens to
+    the bytes msgspec gives for the same packet, a value alone or a bundle of parts."""
+    client_keys, server_keys = session()
+    client = sealed_codec(client_keys, server=False)
+    server = sealed_codec(server_keys, server=True)
+    sent: list[bytes] = []
+    packer = DatagramPacker(client, 77, 1400, sent.append, flags=FLAG_BUNDLES)
+    alone = Value(1, 5, 6, 1.5)
+    parts: list[Value | Batch] = [Value(1, 6, 7, 2.5), Batch(2, 8, [9, 10], [3.5, 4.5])]
+    packer.add(alone)
+    packer.flush()
+    for part in parts:
+        packer.add(part)
+    packer.flush()
+    cipher = ChaCha20Poly1305(client_keys.client_to_server)
+    for data, packet in zip(sent, [alone, Bundle(parts)], strict=True):
+        flags, token, got = server.decode_datagram(data)
+        assert (got, token, flags & FLAG_BUNDLES) == (packet, 77, FLAG_BUNDLES)
+        head = DATAGRAM_HEADER.size + COUNTER.size
+        body = cipher.decrypt(b"\0" * 4 + data[DATAGRAM_HEADER.size:head], data[head:],
+                              data[:head])
+        assert body == msgspec.msgpack.encode(packet)
 
 
 # -- replay window --------------------------------------------------------------------------
