@@ -231,7 +231,12 @@ def _authentication(keyed: bool, tls: bool, cfg: ServerConfig) -> str:
 
 
 class ServerThread:
-    """A server on a background thread: ``with ServerThread(cfg) as srv: srv.port``."""
+    """A server on a background thread: ``with ServerThread(cfg) as srv: srv.port``.
+
+    ``start`` is idempotent while the thread runs, so ``with ServerThread(cfg).start() as srv``
+    and ``srv.start(); with srv:`` serve once (a second ``serve`` on the same ``Server`` would
+    start a second loop and thread that ``stop`` never reaches). After ``stop`` it may start again.
+    """
 
     def __init__(self, config: ServerConfig | None = None, adapter: MiddlewareAdapter | None = None,
                  **overrides: Any) -> None:
@@ -248,7 +253,15 @@ class ServerThread:
         return self.server.address.port
 
     def start(self, timeout: float = 10.0) -> ServerThread:
-        """Start serving; return once it listens, or raise ``ServerError`` saying why not."""
+        """Start serving; return once it listens, or raise ``ServerError`` saying why not.
+
+        A no-op returning ``self`` when this thread already serves.
+        """
+        if self._thread is not None and self._thread.is_alive():
+            return self
+        self._ready.clear()
+        self._error = None
+
         def main() -> None:
             try:
                 run_on_loop(self.server.serve(started=lambda _a: self._ready.set()),
