@@ -171,15 +171,18 @@ class Server:
                 if cfg.tcp:
                     tcp_server = await loop.create_server(
                         lambda: TcpConnection(registry), cfg.host, port, reuse_address=True,
-                        family=socket.AF_INET if ":" not in cfg.host else socket.AF_INET6,
-                    )
+                        family=_family(cfg.host))
                     port = tcp_server.sockets[0].getsockname()[1]
                 udp_transport: asyncio.DatagramTransport | None = None
                 what = "UDP"
                 if cfg.udp:
-                    udp_transport, _ = await loop.create_datagram_endpoint(
-                        lambda: UdpEndpoint(registry), local_addr=(cfg.host, port)
-                    )
+                    sock = await _bound_udp(loop, cfg.host, port)
+                    try:
+                        udp_transport, _ = await loop.create_datagram_endpoint(
+                            lambda: UdpEndpoint(registry), sock=sock)
+                    except BaseException:
+                        sock.close()
+                        raise
                     port = udp_transport.get_extra_info("sockname")[1]
                 return tcp_server, udp_transport, port
             except OSError as exc:
@@ -216,6 +219,32 @@ class Server:
         if self.address is not None:
             log.info("rlbridge stopped: %d session(s) served",
                      registry.ctx.counters.get("sessions_opened", 0))
+
+
+def _family(host: str) -> socket.AddressFamily:
+    """IPv6 for an IPv6 literal, else IPv4: TCP and UDP listen in the same family."""
+    return socket.AF_INET6 if ":" in host else socket.AF_INET
+
+
+async def _bound_udp(loop: asyncio.AbstractEventLoop, host: str, port: int) -> socket.socket:
+    """A UDP socket bound to ``host:port``, owned here until the transport takes it.
+
+    Not ``create_datagram_endpoint(local_addr=...)``: when that bind fails (port 0 gave TCP a
+    port whose UDP twin is taken, so ``_bind`` retries), uvloop leaves its half-made
+    ``UDPTransport`` open for the garbage collector (a ResourceWarning). Binding first means a
+    failed bind closes its socket here and the transport only ever gets a bound one.
+    """
+    infos = await loop.getaddrinfo(host, port, family=_family(host), type=socket.SOCK_DGRAM,
+                                   flags=socket.AI_PASSIVE)
+    family, kind, proto, _, addr = infos[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setblocking(False)
+        sock.bind(addr)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
 
 
 def _authentication(keyed: bool, tls: bool, cfg: ServerConfig) -> str:
