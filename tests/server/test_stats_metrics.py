@@ -154,6 +154,55 @@ def test_closed_clients_beyond_the_cap_fold_into_other(
     assert sum(got[k] for k in opened) == len(names)
 
 
+def test_a_live_client_is_never_folded_while_departed_ones_are(
+        make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
+        wait_until: Callable[..., Any]) -> None:
+    """The oldest retired totals belong to a client connected now: the departed go first."""
+    srv = make_server(metrics_port=0)
+    assert srv.server.address is not None
+    mport = srv.server.address.metrics_port
+    assert mport is not None
+    first = raw_tcp(srv.port)
+    first.hello("robot")
+    first.close()  # the oldest entry of the ledger
+    robot = raw_tcp(srv.port)
+    robot.hello("robot")  # and back: live from here on
+    robot.send(TopicConnect(3, "subscribe", "/m/live", F64, transport="tcp"))
+    robot.expect(TopicAck)
+    names = [f"gone-{n}" for n in range(MAX_CLIENTS + 6)]
+    for name in names:
+        client = raw_tcp(srv.port)
+        client.hello(name)
+        client.close()
+    wait_until(lambda: samples(scrape(mport)[2]).get(
+        'rlbridge_client_sessions_opened_total{client="gone-69"}') == 1, what="all retired")
+    got = samples(scrape(mport)[2])
+    assert got['rlbridge_client_sessions_opened_total{client="robot"}'] == 2  # never went back
+    opened = [k for k in got if k.startswith("rlbridge_client_sessions_opened_total")]
+    assert sum(got[k] for k in opened) == len(names) + 2
+    assert 'rlbridge_client_sessions_opened_total{client="gone-0"}' not in got
+
+
+def test_ledger_folds_departed_labels_before_live_ones() -> None:
+    live: tuple[set[str], set[tuple[str, str, str, str]]] = ({"a"}, {("a", "/t0", "publish",
+                                                                      "udp")})
+    ledger = Ledger(max_clients=2, max_channels=2, live=lambda: live)
+    for name in ("a", "b", "c", "d"):
+        ledger.retire_session(name, {"packets_in": 1})
+    # b and c left: folded; a is live, d just retired: over the cap by the live ones only
+    assert list(ledger.clients) == ["a", "(other)", "d"]
+    assert ledger.clients["(other)"] == {"packets_in": 2, "sessions": 2}
+    for n in range(4):
+        ledger.retire_channel("a", {"topic": f"/t{n}", "direction": "publish",
+                                    "transport": "udp", "values_in": 1})
+    assert ("a", "/t0", "publish", "udp") in ledger.channels
+    assert ledger.channels[("(other)",) * 4] == {"values_in": 2}
+    live = (set(), set())  # everyone gone: back to the cap, oldest first
+    ledger.retire_session("e", {})
+    assert list(ledger.clients) == ["(other)", "e"]
+    assert ledger.clients["(other)"] == {"packets_in": 4, "sessions": 4}
+
+
 def test_healthz_and_json_status(make_server: Callable[..., ServerThread],
                                  raw_tcp: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
