@@ -100,8 +100,12 @@ def serve(
     max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
     metrics_port: Annotated[int | None, typer.Option(
-        help="Serve http://HOST:PORT/metrics (Prometheus), /healthz and /status (JSON); "
-             "default: off.")] = None,
+        help="Serve http://METRICS-HOST:PORT/metrics (Prometheus), /healthz and /status "
+             "(JSON); default: off.")] = None,
+    metrics_host: Annotated[str, typer.Option(
+        help="Address of the metrics endpoint. It asks no key and names every client and "
+             "topic, so it stays on loopback whatever --host is; another address is warned "
+             "at start.")] = "127.0.0.1",
     log_level: LogLevel = None,
 ) -> None:
     """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md).
@@ -126,7 +130,7 @@ def serve(
                               allow=tuple(allow or ()), max_rate=max_rate,
                               max_sessions=max_sessions, max_channels=max_channels,
                               max_packet=max_packet,
-                              metrics_port=metrics_port)
+                              metrics_port=metrics_port, metrics_host=metrics_host)
     except ValidationError as exc:
         raise fail(config_error(exc), 2) from None
     Server(config).run()

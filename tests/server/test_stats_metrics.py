@@ -7,6 +7,7 @@ import json
 import re
 import socket
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -258,6 +259,39 @@ def test_metrics_off_by_default_and_closed_with_the_server() -> None:
     with_metrics.stop()
     with pytest.raises(ConnectionRefusedError):
         scrape(mport)
+
+
+def _reaches(host: str, port: int) -> bool:
+    with socket.socket() as sock:
+        try:
+            sock.connect((host, port))
+        except ConnectionRefusedError:
+            return False
+        return True
+
+
+def test_metrics_stay_on_loopback_when_the_server_listens_on_every_address(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """/metrics and /status name clients and topics and ask no key: not on --host's 0.0.0.0."""
+    key = tmp_path / "k"
+    key.write_text("00112233445566778899aabbccddeeff\n")
+    key.chmod(0o600)
+    with ServerThread(ServerConfig(host="0.0.0.0", port=0, psk_file=key,
+                                   metrics_port=0)) as srv:
+        assert srv.server.address is not None
+        mport = srv.server.address.metrics_port
+        assert mport is not None
+        assert _reaches("127.0.0.2", srv.port)  # the bridge listens on every address
+        assert not _reaches("127.0.0.2", mport)  # its metrics on 127.0.0.1 only
+        assert srv.server.address.metrics_host == "127.0.0.1"
+        assert scrape(mport)[0] == 200
+    assert "ask no key" not in caplog.text
+    with ServerThread(ServerConfig(port=0, metrics_port=0, metrics_host="0.0.0.0")) as srv:
+        assert srv.server.address is not None
+        mport = srv.server.address.metrics_port
+        assert mport is not None
+        assert _reaches("127.0.0.2", mport)  # asked for: served there, and warned
+    assert re.search(r"metrics on 0\.0\.0\.0: /metrics and /status ask no key", caplog.text)
 
 
 def test_metrics_port_in_use_is_a_clear_error() -> None:

@@ -21,7 +21,7 @@ from rlbridge.adapters import MiddlewareAdapter, load_adapter
 from rlbridge.server.access import AllowList
 from rlbridge.server.access import load as load_keys
 from rlbridge.server.authz import Access
-from rlbridge.server.config import ServerConfig
+from rlbridge.server.config import ServerConfig, is_loopback
 from rlbridge.server.context import ServerContext
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
@@ -48,6 +48,7 @@ class BoundAddress:
     tcp: bool
     udp: bool
     metrics_port: int | None = None
+    metrics_host: str | None = None
 
 
 def new_event_loop(use_uvloop: bool = True) -> asyncio.AbstractEventLoop:
@@ -127,14 +128,11 @@ class Server:
         try:
             tcp_server, udp_transport, port = await self._bind(loop, registry)
             if cfg.metrics_port is not None:
-                try:
-                    metrics = await MetricsEndpoint(registry).start(cfg.host, cfg.metrics_port)
-                except OSError as exc:
-                    raise ServerError(f"cannot serve metrics on {cfg.host}:{cfg.metrics_port}: "
-                                      f"{exc}") from None
+                metrics = await _metrics(registry, cfg)
             self.address = BoundAddress(cfg.host, port, tcp_server is not None,
                                         udp_transport is not None,
-                                        metrics.port if metrics is not None else None)
+                                        metrics.port if metrics is not None else None,
+                                        cfg.metrics_host if metrics is not None else None)
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     loop.add_signal_handler(sig, self._stop.set)
@@ -142,7 +140,7 @@ class Server:
             log.info("%s", listening_line(
                 cfg.host, port, tcp_server is not None, udp_transport is not None,
                 adapter.name, _authentication(keys is not None, tls is not None, cfg),
-                self.address.metrics_port))
+                self.address.metrics_port, cfg.metrics_host))
             if started is not None:
                 started(self.address)
             await self._stop.wait()
@@ -219,6 +217,26 @@ class Server:
         if self.address is not None:
             log.info("rlbridge stopped: %d session(s) served",
                      registry.ctx.counters.get("sessions_opened", 0))
+
+
+async def _metrics(registry: SessionRegistry, cfg: ServerConfig) -> MetricsEndpoint:
+    """The monitoring endpoint on ``metrics_host`` (loopback unless the operator says else).
+
+    It asks no key: /metrics and /status name every client (its identity) and topic, with
+    counters. So it does not follow ``--host``: a keyed or TLS server on 0.0.0.0 would hand
+    those to anyone on the network. Elsewhere than loopback only when asked, with a warning.
+    """
+    assert cfg.metrics_port is not None
+    try:
+        endpoint = await MetricsEndpoint(registry).start(cfg.metrics_host, cfg.metrics_port)
+    except OSError as exc:
+        raise ServerError(f"cannot serve metrics on {cfg.metrics_host}:{cfg.metrics_port}: "
+                          f"{exc}") from None
+    if not is_loopback(cfg.metrics_host):
+        log.warning("metrics on %s: /metrics and /status ask no key; anyone who can reach "
+                    "port %d reads every client's name, topic and counters (docs/security.md)",
+                    cfg.metrics_host, endpoint.port)
+    return endpoint
 
 
 def _family(host: str) -> socket.AddressFamily:
