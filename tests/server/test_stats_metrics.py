@@ -33,6 +33,14 @@ def scrape(port: int, path: str = "/metrics", method: str = "GET") -> tuple[int,
         conn.close()
 
 
+def metrics_port(srv: ServerThread) -> int:
+    """The port a started server's metrics endpoint got."""
+    assert srv.server.address is not None
+    mport = srv.server.address.metrics_port
+    assert mport is not None
+    return mport
+
+
 def samples(text: str) -> dict[str, float]:
     """``name{labels}`` -> value, after Prometheus' own parser accepted the text.
 
@@ -105,9 +113,7 @@ def test_a_reconnecting_client_is_one_series_whose_counters_never_go_back(
         make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
         wait_until: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     series: list[int] = []
     values: list[float] = []
     key = f"rlbridge_channel_values_in_total{{{channel('robot', '/m/r', transport='udp')}}}"
@@ -136,9 +142,7 @@ def test_closed_clients_beyond_the_cap_fold_into_other(
         make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
         wait_until: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     names = [f"rlbridge-{pid}" for pid in range(MAX_CLIENTS + 6)]  # a new pid per restart
     for name in names:
         client = raw_tcp(srv.port)
@@ -160,9 +164,7 @@ def test_a_live_client_is_never_folded_while_departed_ones_are(
         wait_until: Callable[..., Any]) -> None:
     """The oldest retired totals belong to a client connected now: the departed go first."""
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     first = raw_tcp(srv.port)
     first.hello("robot")
     first.close()  # the oldest entry of the ledger
@@ -207,9 +209,7 @@ def test_ledger_folds_departed_labels_before_live_ones() -> None:
 def test_healthz_and_json_status(make_server: Callable[..., ServerThread],
                                  raw_tcp: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     assert scrape(mport, "/healthz")[::2] == (200, "ok\n")
     client = raw_tcp(srv.port)
     client.hello("watched")
@@ -230,9 +230,7 @@ def test_healthz_and_json_status(make_server: Callable[..., ServerThread],
 
 def test_bad_requests_get_http_errors(make_server: Callable[..., ServerThread]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     assert scrape(mport, "/other")[0] == 404
     assert "/healthz" in scrape(mport, "/other")[2]
     assert scrape(mport, "/metrics", "POST")[0] == 405
@@ -278,18 +276,14 @@ def test_metrics_stay_on_loopback_when_the_server_listens_on_every_address(
     key.chmod(0o600)
     with ServerThread(ServerConfig(host="0.0.0.0", port=0, psk_file=key,
                                    metrics_port=0)) as srv:
-        assert srv.server.address is not None
-        mport = srv.server.address.metrics_port
-        assert mport is not None
+        mport = metrics_port(srv)
         assert _reaches("127.0.0.2", srv.port)  # the bridge listens on every address
         assert not _reaches("127.0.0.2", mport)  # its metrics on 127.0.0.1 only
         assert srv.server.address.metrics_host == "127.0.0.1"
         assert scrape(mport)[0] == 200
     assert "ask no key" not in caplog.text
     with ServerThread(ServerConfig(port=0, metrics_port=0, metrics_host="0.0.0.0")) as srv:
-        assert srv.server.address is not None
-        mport = srv.server.address.metrics_port
-        assert mport is not None
+        mport = metrics_port(srv)
         assert _reaches("127.0.0.2", mport)  # asked for: served there, and warned
     assert re.search(r"metrics on 0\.0\.0\.0: /metrics and /status ask no key", caplog.text)
 
