@@ -11,18 +11,17 @@ import typer
 from rlbridge._version import __version__
 from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.cli_options import (
+    LOCAL_SERVER,
     LOG_LEVEL_HELP,
-    CaOpt,
-    FingerprintOpt,
     Host,
     Port,
-    PskFileOpt,
-    TlsOpt,
+    ServerTarget,
     TransportOpt,
     check_log_level,
     checked_transport,
     configure_logging,
     option,
+    server_options,
 )
 from rlbridge.cli_topic import topic_app
 
@@ -138,22 +137,16 @@ def serve(
 
 @app.command()
 @one_line_errors
+@server_options
 def stats(
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
+    server: ServerTarget = LOCAL_SERVER,
     as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
     = False,
 ) -> None:
     """Print the server's counters: totals, then per session and per channel."""
-    from rlbridge.csp.bridge import Bridge
     from rlbridge.server.report import format_stats
 
-    with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+    with server.connect("rlbridge-stats") as bridge:
         body = bridge.server_stats()
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 
