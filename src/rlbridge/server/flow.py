@@ -98,13 +98,16 @@ class OutboundCredit:
             self.waiting += fit
         return len(values) - fit
 
+    def passes(self, next_seq: int, n: int) -> bool:
+        """``n`` new values may go at once, past the backlog: none waits, the credit covers
+        them and the socket has room (what ``queue`` then ``take`` would allow, without
+        either: one value per frame costs no backlog entry)."""
+        return (not self.waiting and next_seq + n <= self.limit
+                and self._queued() <= self._max_queued)
+
     def take(self, next_seq: int, most: int) -> tuple[list[int], list[Any]]:
         """What may go now (at most ``most``), given the next sequence number to send."""
-        n = self.waiting
-        if n > most:
-            n = most
-        if n > self.limit - next_seq:
-            n = self.limit - next_seq
+        n = min(self.waiting, self.limit - next_seq, most)
         if n <= 0:
             return [], []
         self.socket_full = self._queued() > self._max_queued
