@@ -24,6 +24,7 @@ from rlbridge.wire import (
     FrameDecoder,
     Hello,
     Malformed,
+    Packet,
     PacketCodec,
     RemoteProtocolError,
 )
@@ -117,19 +118,37 @@ class TcpConnection(asyncio.Protocol):
                                      else "malformed")
             self._fatal(exc.code, exc.reason)
             return
-        if self._session is not None:
-            self._session.bytes_in += len(data)
-            self._session.tcp_bytes_in += len(data)
+        session = self._session
+        if session is not None:
+            session.bytes_in += len(data)
+            session.tcp_bytes_in += len(data)
+            self._to_session(session, packets)
+        else:
+            self._handshake(packets)
+        if self._refeed:
+            self._refeed = False
+            self.data_received(b"")
+
+    def _to_session(self, session: Session, packets: list[Packet | Malformed]) -> None:
+        """A read chunk's packets, in order, to the session (the loop every value takes)."""
+        handle, sink = session.handle, self._sink
         for packet in packets:
-            session = self._session
+            if type(packet) is Malformed:
+                session.malformed_packet(packet.error, sink)
+            else:
+                handle(packet, "tcp")
+
+    def _handshake(self, packets: list[Packet | Malformed]) -> None:
+        """Packets before the session exists: a hello (and a proof); the rest, once the
+        session is open, go to it."""
+        for i, packet in enumerate(packets):
+            if self._session is not None:
+                self._to_session(self._session, packets[i:])
+                return
             if isinstance(packet, Malformed):
-                if session is None:
-                    self._fatal(packet.error.code, packet.error.reason)
-                    return
-                session.malformed_packet(packet.error, self._sink)
-            elif session is not None:
-                session.handle(packet, "tcp")
-            elif isinstance(packet, Hello) and self._pending is None:
+                self._fatal(packet.error.code, packet.error.reason)
+                return
+            if isinstance(packet, Hello) and self._pending is None:
                 self._hello(packet)
             elif isinstance(packet, AuthProof) and self._pending is not None:
                 self._proof(packet)
@@ -142,9 +161,6 @@ class TcpConnection(asyncio.Protocol):
                 self._fatal(ErrorCode.UNEXPECTED,
                             f"expected {wanted}, got {type(packet).__name__}")
                 return
-        if self._refeed:
-            self._refeed = False
-            self.data_received(b"")
 
     def _hello(self, hello: Hello) -> None:
         assert self._sink is not None
