@@ -133,7 +133,7 @@ class TcpConnection(asyncio.Protocol):
         """A read chunk's packets, in order, to the session (the loop every value takes)."""
         handle, sink = session.handle, self._sink
         for packet in packets:
-            if type(packet) is Malformed:
+            if isinstance(packet, Malformed):
                 session.malformed_packet(packet.error, sink)
             else:
                 handle(packet, "tcp")
