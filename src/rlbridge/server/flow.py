@@ -26,9 +26,11 @@ UDP channels have no flow control: their first-hop loss is reported instead (``L
 Cost. Credit moves in quarter chunks, so nothing here needs to run per value: an arriving
 packet costs :meth:`InboundCredit.grant` one comparison until the publisher's sequence number
 reaches the first point where a grant could be due (``check_at``), and a drained backlog only
-marks its topic; the topic re-grants once, at the end of the event-loop iteration (``defer``,
-the loop's ``call_soon``), whatever that iteration drained. With one value per TCP frame this
-took the server's flow-control work from about half of its time per value to a few percent.
+marks its topic; the topic re-grants once, at the end of the event-loop iteration (the
+running loop's ``call_soon``), whatever that iteration drained; and a value that finds its
+subscriber's backlog empty, the credit and the socket free, passes the backlog
+(:meth:`OutboundCredit.passes`). With one value per TCP frame this took the server's
+flow-control work from about half of its time per value to a few percent.
 """
 
 from __future__ import annotations
