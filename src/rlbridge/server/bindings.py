@@ -110,9 +110,13 @@ class Inbound:
         clock = self._clock
         now = ((time.time_ns() if wall_ns is None else wall_ns)
                + (clock.offset_ns if clock is not None else 0))  # the client's clock
-        self.jitter.add(stamp, now)
-        age = now - stamp
-        one_way = self.one_way_ns  # _track_age, inlined
+        age = now - stamp  # the transit time: jitter.add and _track_age, inlined
+        jitter = self.jitter
+        last = jitter.last_transit
+        jitter.last_transit = age
+        if last is not None:
+            jitter.jitter_ns += (abs(age - last) - jitter.jitter_ns) // 16
+        one_way = self.one_way_ns
         self.one_way_ns = age if one_way < 0 else one_way + (age - one_way) // 16
         if self._max_age_ns and age > self._max_age_ns:
             self.expired += 1

@@ -173,7 +173,7 @@ class UdpSink:
             self._dropped += data
             return False
         packer = self._packer
-        if not data or not isinstance(packet, (Value, Batch)):
+        if not data or (type(packet) is not Value and not isinstance(packet, Batch)):
             packer.flush()  # corked values first: the order of sends is the order on the wire
             header = self._header
             if header is not None:
@@ -189,8 +189,10 @@ class UdpSink:
         else:
             refused = packer.add(packet)
             packer.flush()
-        self._dropped += refused  # values larger than a datagram: refused, counted
-        return not refused
+        if refused:
+            self._dropped += refused  # values larger than a datagram: refused, counted
+            return False
+        return True
 
     def flush(self) -> None:
         """Send the corked values (the end of the loop iteration that gathered them)."""
