@@ -61,7 +61,9 @@ async def _run(channels: int, bundles: int, single: bool) -> tuple[float, int, i
 
     loop = asyncio.get_running_loop()
     codec = PacketCodec()
-    ctx = ServerContext(ServerConfig(port=0), InProcessBus(), codec, loop, LoopHandoff(loop))
+    # A minute between heartbeats: building the datagrams takes a while without the loop.
+    cfg = ServerConfig(port=0, heartbeat_ms=60_000, timeout_ms=600_000)
+    ctx = ServerContext(cfg, InProcessBus(), codec, loop, LoopHandoff(loop))
     registry = SessionRegistry(ctx)
     endpoint = UdpEndpoint(registry)
     transport = _CountingTransport()
@@ -96,6 +98,7 @@ async def _run(channels: int, bundles: int, single: bool) -> tuple[float, int, i
         await asyncio.sleep(0)
     cpu = time.thread_time() - t0
     out = sum(b.values_out for b in session.outbound.values())
+    assert not session.closed and ctx.counters == {}, ctx.counters  # nothing refused
     session.close("done")
     return cpu, out, transport.datagrams - sent0
 
