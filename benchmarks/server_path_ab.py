@@ -45,6 +45,19 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def wait_listening(port: int, timeout: float = 60.0) -> None:
+    """Until the server accepts on ``port`` (a loaded machine may take seconds to start it)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
 def measure(tree: str, args: argparse.Namespace) -> tuple[float, float, float]:
     """(CPU µs per value, of which system µs, fraction delivered) for one server run."""
     port = free_port()
@@ -52,7 +65,7 @@ def measure(tree: str, args: argparse.Namespace) -> tuple[float, float, float]:
     server = subprocess.Popen([*SERVE, "--port", str(port)], env=env, stderr=subprocess.DEVNULL)
     sessions: list[_RawSession] = []
     try:
-        time.sleep(2.0)  # the server's start (imports) is not measured
+        wait_listening(port)  # the server's start (imports) is not measured
         params = {"host": "127.0.0.1", "port": port, "channels": 10}
         codec = PacketCodec()
         sessions = [_RawSession(params, i, ["m"], codec) for i in range(args.sessions)]
