@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import statistics
 import subprocess
 import sys
 import time
@@ -140,18 +139,16 @@ def main() -> None:
         return
     if not args.a or not args.b:
         parser.error("--a and --b are required")
-    results: dict[str, list[float]] = {"A": [], "B": []}
-    for i in range(args.repeats):
-        for name in ("A", "B") if i % 2 == 0 else ("B", "A"):
-            us, out, datagrams = measure(args.a if name == "A" else args.b, args)
-            results[name].append(us)
-            print(f"{name} {us:6.3f} µs/value  values out {out}  datagrams out {datagrams}",
-                  flush=True)
-    med = {k: statistics.median(v) for k, v in results.items()}
-    for k, v in results.items():
-        print(f"{k} median {med[k]:.3f} µs/value  runs {[round(x, 3) for x in v]}")
-    print(f"B/A {med['B'] / med['A']:.2f}  load average {os.getloadavg()}")
+    if __package__:
+        from benchmarks.server_path_ab import interleave
+    else:  # run as a file: its folder is on the path
+        from server_path_ab import interleave
 
+    def run(tree: str) -> tuple[float, str]:
+        us, out, datagrams = measure(tree, args)
+        return us, f" values out {out}  datagrams out {datagrams}"
+
+    interleave(run, args.a, args.b, args.repeats, digits=3)
 
 if __name__ == "__main__":
     main()
