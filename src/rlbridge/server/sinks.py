@@ -154,6 +154,10 @@ class UdpSink:
         self._corked = False
         #: Corked scalar values not yet encoded (they come before anything in the packer).
         self._values: list[Value | Batch] = []  # Values only; typed as Bundle takes them
+        #: Numbers may wait unencoded: corked values, a plain codec (``bundles`` sets it).
+        self._defer = False
+        #: A value went to the packer this iteration: later numbers follow it there (order).
+        self._packed = False
         self._budget = max_payload
         self._dropped = 0
         self.bytes_out = 0
@@ -172,6 +176,7 @@ class UdpSink:
         self._spill()
         self._packer.flush()
         self._packer.bundles = on
+        self._defer = on and self._loop is not None and self._header is not None
 
     @property
     def datagrams(self) -> int:
@@ -185,6 +190,12 @@ class UdpSink:
         if self._transport.is_closing():
             self._dropped += data
             return False
+        if (self._defer and type(packet) is Value and data and not self._packed
+                and type(packet.value) in _SCALARS):
+            if not self._corked:
+                self._cork()
+            self._values.append(packet)  # encoded at the flush, with the others
+            return True
         packer = self._packer
         if not data or (type(packet) is not Value and not isinstance(packet, Batch)):
             self._spill()
@@ -197,13 +208,9 @@ class UdpSink:
             return True
         if packer.bundles and self._loop is not None:
             if not self._corked:
-                self._corked = True
-                self._loop.call_soon(self.flush)
-            if (type(packet) is Value and type(packet.value) in _SCALARS
-                    and self._header is not None and not packer.pending):
-                self._values.append(packet)  # encoded at the flush, with the others
-                return True
+                self._cork()
             self._spill()
+            self._packed = True
             refused = packer.add(packet)
         else:
             refused = packer.add(packet)
@@ -213,9 +220,16 @@ class UdpSink:
             return False
         return True
 
+    def _cork(self) -> None:
+        """Send what this loop iteration gathers at its end (once per iteration)."""
+        assert self._loop is not None
+        self._corked = True
+        self._loop.call_soon(self.flush)
+
     def flush(self) -> None:
         """Send the corked values (the end of the loop iteration that gathered them)."""
         self._corked = False
+        self._packed = False
         values = self._values
         if self._transport.is_closing():
             self._values = []
