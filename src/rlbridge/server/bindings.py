@@ -103,9 +103,9 @@ class Inbound:
             tracker.accepted += 1
         elif not tracker.accept(seq):
             return
-        if self.credit is not None:
-            self._publish_flow([packet.stamp_ns], [packet.value])
-            return
+        credit = self.credit
+        if credit is not None:  # one comparison unless a grant may be due (server/flow.py)
+            credit.grant(self.tracker.highest + 1)
         stamp = packet.stamp_ns
         clock = self._clock
         now = ((time.time_ns() if wall_ns is None else wall_ns)
@@ -256,7 +256,7 @@ class Outbound:
             self._release()
             return
         credit = self.credit
-        if credit is not None:
+        if credit is not None and not credit.passes(self._seq, n):  # else: straight out
             self.dropped += credit.queue(stamp, values)
             self._pump()
             return
