@@ -75,10 +75,9 @@ async def _run(channels: int, bundles: int, single: bool) -> tuple[float, int, i
     token = session.token
     f64 = "std_msgs/msg/Float64"
     for c in range(channels):
-        for ch, direction in ((1000 + c, "subscribe"), (1 + c, "publish")):
-            endpoint.datagram_received(codec.encode_datagram(
-                TopicConnect(ch, direction, f"/vp/c{c}", f64, transport="udp"), token, flags),
-                addr)
+        for connect in (TopicConnect(1000 + c, "subscribe", f"/vp/c{c}", f64, transport="udp"),
+                        TopicConnect(1 + c, "publish", f"/vp/c{c}", f64, transport="udp")):
+            endpoint.datagram_received(codec.encode_datagram(connect, token, flags), addr)
     await asyncio.sleep(0)
     stamp = time.time_ns()
     if single:
@@ -139,10 +138,9 @@ def main() -> None:
         return
     if not args.a or not args.b:
         parser.error("--a and --b are required")
-    if __package__:
-        from benchmarks.server_path_ab import interleave
-    else:  # run as a file: its folder is on the path
-        from server_path_ab import interleave
+    if not __package__:  # run as a file: the checkout's root makes `benchmarks` importable
+        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from benchmarks.server_path_ab import interleave
 
     def run(tree: str) -> tuple[float, str]:
         us, out, datagrams = measure(tree, args)
