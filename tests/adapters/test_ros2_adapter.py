@@ -231,9 +231,10 @@ def test_a_raising_callback_does_not_stop_delivery(
             pub.publish([v])
             assert good.wait_until(lambda got, v=v: got[-1:] == [v], TIMEOUT)
     deadline = time.monotonic() + TIMEOUT
-    while sum(calls) < len(good.values) and time.monotonic() < deadline:
+    while failing.lost < len(good.values) and time.monotonic() < deadline:
         time.sleep(0.01)
     assert failing.errors == len(calls) >= 2  # it kept being called after failing
+    assert failing.lost == sum(calls) == len(good.values)  # taken, not handed on: lost
     assert "subscriber bug" in caplog.text
     assert _executor_threads()
 

@@ -127,7 +127,8 @@ class Ros2Subscription:
         self.delivered = 0
         self.batches = 0
         self.errors = 0
-        #: Messages lost before this subscription took them (sequence gaps; module doc).
+        #: Messages lost before this subscription took them (sequence gaps; module doc), and
+        #: messages it took but could not deliver (a batch that failed to decode or deliver).
         self.lost = 0
         self._last_seq: dict[bytes, int] = {}
         self._adapter = adapter
@@ -141,14 +142,18 @@ class Ros2Subscription:
         self.ros: RclpySubscription[Any] | None = None  # set by the adapter right after
 
     def on_message(self, msg: Any, info: Any) -> None:
-        """Executor thread: decode ``msg`` plus whatever is queued behind it, deliver once.
+        """Executor thread: take whatever is queued behind ``msg``, decode, deliver once.
 
-        Two parameters, so rclpy passes the message info (sequence numbers) too.
+        Two parameters, so rclpy passes the message info (sequence numbers) too. Messages
+        taken from ROS and then not delivered (a decode error, a failing callback) are
+        counted in ``lost`` as well: the server took them from ROS and could not hand them on.
         """
+        taken = [msg]
         try:
             self._count_gap(info)
-            batch = [self._decode(msg)]
-            self._drain(batch)
+            self._drain(taken)
+            decode = self._decode
+            batch = [decode(m) for m in taken]
             with self._lock:
                 if self._closed:
                     return
@@ -159,21 +164,24 @@ class Ros2Subscription:
             # The executor thread is shared by every subscription: one failing callback must
             # not stop delivery to the others, so log it with its traceback and count it.
             self.errors += 1
-            log.exception("ros2 subscription on %s: delivering a batch failed", self.topic)
+            self.lost += len(taken)
+            log.exception("ros2 subscription on %s: delivering a batch of %d failed",
+                          self.topic, len(taken))
 
-    def _drain(self, batch: list[Any]) -> None:
+    def _drain(self, taken: list[Any]) -> None:
+        """Take the messages already queued behind the first (at most ``MAX_BATCH`` in all)."""
         ros = self.ros
         if ros is None:
             return
-        decode, cls, handle = self._decode, self._msg_cls, ros.handle
+        cls, handle = self._msg_cls, ros.handle
         try:
             with handle:
-                while len(batch) < MAX_BATCH:
-                    taken: tuple[Any, Any] | None = handle.take_message(cls, False)
-                    if taken is None:
+                while len(taken) < MAX_BATCH:
+                    message: tuple[Any, Any] | None = handle.take_message(cls, False)
+                    if message is None:
                         return
-                    self._count_gap(taken[1])
-                    batch.append(decode(taken[0]))
+                    self._count_gap(message[1])
+                    taken.append(message[0])
         except InvalidHandle:  # destroyed by close() on another thread: deliver what we have
             return
 
