@@ -24,7 +24,6 @@ from collections.abc import Iterator
 import pytest
 from reach_netns import World, world
 
-from conftest import JAZZY_LOSS_UNCOUNTED
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
 
@@ -79,7 +78,6 @@ def read_until(ch: IncomingChannel, last: int, received: list[int]) -> float:
     return longest
 
 
-@JAZZY_LOSS_UNCOUNTED
 def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
     ch = sdk.subscribe("/flood/down", INT64, transport="tcp", blocking=True,
                        buffer_size=4 * N)

@@ -16,7 +16,6 @@ from collections.abc import Callable
 
 import pytest
 
-from conftest import JAZZY_LOSS_UNCOUNTED
 from rlbridge.adapters.base import QoS
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
@@ -29,7 +28,6 @@ pytestmark = [pytest.mark.ros2, pytest.mark.timeout(120)]
 N = 5000
 
 
-@JAZZY_LOSS_UNCOUNTED
 def test_a_burst_is_delivered_or_counted(ros_env: int,
                                          unique_topic: Callable[[str], str]) -> None:
     topic = unique_topic("burst")
