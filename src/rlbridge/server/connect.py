@@ -71,8 +71,12 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
     sink = known if known is not None else ChannelSink(session, req.transport)
     out = Outbound(req.channel, spec, sink, ctx.config.max_batch,
                    req.redundancy if req.transport == "udp" else 0, req)
+
+    def on_drop(count: int) -> None:  # batches the loop was too far behind to take
+        out.dropped += count
+
     out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
-                                         ctx.handoff.wrap(out.on_values))
+                                         ctx.handoff.wrap(out.on_values, on_drop))
     if flow is not None:
         out.credit = OutboundCredit(req.buffer_size, flow,
                                     lambda: getattr(session.tcp, "queued", 0),
