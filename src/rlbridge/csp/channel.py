@@ -115,6 +115,8 @@ class Doorbell:
                     if remaining <= 0 or not gate.acquire(True, remaining):
                         self._unlist(gate)
                         return bool(predicate())
+                if predicate():  # rung: the ring took the gate off the list already
+                    return True
         finally:
             with lock:
                 self.waiting -= 1

@@ -103,9 +103,9 @@ class Receiver:
         try:
             if conn.udp is not None and conn.control == "tcp":
                 conn.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
+            now = time.monotonic_ns()
+            timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
             while generation == conn.generation and conn.up:
-                now = time.monotonic_ns()
-                timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
                 readable = idle.idle(poll, block, timeout)
                 tcp, udp = conn.tcp, conn.udp
                 for fd, _events in readable:
@@ -125,9 +125,14 @@ class Receiver:
                         self._receive_datagrams(udp, token)
                     else:
                         return
-                # Last before blocking again: a woken reader then finds the GIL free soon.
-                self._flush_values()
                 self._tick(link, generation)
+                now = time.monotonic_ns()
+                timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
+                # Last before blocking again: the reader this wakes needs the GIL, and finds
+                # it free when this thread is back in poll by then (measured: handing values
+                # on before more Python or a system call costs the reader a second wake-up,
+                # on the GIL).
+                self._flush_values()
         except RemoteProtocolError as exc:
             conn.end_session(f"server sent an invalid stream: {exc.reason}", generation)
         except OSError as exc:
@@ -136,17 +141,15 @@ class Receiver:
     def _receive_datagrams(self, sock: socket.socket, token: int) -> None:
         """Read the datagrams already queued (at most ``MAX_DRAIN``), without blocking.
 
-        The first datagram's values are handed on before the next ``recv``: a lone datagram
-        (a periodic stream's) reaches its reader without waiting for the system call that
-        finds the queue empty. After that, values are handed on every ``RUN_DATAGRAMS``
-        datagrams (and when the queue is empty), so a long burst neither waits for its end
-        nor costs a channel wake-up per datagram.
+        Values are handed on every ``RUN_DATAGRAMS`` datagrams (and by ``run`` when the
+        queue is empty), so a long burst neither waits for its end nor costs a channel
+        wake-up per datagram.
         After ``MAX_DRAIN`` datagrams the loop goes back to ``poll``: under a flood the queue
         never empties, and heartbeats (the server's watchdog) and TCP must still be served.
         """
         conn = self._conn
         for count in range(1, MAX_DRAIN + 1):
-            if count == 2 or count % RUN_DATAGRAMS == 0:
+            if count % RUN_DATAGRAMS == 0:
                 self._flush_values()
             try:
                 data = sock.recv(65536, socket.MSG_DONTWAIT)
