@@ -185,13 +185,13 @@ class Bridge(BridgeStatus, ServiceMethods):
                 "arrive from the network whether or not a reader waits")
         ch_id = next(self._ids)
         kind = IncomingChannel if guard is None else GuardedChannel
-        channel = kind(ch_id, topic, msg_type, field, transport=transport,
-                                  blocking=blocking, buffer_size=buffer_size,
-                                  initial=initial if not blocking else _MISSING,
-                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
-                                  credit_bell=self._sender.doorbell if flow else None)
+        channel = kind(ch_id, topic, msg_type, field, transport=transport, blocking=blocking,
+                       buffer_size=buffer_size, initial=initial if not blocking else _MISSING,
+                       latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
+                       credit_bell=self._sender.doorbell if flow else None)
         if isinstance(channel, GuardedChannel):
             channel.failsafe = guard
+        channel.read_idle = self._conn.idle  # blocking reads wait as the receive thread does
         with self._lock:
             self._incoming[ch_id] = channel
         try:

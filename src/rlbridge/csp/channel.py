@@ -32,12 +32,13 @@ consumer (the SDK's send thread) can sleep until any of them is written.
 from __future__ import annotations
 
 import enum
-import threading
+import os
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Final, Generic, TypeVar
 
+from rlbridge.csp.doorbell import Doorbell
 from rlbridge.csp.errors import (
     ChannelClosed,
     ChannelMisuseError,
@@ -45,6 +46,7 @@ from rlbridge.csp.errors import (
     RealTimeWarning,
     WouldBlock,
 )
+from rlbridge.csp.idle import PARK, IdleStrategy
 from rlbridge.csp.process import current_process
 from rlbridge.csp.rendezvous import Rendezvous
 from rlbridge.csp.ring import EMPTY, SpscRing
@@ -60,75 +62,7 @@ class _Missing(enum.Enum):
 
 
 _MISSING: Final = _Missing.MISSING
-
-
-class Doorbell:
-    """Lets a consumer sleep until a producer signals, without producers taking a lock.
-
-    Producers call :meth:`ring` only when :attr:`waiting` is non-zero; consumers call
-    :meth:`wait_for` with a predicate that reads the lock-free state. ``waiting`` is
-    written under the lock only and is public so that the check costs one attribute read.
-
-    A waiter parks on a *gate*: a plain ``threading.Lock`` of its own, taken before it is
-    listed and released by :meth:`ring`. That is the cheapest wake-up CPython has (one futex
-    wake, no re-acquired condition lock on the woken side, all in C), against
-    ``threading.Condition``'s Python-level bookkeeping on both sides. Order of a wait:
-    register (``waiting``, the gate listed), *then* check the predicate, then block; a ring
-    between the check and the block has already released the gate, so nothing is missed.
-    """
-
-    __slots__ = ("_gates", "_lock", "waiting")
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._gates: list[threading.Lock] = []
-        self.waiting = 0
-
-    def ring(self) -> None:
-        """Wake every thread blocked in :meth:`wait_for` (a futex wake each: a system call)."""
-        with self._lock:
-            gates = self._gates
-            if gates:
-                self._gates = []
-                for gate in gates:
-                    gate.release()
-
-    def wait_for(self, predicate: Callable[[], object], timeout: float | None = None) -> bool:
-        """Block until ``predicate()`` is true or ``timeout`` passes; return its last value."""
-        lock = self._lock
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with lock:
-            self.waiting += 1
-        try:
-            while True:
-                gate = _new_lock()
-                gate.acquire()
-                with lock:
-                    self._gates.append(gate)
-                if predicate():
-                    self._unlist(gate)
-                    return True
-                if deadline is None:
-                    gate.acquire()
-                else:
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0 or not gate.acquire(True, remaining):
-                        self._unlist(gate)
-                        return bool(predicate())
-                if predicate():  # rung: the ring took the gate off the list already
-                    return True
-        finally:
-            with lock:
-                self.waiting -= 1
-
-    def _unlist(self, gate: threading.Lock) -> None:
-        """Take a gate that was not released off the list (a ring may have taken it)."""
-        with self._lock:
-            if gate in self._gates:
-                self._gates.remove(gate)
-
-
-_new_lock = threading.Lock
+_yield_cpu = os.sched_yield
 
 
 class Channel(Generic[T]):
@@ -136,7 +70,7 @@ class Channel(Generic[T]):
 
     __slots__ = ("_bell", "_blocking", "_closed", "_hrt_blocking_reads", "_hrt_warned",
                  "_initial", "_name", "_read_token", "_ring", "_rv", "_stale_reads",
-                 "_waiting_readers", "_write_token")  # fmt: skip
+                 "_waiting_readers", "_write_token", "read_idle")  # fmt: skip
 
     def __init__(
         self,
@@ -164,6 +98,10 @@ class Channel(Generic[T]):
         self._read_token: Final[list[None]] = [None]
         self._waiting_readers = self._stale_reads = self._hrt_blocking_reads = 0
         self._hrt_warned = False
+        #: How a blocking read waits for a value (:mod:`rlbridge.csp.idle`): ``PARK`` blocks
+        #: on the doorbell at once; a spinning strategy polls the buffer first, yielding the
+        #: CPU and the GIL between polls, so that a value written meanwhile costs no wake-up.
+        self.read_idle: IdleStrategy = PARK
 
     @property
     def name(self) -> str:
@@ -349,6 +287,20 @@ class Channel(Generic[T]):
     def _readable(self) -> bool:
         return len(self._ring) > 0 or self._closed
 
+    def _poll_readable(self) -> bool:
+        """A spinning read's poll: the buffer, else a ``sched_yield`` (lets the GIL go).
+
+        The writer is often the same process's receive thread, which needs the GIL to deliver:
+        a poll that held it would delay the very value it waits for.
+        """
+        if len(self._ring) > 0 or self._closed:
+            return True
+        _yield_cpu()
+        return False
+
+    def _park(self, timeout: float | None) -> bool:
+        return self._bell.wait_for(self._readable, timeout)
+
     def _wait_and_pop(self, timeout: float | None) -> T:
         """Slow path of a blocking buffered read: the buffer was empty."""
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -367,7 +319,11 @@ class Channel(Generic[T]):
                 self._note_blocking_read()
             self._waiting_readers += 1
             try:
-                self._bell.wait_for(self._readable, remaining)
+                idle = self.read_idle
+                if idle is PARK:
+                    self._bell.wait_for(self._readable, remaining)
+                else:
+                    idle.idle(self._poll_readable, self._park, remaining)
             finally:
                 self._waiting_readers -= 1
             value = self._ring.pop()
