@@ -27,6 +27,11 @@ sequential consistency, which the GIL provides. ``threading.Condition.notify`` a
 take a lock on every write, even with nobody waiting. Non-blocking channels never have a
 waiting reader, so they never ring. Several channels may share a doorbell so that one
 consumer (the SDK's send thread) can sleep until any of them is written.
+
+How a blocking read waits is its ``read_idle`` strategy (:mod:`rlbridge.csp.idle`; the
+SDK's incoming channels take the receive thread's): ``PARK`` sleeps on the doorbell at once; a
+spinning strategy first polls the buffer, giving up the CPU and the GIL between polls, and
+is not registered in the doorbell meanwhile, so the writer finds nobody to wake.
 """
 
 from __future__ import annotations
