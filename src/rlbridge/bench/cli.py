@@ -145,7 +145,7 @@ def latency(
              "per process and the publisher loop's lateness.")]
     = "",
     stages: Annotated[bool, typer.Option(
-        "--stages", help="Probe rlbridge UDP at the first rate stage by stage (send thread, "
+        "--stages/--no-stages", help="Probe rlbridge UDP at the first rate stage by stage (send thread, "
                          "server, receive thread, reader), per --idle strategy (default park), "
                          "next to a raw UDP pair.")] = False,
 ) -> None:
