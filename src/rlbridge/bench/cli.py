@@ -145,9 +145,10 @@ def latency(
              "per process and the publisher loop's lateness.")]
     = "",
     stages: Annotated[bool, typer.Option(
-        "--stages/--no-stages", help="Probe rlbridge UDP at the first rate stage by stage (send thread, "
-                         "server, receive thread, reader), per --idle strategy (default park), "
-                         "next to a raw UDP pair.")] = False,
+        "--stages/--no-stages",
+        help="Probe rlbridge UDP at the first rate stage by stage (send thread, server, receive "
+             "thread, reader), per --idle strategy (default park), next to a raw UDP pair.")]
+    = False,
 ) -> None:
     """One-way latency p50/p99/max of 1 kHz and 100 Hz streams, next to raw UDP and ZeroMQ.
 
