@@ -90,7 +90,10 @@ def client(port: int, channels: int, rate: float, seconds: float) -> None:
     print(json.dumps({"write": w, "send_call": s, "read_many": r,
                       "send_thread": cpu(send_clock) - send0,
                       "recv_thread": cpu(recv_clock) - recv0,
-                      "sent": ticks * channels, "received": received}), flush=True)
+                      "sent": ticks * channels, "received": received,
+                      "unsent": sum(out.pending() + out.statistics().overwritten for out in outs),
+                      "gaps": sum(inbox.lost for inbox in inboxes),
+                      "reconnects": b.reconnects}), flush=True)
     b.close()
 
 
@@ -113,6 +116,8 @@ def run_one(tree: str, port: int, args: argparse.Namespace) -> dict[str, float]:
     us["send_side"] = us["write"] + us["send_call"] + us["send_thread"]
     us["sdk"] = us["send_side"] + us["read_many"] + us["recv_thread"]
     us["delivered"] = int(raw["received"]) / int(raw["sent"])
+    if us["delivered"] < 0.999:
+        print(f"  run lost values: {raw}", flush=True)
     return us
 
 

@@ -307,8 +307,16 @@ class OutgoingChannel:
         (:mod:`rlbridge.wire.bundle`), so no packet object is made per value.
         """
         ring = self._ring
-        if ring._head == ring._tail:  # nothing written since the last take
+        if ring._head == ring._tail:  # nothing written since the last take (most channels)
             return 0
+        pair = ring.take_single()
+        if pair is not None:
+            first = self._next_seq
+            self._next_seq = first + 1
+            parts.append((VALUE_TAG, self.channel_id, first, pair[0], pair[1]))
+            if self._space.waiting:
+                self._space.ring()
+            return 1
         stamps, values = ring.drain_stamped()
         if self._space.waiting:
             self._space.ring()
@@ -316,9 +324,7 @@ class OutgoingChannel:
         first = self._next_seq
         self._next_seq = first + n
         cid = self.channel_id
-        if n == 1:
-            parts.append((VALUE_TAG, cid, first, stamps[0], values[0]))
-        elif max_batch == 1:  # one value per packet: a Value each
+        if max_batch == 1:  # one value per packet: a Value each
             parts.extend([(VALUE_TAG, cid, first + i, stamps[i], values[i]) for i in range(n)])
         else:
             parts.extend([(BATCH_TAG, cid, first + i, stamps[i : i + max_batch],
