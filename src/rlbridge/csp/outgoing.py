@@ -300,31 +300,20 @@ class OutgoingChannel:
 
     def take_parts(self, parts: list[Part], max_batch: int) -> int:
         """Send thread, a :attr:`plain` channel: append what waits to ``parts``; return how
-        many values that was.
+        many values that was (:func:`take_plain` has the common case inline).
 
-        :meth:`take` without its policies, for the common case: each part is a tuple shaped
-        like the ``Value`` (or ``Batch`` of at most ``max_batch``) it stands for
-        (:mod:`rlbridge.wire.bundle`), so no packet object is made per value.
+        :meth:`take` without its policies: each part is a tuple shaped like the ``Value`` (or
+        ``Batch`` of at most ``max_batch``) it stands for (:mod:`rlbridge.wire.bundle`), so
+        no packet object is made per value.
         """
-        ring = self._ring
-        if ring._head == ring._tail:  # nothing written since the last take (most channels)
-            return 0
-        pair = ring.take_single()
-        if pair is not None:
-            first = self._next_seq
-            self._next_seq = first + 1
-            parts.append((VALUE_TAG, self.channel_id, first, pair[0], pair[1]))
-            if self._space.waiting:
-                self._space.ring()
-            return 1
-        stamps, values = ring.drain_stamped()
+        stamps, values = self._ring.drain_stamped()
         if self._space.waiting:
             self._space.ring()
         n = len(values)
         first = self._next_seq
         self._next_seq = first + n
         cid = self.channel_id
-        if max_batch == 1:  # one value per packet: a Value each
+        if n == 1 or max_batch == 1:  # one value per packet: a Value each
             parts.extend([(VALUE_TAG, cid, first + i, stamps[i], values[i]) for i in range(n)])
         else:
             parts.extend([(BATCH_TAG, cid, first + i, stamps[i : i + max_batch],
@@ -376,3 +365,37 @@ class OutgoingChannel:
         if self._held is not None:
             self._held = None
             self._discarded += 1
+
+
+def take_plain(channels: Sequence[OutgoingChannel], parts: list[Part], max_batch: int) -> int:
+    """Send thread: what waits in these :attr:`~OutgoingChannel.plain` channels, appended to
+    ``parts`` (one round); returns how many values.
+
+    The hot loop of a send round, so the common case (nothing, or one value since the last
+    round) is inline, a dozen operations per channel: the ring's consumer step for one pair
+    (rlbridge.csp.ring's seqlock: take the slot, then check that ``_claim`` did not reach it)
+    and one ``Value`` part. Anything else (several values, or a pair overwritten while it was
+    read) goes through :meth:`OutgoingChannel.take_parts`, which drains the ring properly.
+    """
+    taken = 0
+    for ch in channels:
+        ring = ch._ring
+        tail = ring._tail
+        count = ring._head - tail
+        if not count:
+            continue
+        if count == 1:
+            cap = ring._cap
+            i = tail % cap
+            stamp, value = ring._stamps[i], ring._slots[i]
+            if ring._claim - cap - tail <= 0:  # not overwritten while we read it
+                ring._tail = tail + 1
+                seq = ch._next_seq
+                ch._next_seq = seq + 1
+                parts.append((VALUE_TAG, ch.channel_id, seq, stamp, value))
+                taken += 1
+                if ch._space.waiting:
+                    ch._space.ring()
+                continue
+        taken += ch.take_parts(parts, max_batch)
+    return taken

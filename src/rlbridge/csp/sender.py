@@ -35,11 +35,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Protocol, cast
+from typing import Protocol
 
 from rlbridge.csp.bell import SendBell
 from rlbridge.csp.connection import Connection, ConnectionClosed
 from rlbridge.csp.idle import PARK, IdleStrategy, Park
+from rlbridge.csp.outgoing import OutgoingChannel, take_plain
 from rlbridge.csp.pacing import Pacing
 from rlbridge.tcpstate import congested
 from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Value
@@ -94,19 +95,6 @@ class OutgoingSource(Protocol):
         ...
 
 
-class PlainSource(OutgoingSource, Protocol):
-    """An outgoing source without policies (``plain``): taken straight into a round's parts.
-
-    A source that has no ``plain`` attribute, or has it false, goes through ``take``.
-    """
-
-    plain: bool
-
-    def take_parts(self, parts: list[Part], max_batch: int) -> int:
-        """Append what waits as value parts (wire/bundle.py); return how many values."""
-        ...
-
-
 class CreditSource(Protocol):
     """What the send thread needs from a flow-controlled incoming channel."""
 
@@ -131,8 +119,8 @@ class SendLoop:
         self._max_batch = max(1, max_batch)
         self._sources: tuple[OutgoingSource, ...] = ()
         #: Of ``_sources``: the plain ones (all; the immediate ones), and the others.
-        self._plain: tuple[PlainSource, ...] = ()
-        self._plain_immediate: tuple[PlainSource, ...] = ()
+        self._plain: tuple[OutgoingChannel, ...] = ()
+        self._plain_immediate: tuple[OutgoingChannel, ...] = ()
         self._others: tuple[OutgoingSource, ...] = ()
         #: The sources whose own state can wake this thread (immediate, or paced: deferred).
         self._wakers: tuple[OutgoingSource, ...] = ()
@@ -198,8 +186,7 @@ class SendLoop:
 
     def _set_sources(self, sources: tuple[OutgoingSource, ...]) -> None:
         """Sort the sources once, not per round: plain ones take the short way."""
-        plain = tuple(cast(PlainSource, s) for s in sources
-                      if getattr(s, "plain", False) is True)
+        plain = tuple(s for s in sources if isinstance(s, OutgoingChannel) and s.plain)
         self._plain = plain
         self._plain_immediate = tuple(s for s in plain if s.immediate)
         self._others = tuple(s for s in sources if s not in plain)
@@ -308,11 +295,8 @@ class SendLoop:
         if packer is not None and packer.one_call:
             # The short way: plain channels append their values as parts, and the round's
             # parts are encoded by one call into one datagram (or, too large, packed below).
-            taken = 0
-            max_batch = self._max_batch
-            for src in self._plain if flush_all else self._plain_immediate:
-                taken += src.take_parts(parts, max_batch)
-            self.values_sent += taken
+            self.values_sent += take_plain(self._plain if flush_all else self._plain_immediate,
+                                           parts, self._max_batch)
             others = self._others
             gathered = False
         else:

@@ -57,27 +57,6 @@ class StampedRing(SpscRing[Any]):
             slots[j] = values[i]
         self._head = end
 
-    def take_single(self) -> tuple[int, Any] | None:
-        """Consumer: when exactly one pair waits, take it as ``(stamp, value)``; else None.
-
-        The send thread's common case (one value per channel and round) without the two
-        list slices of :meth:`drain_stamped`; None means "use drain_stamped" (nothing
-        waits, several do, or the pair was overwritten while it was read, counted).
-        """
-        tail = self._tail
-        if self._head - tail != 1:
-            return None
-        cap = self._cap
-        i = tail % cap
-        pair = (self._stamps[i], self._slots[i])
-        lost = self._claim - cap - tail
-        if lost > 0:  # overwritten while we copied (the seqlock, as in drain_stamped)
-            self._skipped += lost
-            self._tail = tail + lost
-            return None
-        self._tail = tail + 1
-        return pair
-
     def drain_stamped(self, max_items: int | None = None) -> tuple[list[int], list[Any]]:
         """Consumer: the unread pairs (at most ``max_items``), oldest first, as
         ``(stamps, values)``; the rest stay for the next call (rate limit, credit)."""
