@@ -267,11 +267,9 @@ class Connection:
         udp = self.udp
         if udp is None:
             raise ConnectionClosed("this session has no UDP socket")
-        # ICMP port unreachable from an earlier datagram: the watchdog will tell. (Not
-        # contextlib.suppress: this runs once per send round, and that is two Python calls.)
-        try:  # noqa: SIM105
+        try:  # noqa: SIM105 (suppress() costs two Python calls, and this runs every round)
             udp.send(data)
-        except ConnectionRefusedError:
+        except ConnectionRefusedError:  # ICMP unreachable from an earlier one: the watchdog
             pass
 
     def send_control(self, packet: Packet) -> None:

@@ -2,11 +2,13 @@
 
 An :class:`OutgoingChannel` is the writer end only: ``write`` stamps the value and stores it in
 a lock-free ring (two preallocated slot lists, :mod:`rlbridge.csp.stamped_ring`: no allocation
-per write); the send thread is its reader. With ``immediate=True`` (``through_buffer`` off) a
-write also rings the send thread's doorbell, which costs a futex wake *only* when the send
-thread sleeps; with ``through_buffer`` on, a write makes no system call at all and the value
-leaves on ``Bridge.send()`` or the next send-loop tick. The ring is single-producer: a write
-from a second thread while the first writer thread lives raises :class:`ChannelMisuseError`.
+per write); the send thread is its reader (:meth:`OutgoingChannel.take`, or for a ``plain``
+channel :func:`~rlbridge.csp.plain_round.take_plain`). With ``immediate=True``
+(``through_buffer`` off) a write also rings the send thread's bell, which costs a futex wake
+*only* when the send thread sleeps; with ``through_buffer`` on, a write makes no system call at
+all and the value leaves on ``Bridge.send()`` or the next send-loop tick. The ring is
+single-producer: a write from a second thread while the first writer thread lives raises
+:class:`ChannelMisuseError`.
 
 What may leave when is the channel's :class:`~rlbridge.csp.pacing.Pacing`: the credit a
 flow-controlled TCP channel was granted and a ``max_rate_hz`` limit. What it holds back stays
@@ -300,7 +302,7 @@ class OutgoingChannel:
 
     def take_parts(self, parts: list[Part], max_batch: int) -> int:
         """Send thread, a :attr:`plain` channel: append what waits to ``parts``; return how
-        many values that was (:func:`take_plain` has the common case inline).
+        many values that was (``plain_round.take_plain`` has the common case inline).
 
         :meth:`take` without its policies: each part is a tuple shaped like the ``Value`` (or
         ``Batch`` of at most ``max_batch``) it stands for (:mod:`rlbridge.wire.bundle`), so
@@ -366,36 +368,3 @@ class OutgoingChannel:
             self._held = None
             self._discarded += 1
 
-
-def take_plain(channels: Sequence[OutgoingChannel], parts: list[Part], max_batch: int) -> int:
-    """Send thread: what waits in these :attr:`~OutgoingChannel.plain` channels, appended to
-    ``parts`` (one round); returns how many values.
-
-    The hot loop of a send round, so the common case (nothing, or one value since the last
-    round) is inline, a dozen operations per channel: the ring's consumer step for one pair
-    (rlbridge.csp.ring's seqlock: take the slot, then check that ``_claim`` did not reach it)
-    and one ``Value`` part. Anything else (several values, or a pair overwritten while it was
-    read) goes through :meth:`OutgoingChannel.take_parts`, which drains the ring properly.
-    """
-    taken = 0
-    for ch in channels:
-        ring = ch._ring
-        tail = ring._tail
-        count = ring._head - tail
-        if not count:
-            continue
-        if count == 1:
-            cap = ring._cap
-            i = tail % cap
-            stamp, value = ring._stamps[i], ring._slots[i]
-            if ring._claim - cap - tail <= 0:  # not overwritten while we read it
-                ring._tail = tail + 1
-                seq = ch._next_seq
-                ch._next_seq = seq + 1
-                parts.append((VALUE_TAG, ch.channel_id, seq, stamp, value))
-                taken += 1
-                if ch._space.waiting:
-                    ch._space.ring()
-                continue
-        taken += ch.take_parts(parts, max_batch)
-    return taken

@@ -2,14 +2,24 @@
 
 Theory of operation. Control code writes into outgoing channels, which only store the value in
 a ring buffer (no lock, no system call). This soft-real-time thread drains the rings and does
-the I/O. It wakes for three reasons: an *immediate* channel was written (the channel sets the
-wake event, one futex wake when this thread sleeps), ``Bridge.send()`` asked to flush the shared
-buffer (thesis: ``send through buffer``), or the SDK's own send loop ticks at its configured
-rate (thesis 4.3, figure 5.10). Every value waiting in a channel goes out in one packet per
-channel (a Batch when there are several); TCP frames of all channels are coalesced into one
-``sendall``, and the packets of all UDP channels into one datagram (a ``Bundle``, split only at
-``DATAGRAM_BUDGET`` bytes; :mod:`rlbridge.wire.bundle`). So the packet rate follows the send
-loop, not the control loop, and not the number of channels.
+the I/O. It wakes for three reasons: an *immediate* channel was written, ``Bridge.send()``
+asked to flush the shared buffer (thesis: ``send through buffer``), or the SDK's own send loop
+ticks at its configured rate (thesis 4.3, figure 5.10). The first two ring its bell
+(:mod:`rlbridge.csp.bell`) only while it is parked: one futex wake, no lock; ``send()`` counts
+a request, and a round is due while the count differs from the one the last round saw.
+Every value waiting in a channel goes out in one packet per channel (a Batch when there are
+several); TCP frames of all channels are coalesced into one ``sendall``, and the packets of
+all UDP channels into one datagram (a ``Bundle``, split only at ``DATAGRAM_BUDGET`` bytes;
+:mod:`rlbridge.wire.bundle`). So the packet rate follows the send loop, not the control loop,
+and not the number of channels.
+
+A round costs Python per channel, so the common case takes the short way: a *plain* UDP
+channel (no policy between its ring and the wire: no rate limit, credit, latest, age limit or
+redundancy) is taken by one inline loop (:func:`~rlbridge.csp.plain_round.take_plain`) as
+tuples shaped like ``Value`` packets, and the round's parts are encoded by one msgspec call
+into one datagram (:meth:`~rlbridge.wire.bundle.DatagramPacker.send_parts`). Channels with
+policies, TCP channels, and rounds that cannot bundle (a sealed codec, ``bundles=False``, a
+round larger than a datagram) go through ``take`` and the packer part by part, as before.
 
 While the link is down (:meth:`SendLoop.pause`, from the end of a session until its channels are
 bound again) the thread takes nothing: values wait in their channels' rings, which keep the
@@ -35,13 +45,13 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Protocol
 
 from rlbridge.csp.bell import SendBell
 from rlbridge.csp.connection import Connection, ConnectionClosed
 from rlbridge.csp.idle import PARK, IdleStrategy, Park
-from rlbridge.csp.outgoing import OutgoingChannel, take_plain
-from rlbridge.csp.pacing import Pacing
+from rlbridge.csp.outgoing import OutgoingChannel
+from rlbridge.csp.plain_round import take_plain
+from rlbridge.csp.send_sources import CreditSource, OutgoingSource
 from rlbridge.tcpstate import congested
 from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Value
 from rlbridge.wire.bundle import DatagramPacker, Part, as_packet
@@ -53,57 +63,6 @@ log = logging.getLogger("rlbridge.client")
 DATAGRAM_BUDGET = 1400
 #: How often a held latest value re-checks whether the TCP connection has drained.
 HOLD_POLL_S = 0.001
-
-
-class OutgoingSource(Protocol):
-    """What the send thread needs from an outgoing channel."""
-
-    channel_id: int
-    transport: str
-    immediate: bool
-    latest: bool
-    pacing: Pacing | None
-    #: The last take left values behind for the rate limit or credit: take again later.
-    deferred: bool
-
-    def take(self, congested: bool = False) -> tuple[int, list[int], list[object], int]:
-        """What to send: ``(first_seq, stamps, values, repeated)``; empty lists when nothing.
-
-        ``repeated`` leading values are redundant copies of values sent before.
-        """
-        ...
-
-    @property
-    def holding(self) -> bool:
-        """A latest value is held back until the connection drains."""
-        ...
-
-    def pending(self) -> int:
-        """How many values wait (for monitors)."""
-        ...
-
-    def ready(self, now_ns: int) -> bool:
-        """Values wait and their credit and rate limit let one go now (wake-up predicate)."""
-        ...
-
-    def retry_in(self, now_ns: int) -> float | None:
-        """Seconds until the rate limit lets a waiting value go; None: nothing to wait for."""
-        ...
-
-    def refused(self, count: int) -> None:
-        """The server refused ``count`` values sent on this channel (receive thread)."""
-        ...
-
-
-class CreditSource(Protocol):
-    """What the send thread needs from a flow-controlled incoming channel."""
-
-    channel_id: int
-    credited: int
-
-    def credit_due(self) -> bool: ...
-
-    def credit_limit(self) -> int: ...
 
 
 class SendLoop:
