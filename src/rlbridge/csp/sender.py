@@ -250,6 +250,8 @@ class SendLoop:
         if self._credits:
             self._grant_credit(frames)
         parts = self._parts
+        if parts:  # left by a round that failed before it sent them: lost with that round
+            parts.clear()
         gathered = True  # the packer may hold parts added one by one: flush it
         if packer is not None and packer.one_call:
             # The short way: plain channels append their values as parts, and the round's
@@ -267,12 +269,14 @@ class SendLoop:
         if parts:
             self.packets_sent += len(parts)
             assert packer is not None
-            if not packer.send_parts(parts):  # too large together, or no bundles
-                gathered = True
-                for part in parts:
-                    packet = as_packet(part)
-                    self._refused(packer.add(packet), packet.channel)
-            parts.clear()
+            try:
+                if not packer.send_parts(parts):  # too large together, or no bundles
+                    gathered = True
+                    for part in parts:
+                        packet = as_packet(part)
+                        self._refused(packer.add(packet), packet.channel)
+            finally:  # a failed send loses this round's parts, never resends them later
+                parts.clear()
         if gathered and packer is not None:
             packer.flush()  # what was added one by one: one datagram (a bundle) again
         if frames:
