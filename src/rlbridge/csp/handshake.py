@@ -168,9 +168,13 @@ def udp_socket(host: str, port: int) -> socket.socket:
     sock = socket.socket(family, socket.SOCK_DGRAM)
     # Room for a burst while the receive thread waits for the GIL (the default ~200 KiB
     # holds under 100 full datagrams); capped by net.core.rmem_max, the rest are gaps.
-    with contextlib.suppress(OSError):
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
-    sock.connect((host, port))
+    try:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
+        sock.connect((host, port))
+    except BaseException:  # a name that does not resolve: the socket is ours to close
+        sock.close()
+        raise
     return sock
 
 
