@@ -161,9 +161,10 @@ def main() -> None:
           f"{args.channels} channels x {args.rate:g} Hz x {args.seconds:g} s):")
     print(f"{'':14}{'A':>8}{'B':>8}{'B/A':>7}")
     for k in KEYS:
-        a = statistics.median(r[k] for r in runs["A"])
-        b = statistics.median(r[k] for r in runs["B"])
-        print(f"{k:14}{a:8.2f}{b:8.2f}{b / a if a else float('nan'):7.2f}")
+        med_a = statistics.median(r[k] for r in runs["A"])
+        med_b = statistics.median(r[k] for r in runs["B"])
+        ratio = med_b / med_a if med_a else float("nan")
+        print(f"{k:14}{med_a:8.2f}{med_b:8.2f}{ratio:7.2f}")
 
 
 if __name__ == "__main__":
