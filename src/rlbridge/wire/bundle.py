@@ -18,6 +18,14 @@ are the same as encoding a ``Bundle`` packet. Without keys the datagram is the h
 body; a sealing codec seals the same body (``seal_body``), so sealing adds the AEAD and nothing
 else: no second encoding.
 
+A sender that has a whole round at hand (the client's send thread) may instead give every
+part at once to :meth:`DatagramPacker.send_parts`, as packets or as plain tuples shaped like
+them (``(VALUE_TAG, channel, seq, stamp_ns, value)``: an array-like tagged struct is encoded
+as exactly that array). With a plain codec and bundles on, the round is then encoded by one
+msgspec call into a reused buffer behind the datagram header: no ``Value`` object, no
+per-part encoding and no join per value. A round that does not fit ``budget`` is left to the
+caller, who adds its parts one by one (:func:`as_packet`).
+
 A part larger than ``budget`` on its own is split when it is a batch (into consecutive batches
 that fit, the chunk length estimated once from the encoded size); a single value goes alone if
 it fits ``limit`` and is refused (counted by the caller) if not.
@@ -29,11 +37,12 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Callable
+from typing import Any
 
 import msgspec
 
 from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC, PacketCodec
-from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Value
+from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Value
 from rlbridge.wire.seal import SealedCodec
 
 #: ``[32, parts]``: fixarray of 2, tag 32, then the parts' array: ``dc`` + u16 count (array16),
@@ -49,6 +58,23 @@ MAX_PARTS = 0xFFFF
 SEAL_MARGIN = 64
 
 ValuePacket = Value | Batch
+#: The wire tags of ``Value``, ``Batch`` and ``Bundle`` (the first element of their arrays).
+VALUE_TAG: int = Value.__struct_config__.tag  # type: ignore[assignment]
+BATCH_TAG: int = Batch.__struct_config__.tag  # type: ignore[assignment]
+BUNDLE_TAG: int = Bundle.__struct_config__.tag  # type: ignore[assignment]
+#: A part of a round: a packet, or a tuple with its tag and fields (encodes to the same bytes).
+Part = ValuePacket | tuple[Any, ...]
+
+
+def as_packet(part: Part) -> ValuePacket:
+    """The packet a part stands for (a tuple becomes its ``Value`` or ``Batch``)."""
+    if not isinstance(part, tuple):
+        return part
+    if part[0] == VALUE_TAG:
+        return Value(*part[1:])
+    if part[0] == BATCH_TAG:
+        return Batch(*part[1:])
+    raise ValueError(f"not a value part: tag {part[0]!r}")
 
 
 class DatagramPacker:
@@ -74,13 +100,22 @@ class DatagramPacker:
         self._seal = codec.seal_body if isinstance(codec, SealedCodec) else None
         self._header = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, flags, token)
         self._overhead = DATAGRAM_HEADER.size + (0 if self._plain else SEAL_MARGIN)
-        self._encode = msgspec.msgpack.Encoder().encode
+        encoder = msgspec.msgpack.Encoder()
+        self._encode = encoder.encode
+        self._encode_into = encoder.encode_into
+        self._round = bytearray(self._header)
+        self._bundle: list[Any] = [BUNDLE_TAG, None]
         self._bodies: list[bytes] = []
         self._size = 0
         self._values = 0
         #: Datagrams handed to ``send``, and of those, bundles (two or more parts).
         self.datagrams = 0
         self.bundles_sent = 0
+
+    @property
+    def one_call(self) -> bool:
+        """:meth:`send_parts` can encode a round in one call (a plain codec that bundles)."""
+        return self._plain and self.bundles
 
     @property
     def pending(self) -> int:
@@ -105,6 +140,31 @@ class DatagramPacker:
         self._size += size
         self._values += 1 if isinstance(packet, Value) else len(packet.values)
         return 0
+
+    def send_parts(self, parts: list[Part]) -> bool:
+        """Send a whole round's parts in one datagram, encoded by one msgspec call.
+
+        Returns False, having sent nothing, when this packer cannot (not :attr:`one_call`) or
+        the parts do not fit ``budget`` together: the caller then adds them one by one.
+        """
+        n = len(parts)
+        if not (n and self._plain and self.bundles):
+            return False
+        buf = self._round
+        if n == 1:
+            self._encode_into(parts[0], buf, DATAGRAM_HEADER.size)
+        else:
+            bundle = self._bundle
+            bundle[1] = parts  # [32, parts]: the Bundle's array, its parts unchanged
+            self._encode_into(bundle, buf, DATAGRAM_HEADER.size)
+        if len(buf) > self.budget:
+            return False
+        if self._bodies:  # parts added before this round go first
+            self.flush()
+        self.datagrams += 1
+        self.bundles_sent += n > 1
+        self._send(bytes(buf))
+        return True
 
     def flush(self) -> None:
         """Send what is gathered: one part as itself, several as one bundle.
