@@ -21,7 +21,17 @@ from rlbridge.bench.common import (
     report_header,
     write_section,
 )
-from rlbridge.bench.load import Plan, Run, Settings, describe, phase_row, run, totals_line
+from rlbridge.bench.load import (
+    Plan,
+    Run,
+    Settings,
+    describe,
+    loss_by_stage,
+    phase_row,
+    run,
+    totals_line,
+)
+from rlbridge.server.config import UDP_RECEIVE_BUFFER
 
 
 def soak_plan(minutes: float, interval_s: float) -> Plan:
@@ -37,7 +47,8 @@ def measure(settings: Settings, minutes: float, interval_s: float,
 def report(r: Run, command: Sequence[str]) -> str:
     s = r.settings
     headers = ["t (min)", "delivered values/s", "latency p50 µs (median session)",
-               "p99 µs (median session)", "p99 µs (worst session)", "server dropped",
+               "p99 µs (median session)", "p99 µs (worst session)",
+               "hop 1: datagrams dropped by the kernel", "server dropped",
                "server CPU %", "server CPU µs per value (in + out)", "server waited for a CPU %",
                "server RSS MiB (end of interval)"]
     rows, rss = [], []
@@ -45,7 +56,8 @@ def report(r: Run, command: Sequence[str]) -> str:
         x = phase_row(ph)
         rss.append(x["rss1"])
         rows.append([ph.name, fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
-                     fmt(x["p99_worst"]), fmt(x["dropped"]), fmt(x["cpu_pct"]),
+                     fmt(x["p99_worst"]), fmt(x["hop1_drops"]), fmt(x["dropped"]),
+                     fmt(x["cpu_pct"]),
                      fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]), f"{x['rss1']:.1f}"])
     growth = (f"Server RSS from the end of the first interval to the end of the last: "
               f"{rss[0]:.1f} -> {rss[-1]:.1f} MiB ({rss[-1] - rss[0]:+.1f} MiB)." if rss else "")
@@ -54,7 +66,7 @@ def report(r: Run, command: Sequence[str]) -> str:
         f"{s.clients} sessions x {s.channels} channels at {s.rate_hz:g} Hz (offered "
         f"{s.offered:,.0f} values/s) {describe(s)}; a row every {r.phases[0].seconds:.0f} s after "
         f"{s.warmup_s:g} s of warm-up." if r.phases else "", "",
-        markdown_table(headers, rows), "", totals_line(r), growth,
+        markdown_table(headers, rows), "", totals_line(r), growth, "", loss_by_stage(r), "",
         f"Load average before: {', '.join(f'{v:.2f}' for v in r.load_before)}; after: "
         f"{', '.join(f'{v:.2f}' for v in r.load_after)}.",
     ]) + "\n"
@@ -81,6 +93,9 @@ def main(
     bundles: Annotated[bool, typer.Option(
         help="Every channel of a session's tick in one datagram, both ways; --no-bundles: one "
              "datagram per value.")] = True,
+    udp_receive_buffer: Annotated[int, typer.Option(
+        help="Bytes the server asks for its UDP receive buffer (serve --udp-receive-buffer).")]
+    = UDP_RECEIVE_BUFFER,
     out: Annotated[Path, typer.Option("--out", help="Markdown file the figures are written to.")]
     = Path("docs/load.md"),
 ) -> None:
@@ -91,7 +106,7 @@ def main(
         raise typer.BadParameter(f"--transport must be 'udp' or 'tcp', not '{transport}'")
     s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                  transport=transport, client=client, warmup_s=min(10.0, interval_s),
-                 bundles=bundles)
+                 bundles=bundles, udp_receive_buffer=udp_receive_buffer)
     command = ["python", "-m", "benchmarks.soak"]
     for name, value in ctx.params.items():
         flag = f"--{name.replace('_', '-')}"

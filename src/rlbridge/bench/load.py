@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +43,10 @@ from rlbridge.bench.common import (
     report_header,
     start_server,
 )
+from rlbridge.bench.load_sockets import udp_drops
+from rlbridge.bench.load_stages import KernelDrops, stage_table, stages
+from rlbridge.server.config import UDP_RECEIVE_BUFFER
+from rlbridge.sockbuf import BufferGrant, request_buffer
 
 MODULE = "rlbridge.bench.load_roles"
 MiB = 1 << 20
@@ -80,6 +85,8 @@ class Settings:
     bulk_rate: float = 40_000.0
     max_write_buffer: int = 256 << 10
     drain_s: float = 2.0
+    #: The server's ``udp_receive_buffer`` (bytes asked for its UDP socket).
+    udp_receive_buffer: int = UDP_RECEIVE_BUFFER
 
     @property
     def offered(self) -> float:
@@ -99,6 +106,8 @@ class Phase:
     stats0: Params
     stats1: Params
     sessions: list[Params] = field(default_factory=list)
+    #: Datagrams the kernel dropped on the server's and the clients' sockets in the phase.
+    kernel: KernelDrops = field(default_factory=KernelDrops)
 
     def server_delta(self, key: str) -> int:
         return int(self.stats1["server"].get(key, 0) - self.stats0["server"].get(key, 0))
@@ -115,6 +124,10 @@ class Run:
     skipped_ticks: int
     load_before: tuple[float, float, float]
     load_after: tuple[float, float, float]
+    #: Kernel drops from the clients' "go" to their results (the whole run).
+    kernel: KernelDrops = field(default_factory=KernelDrops)
+    #: What a UDP socket of this machine gets when it asks as the server does.
+    grant: BufferGrant | None = None
 
 
 #: A phase plan: (name, seconds, what to do with the slow consumer first: start/stop/None).
@@ -145,7 +158,8 @@ def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str],
     from rlbridge.csp.bridge import Bridge
 
     server, host, port = start_server(group, max_write_buffer=s.max_write_buffer,
-                                      heartbeat_ms=500, timeout_ms=5000)
+                                      heartbeat_ms=500, timeout_ms=5000,
+                                      udp_receive_buffer=s.udp_receive_buffer)
     ids = list(range(s.clients))
     per = [ids[i :: s.processes] for i in range(s.processes)]
     common = {"host": host, "port": port, "channels": s.channels, "rate_hz": s.rate_hz,
@@ -157,6 +171,11 @@ def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str],
     for w in workers:
         w.expect("ready", 300)
     progress(f"{s.clients} sessions x {s.channels} channels connected; warming up")
+
+    def kernel() -> KernelDrops:
+        return KernelDrops(udp_drops([server.pid]), udp_drops([w.pid for w in workers]))
+
+    kernel0 = kernel()
     with Bridge.connect(host, port, name="load-stats", timeout=30.0) as probe:
         for w in workers:
             w.send("go")
@@ -174,15 +193,25 @@ def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str],
                                       {"host": host, "port": port, "topics": topics,
                                        "bulk_rate": s.bulk_rate, "max_s": total_s + 60,
                                        "stall": action == "stalled"}, timeout=60)
+            k0 = kernel()
             phases.append(_phase(name, seconds, workers, server, probe))
+            phases[-1].kernel = kernel() - k0
             progress(f"phase {name}: done")
         for w in workers:
             w.send("stop")
         results = [w.expect("result", 120 + s.drain_s) for w in workers]
+    drops = kernel() - kernel0
     for phase in phases:
         phase.sessions = [r for res in results for r in res["sessions"]]
     return Run(s, phases, [r for res in results for r in res["sessions"]],
-               sum(int(r["skipped"]) for r in results), load_before, os.getloadavg())
+               sum(int(r["skipped"]) for r in results), load_before, os.getloadavg(),
+               drops, _grant(s.udp_receive_buffer))
+
+
+def _grant(size: int) -> BufferGrant:
+    """What the server's socket got: the same request from a process with its privileges."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        return request_buffer(sock, "receive", size)
 
 
 def _phase(name: str, seconds: float, workers: list[Worker], server: Worker,
@@ -227,6 +256,7 @@ def phase_row(phase: Phase) -> dict[str, float]:
         "rss_max": max(phase.rss) / MiB,
         "server_in": phase.server_delta("values_in") / phase.seconds,
         "dropped": phase.server_delta("dropped"),
+        "hop1_drops": phase.kernel.server,
         # CPU the server spends per value it takes in and hands back out: the figure that
         # says what one core can carry, whatever share of it this machine gave the server.
         "cpu_us_per_value": phase.cpu_s * 1e6 / max(1, phase.server_delta("values_in")),
@@ -277,6 +307,26 @@ def totals_line(r: Run) -> str:
             f"skipped (behind schedule) {r.skipped_ticks:,}.")
 
 
+def clients_dropped(r: Run) -> int:
+    """Values of the load clients' subscriptions the server dropped (not the slow consumer's)."""
+    if not r.phases:
+        return 0
+    return sum(int(c.get("dropped", 0)) for s in r.phases[-1].stats1.get("sessions", [])
+               if str(s.get("name", "")).startswith("load-") for c in s["channels"].values())
+
+
+def loss_by_stage(r: Run) -> str:
+    """The whole run's values stage by stage (:mod:`.load_stages`), and the server's buffer."""
+    st = stages(r.results, first_hop_lost(r), clients_dropped(r),
+                r.skipped_ticks * r.settings.channels, r.kernel)
+    lines = [stage_table(st, sum(int(x.get("send_errors", 0)) for x in r.results))]
+    if r.grant is not None:
+        lines += ["", f"Server's {r.grant.describe()}; the kernel reports {r.grant.reported:,} "
+                  "(it doubles the request for its bookkeeping; a small datagram takes about "
+                  "1.3 KB of it on loopback)."]
+    return "\n".join(lines)
+
+
 def describe(s: Settings) -> str:
     """How the clients were run, for the report."""
     who = ("protocol-level UDP sessions (`--client raw`, one thread per process)"
@@ -295,7 +345,7 @@ def report(r: Run, command: Sequence[str]) -> str:
              f"{s.clients} sessions x {s.channels} channels at {s.rate_hz:g} Hz "
              f"(offered {s.offered:,.0f} values/s) {describe(s)}. Server `max_write_buffer` "
              f"{s.max_write_buffer >> 10} KiB; watchdog 500/5000 ms.", "",
-             phase_table(r), "", totals_line(r),
+             phase_table(r), "", totals_line(r), "", loss_by_stage(r), "",
              f"Load average before: {', '.join(f'{x:.2f}' for x in r.load_before)}; after: "
              f"{', '.join(f'{x:.2f}' for x in r.load_after)}."]
     if slow is not None:

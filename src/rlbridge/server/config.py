@@ -10,6 +10,11 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from rlbridge.wire.codec import DEFAULT_MAX_PACKET, MAX_DATAGRAM
 
+#: The server's UDP receive buffer by default: while the loop is busy or not scheduled, every
+#: client's datagrams wait here; 32 MiB hold ~25,000 small datagrams, 2.5 s of the load target
+#: (100 clients x 100 bundles/s; docs/load.md). A limit, not an allocation.
+UDP_RECEIVE_BUFFER = 32 << 20
+
 
 class ServerConfig(BaseModel):
     """Everything ``Server`` needs; defaults are safe (loopback, both transports, Nagle on)."""
@@ -36,6 +41,10 @@ class ServerConfig(BaseModel):
     udp_payload: int = Field(
         1400, ge=256, le=MAX_DATAGRAM, description="Largest UDP datagram the server sends."
     )
+    udp_receive_buffer: int = Field(
+        UDP_RECEIVE_BUFFER, ge=64 << 10, le=1 << 30,
+        description="Bytes of queued datagrams the UDP socket may hold (SO_RCVBUF; above "
+        "net.core.rmem_max only with CAP_NET_ADMIN); a full buffer drops (docs/load.md).")
     use_uvloop: bool = True
     # -- access and limits (docs/security.md) --
     psk_file: Path | None = Field(

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-import socket
 from dataclasses import dataclass
 from typing import cast
 
@@ -14,6 +12,7 @@ from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
+from rlbridge.sockbuf import request_buffer
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     AuthProof,
@@ -36,8 +35,6 @@ from rlbridge.wire.codec import (
 
 log = logging.getLogger("rlbridge.server")
 
-#: Bytes of queued datagrams the server asks the kernel for (see ``connection_made``).
-RECEIVE_BUFFER = 4 << 20
 #: UDP handshakes (challenge sent, proof awaited) remembered at once; beyond, oldest go.
 MAX_PENDING = 256
 #: What every datagram of this protocol version starts with: magic and version.
@@ -74,10 +71,10 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         sock = transport.get_extra_info("socket")
         if sock is not None:
             # Every client's datagrams queue here while the loop is busy; the default buffer
-            # (~200 KiB, under 100 full datagrams) drops a single client's burst. The kernel
-            # caps the request at net.core.rmem_max; drops that remain show as sequence gaps.
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+            # (~200 KiB, under 200 small datagrams) drops a single client's burst. A capped
+            # request is logged with the sysctl to raise (rlbridge.sockbuf, docs/load.md).
+            grant = request_buffer(sock, "receive", self._registry.ctx.config.udp_receive_buffer)
+            (log.warning if grant.capped else log.debug)("%s", grant.describe())
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.closed.set()
