@@ -50,7 +50,7 @@ def report(r: Run, command: Sequence[str]) -> str:
                "p99 µs (median session)", "p99 µs (worst session)",
                "hop 1: datagrams dropped by the kernel", "server dropped",
                "server CPU %", "server CPU µs per value (in + out)", "server waited for a CPU %",
-               "server RSS MiB (end of interval)"]
+               "clients CPU % (all processes)", "server RSS MiB (end of interval)"]
     rows, rss = [], []
     for ph in r.phases:
         x = phase_row(ph)
@@ -58,7 +58,8 @@ def report(r: Run, command: Sequence[str]) -> str:
         rows.append([ph.name, fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
                      fmt(x["p99_worst"]), fmt(x["hop1_drops"]), fmt(x["dropped"]),
                      fmt(x["cpu_pct"]),
-                     fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]), f"{x['rss1']:.1f}"])
+                     fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]),
+                     fmt(x["clients_cpu_pct"]), f"{x['rss1']:.1f}"])
     growth = (f"Server RSS from the end of the first interval to the end of the last: "
               f"{rss[0]:.1f} -> {rss[-1]:.1f} MiB ({rss[-1] - rss[0]:+.1f} MiB)." if rss else "")
     return "\n".join([

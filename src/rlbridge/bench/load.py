@@ -84,7 +84,8 @@ class Settings:
     #: Values/s fed (in batches) to a bulk topic only the slow consumer subscribes to.
     bulk_rate: float = 40_000.0
     max_write_buffer: int = 256 << 10
-    drain_s: float = 2.0
+    #: The clients read until nothing arrives for 2 s, at most this long, after the last phase.
+    drain_s: float = 60.0
     #: The server's ``udp_receive_buffer`` (bytes asked for its UDP socket).
     udp_receive_buffer: int = UDP_RECEIVE_BUFFER
 

@@ -93,6 +93,7 @@ class _SdkSession(Book):
 
 class _Sessions(Protocol):
     def write_all(self, stamp: float) -> None: ...
+    def received(self) -> int: ...
     def mark(self, phase: str) -> None: ...
     def result(self) -> Params: ...
     def close(self) -> None: ...
@@ -134,11 +135,28 @@ def tick_loop(params: Params, sessions: Sequence[_Sessions], phase: list[str],
         wait_until(due)
     for s in sessions:
         s.mark("drain")  # the last phase ends here; in-flight values count in the totals only
-    wait_until(time.monotonic() + float(params["drain_s"]))
+    drain(sessions, wait_until, float(params["drain_s"]))
     emit("result", sessions=[s.result() for s in sessions], writes=k, skipped=skipped)
     for s in sessions:
         s.close()
     hold(control)
+
+
+def drain(sessions: Sequence[_Sessions], wait_until: Callable[[float], None],
+          limit_s: float, quiet_s: float = 2.0) -> None:
+    """Read until nothing has arrived for ``quiet_s`` (at most ``limit_s``).
+
+    An overloaded server holds seconds of values in its receive buffer when the clients stop;
+    they are late, not lost, and the totals should say so. What is still missing after a
+    quiet ``quiet_s`` (or at the limit) is reported as in flight or lost.
+    """
+    end = time.monotonic() + limit_s
+    last, quiet_since = -1, time.monotonic()
+    while (now := time.monotonic()) < end and now - quiet_since < quiet_s:
+        wait_until(min(end, now + 0.25))
+        got = sum(s.received() for s in sessions)
+        if got != last:
+            last, quiet_since = got, time.monotonic()
 
 
 def clients(params: Params) -> None:

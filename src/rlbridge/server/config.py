@@ -11,8 +11,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from rlbridge.wire.codec import DEFAULT_MAX_PACKET, MAX_DATAGRAM
 
 #: The server's UDP receive buffer by default: while the loop is busy or not scheduled, every
-#: client's datagrams wait here; 32 MiB hold ~25,000 small datagrams, 2.5 s of the load target
-#: (100 clients x 100 bundles/s; docs/load.md). A limit, not an allocation.
+#: client's datagrams wait here; 32 MiB (64 as the kernel counts) hold ~80,000 bundles of ten
+#: values, 8 s of the load target (100 clients x 100 bundles/s): a stall that long is late
+#: values, not lost ones (docs/load.md). A limit, not an allocation.
 UDP_RECEIVE_BUFFER = 32 << 20
 
 
