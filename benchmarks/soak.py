@@ -94,6 +94,9 @@ def main(
     bundles: Annotated[bool, typer.Option(
         help="Every channel of a session's tick in one datagram, both ways; --no-bundles: one "
              "datagram per value.")] = True,
+    client_nice: Annotated[int, typer.Option(
+        min=0, max=19, help="Niceness added to the client processes: the load generator yields "
+        "the CPU to the server it measures (0: same priority).")] = 0,
     udp_receive_buffer: Annotated[int, typer.Option(
         help="Bytes the server asks for its UDP receive buffer (serve --udp-receive-buffer).")]
     = UDP_RECEIVE_BUFFER,
@@ -107,7 +110,8 @@ def main(
         raise typer.BadParameter(f"--transport must be 'udp' or 'tcp', not '{transport}'")
     s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                  transport=transport, client=client, warmup_s=min(10.0, interval_s),
-                 bundles=bundles, udp_receive_buffer=udp_receive_buffer)
+                 bundles=bundles, udp_receive_buffer=udp_receive_buffer,
+                 client_nice=client_nice)
     command = ["python", "-m", "benchmarks.soak"]
     for name, value in ctx.params.items():
         flag = f"--{name.replace('_', '-')}"

@@ -88,6 +88,12 @@ class Settings:
     drain_s: float = 60.0
     #: The server's ``udp_receive_buffer`` (bytes asked for its UDP socket).
     udp_receive_buffer: int = UDP_RECEIVE_BUFFER
+    #: Niceness the client processes add to their own (0-19): the load generator yields the
+    #: CPU to the server it measures, as clients on other machines would not take it.
+    client_nice: int = 0
+    #: A client process behind schedule writes its late ticks up to this far behind; beyond,
+    #: it skips them (counted as the generator's shortfall).
+    catch_up_s: float = 0.1
 
     @property
     def offered(self) -> float:
@@ -165,7 +171,7 @@ def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str],
     per = [ids[i :: s.processes] for i in range(s.processes)]
     common = {"host": host, "port": port, "channels": s.channels, "rate_hz": s.rate_hz,
               "transport": s.transport, "max_s": total_s + 60, "drain_s": s.drain_s,
-              "bundles": s.bundles}
+              "bundles": s.bundles, "nice": s.client_nice, "catch_up_s": s.catch_up_s}
     role = "raw" if s.client == "raw" else "clients"
     workers = [group.start(f"clients-{i}", "b", MODULE, role, {**common, "ids": chunk})
                for i, chunk in enumerate(per) if chunk]
@@ -334,6 +340,8 @@ def describe(s: Settings) -> str:
            if s.client == "raw" else f"SDK sessions (`--client sdk`, Bridge over {s.transport})")
     how = ("every channel of a session's tick in one datagram both ways (bundles)" if s.bundles
            else "one datagram per value both ways (`--no-bundles`)")
+    if s.client_nice:
+        how += f"; client processes at niceness +{s.client_nice} (the server at 0)"
     return (f"as {who} in {s.processes} client processes, one server process, loopback; "
             "each value goes client -> server -> client (the clients subscribe to their own "
             f"topics), {how}")

@@ -4,7 +4,8 @@ A *clients* process hosts several SDK sessions (``Bridge``), each with ``channel
 channels published at ``rate_hz`` and the same topics subscribed back, so every value makes the
 deployed round trip: SDK -> server -> in-process bus -> server -> SDK. One ticker thread per
 process writes ``time.time()`` on every outgoing channel on an absolute schedule; when it falls
-behind it skips ticks (counted) instead of bursting, so the offered load is what it says.
+behind it writes the late ticks at once up to ``catch_up_s`` behind, and skips (counts) the
+rest instead of bursting for longer, so the offered load is what it says.
 
 Latency is measured on channel 0 of every session: a thread per session blocks on that channel
 and records ``time.time() - value`` when a value becomes readable. The other channels are
@@ -22,6 +23,7 @@ counters and latency percentiles per phase at the end.
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
 import threading
 import time
@@ -34,6 +36,8 @@ from rlbridge.bench.load_raw import RawSessions
 from rlbridge.wire import PacketCodec
 
 BULK_TOPIC = "/load/bulk"
+#: Session writes due closer together than this go out back to back (see ``tick_loop``).
+SLOT_S = 0.001
 
 
 class _SdkSession(Book):
@@ -109,7 +113,14 @@ def tick_loop(params: Params, sessions: Sequence[_Sessions], phase: list[str],
         s.mark("warmup")
     # Sessions are staggered over the period, as independent clients would be: session j of
     # n writes at j/n of each period, so the server sees a steady stream, not a burst per tick.
-    step = 1.0 / float(params["rate_hz"]) / len(sessions)
+    # Writes due within SLOT_S of each other go out without a wait between them (the process
+    # wakes at most ~1,000 times a second, not once per session write), and the sockets are
+    # read at least once per round. A process the machine did not schedule in time writes its
+    # late ticks at once, as a preempted control loop would, up to ``catch_up_s`` behind;
+    # further behind it skips them (counted), so a starved generator does not burst for long.
+    n = len(sessions)
+    step = 1.0 / float(params["rate_hz"]) / n
+    catch_up = max(float(params.get("catch_up_s", 0.1)), step * n)
     start = time.monotonic()
     end = start + float(params["max_s"])
     k = skipped = 0
@@ -117,22 +128,23 @@ def tick_loop(params: Params, sessions: Sequence[_Sessions], phase: list[str],
         now = time.monotonic()
         if now >= end or control.poll("stop") is not None:
             break
-        if k % len(sessions) == 0:
+        if k % n == 0:
             msg = control.poll("phase")
             if msg is not None:
                 phase[0] = str(msg["name"])
                 for s in sessions:
                     s.mark(phase[0])
-        sessions[k % len(sessions)].write_all(time.time())
+        sessions[k % n].write_all(time.time())
         k += 1
         due = start + k * step
         now = time.monotonic()
-        if now > due + step * len(sessions):  # behind by a whole period: skip, do not burst
+        if now > due + catch_up:  # too far behind: skip, do not burst
             late = int((now - due) / step)
             skipped += late
             k += late
             due = start + k * step
-        wait_until(due)
+        if k % n == 0 or due - now > SLOT_S:
+            wait_until(due)
     for s in sessions:
         s.mark("drain")  # the last phase ends here; in-flight values count in the totals only
     drain(sessions, wait_until, float(params["drain_s"]))
@@ -159,8 +171,15 @@ def drain(sessions: Sequence[_Sessions], wait_until: Callable[[float], None],
             last, quiet_since = got, time.monotonic()
 
 
+def _yield_cpu(params: Params) -> None:
+    """Lower this process's priority by ``params["nice"]`` (a load generator, not the product)."""
+    if int(params.get("nice", 0)):
+        os.nice(int(params["nice"]))
+
+
 def clients(params: Params) -> None:
     """SDK sessions ``params["ids"]`` in this process (``Bridge``, its threads, its channels)."""
+    _yield_cpu(params)
     phase = ["warmup"]
     sessions = [_SdkSession(params, i, phase) for i in params["ids"]]
     tick_loop(params, sessions, phase, lambda due: time.sleep(max(0.0, due - time.monotonic())))
@@ -235,6 +254,7 @@ def slow(params: Params) -> None:
 
 def raw_clients(params: Params) -> None:
     """Protocol-level sessions (``load_raw``): one thread drives them all."""
+    _yield_cpu(params)
     phase = ["warmup"]
     raw = RawSessions(params, phase)
     tick_loop(params, raw.sessions, phase, raw.wait_until)
