@@ -46,7 +46,7 @@ def measure(settings: Settings, minutes: float, interval_s: float,
 
 def report(r: Run, command: Sequence[str]) -> str:
     s = r.settings
-    headers = ["t (min)", "delivered values/s", "latency p50 µs (median session)",
+    headers = ["t (min)", "written values/s", "delivered values/s", "latency p50 µs (median session)",
                "p99 µs (median session)", "p99 µs (worst session)",
                "hop 1: datagrams dropped by the kernel", "server dropped",
                "server CPU %", "server CPU µs per value (in + out)", "server waited for a CPU %",
@@ -55,7 +55,7 @@ def report(r: Run, command: Sequence[str]) -> str:
     for ph in r.phases:
         x = phase_row(ph)
         rss.append(x["rss1"])
-        rows.append([ph.name, fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
+        rows.append([ph.name, fmt(x["offered"]), fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
                      fmt(x["p99_worst"]), fmt(x["hop1_drops"]), fmt(x["dropped"]),
                      fmt(x["cpu_pct"]),
                      fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]),
