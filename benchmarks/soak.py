@@ -47,7 +47,8 @@ def measure(settings: Settings, minutes: float, interval_s: float,
 def report(r: Run, command: Sequence[str]) -> str:
     s = r.settings
     headers = ["t (min)", "written values/s", "delivered values/s",
-               "latency p50 µs (median session)", "p99 µs (median session)", "p99 µs (worst session)",
+               "latency p50 µs (median session)", "p99 µs (median session)",
+               "p99 µs (worst session)",
                "hop 1: datagrams dropped by the kernel", "server dropped",
                "server CPU %", "server CPU µs per value (in + out)", "server waited for a CPU %",
                "clients CPU % (all processes)", "server RSS MiB (end of interval)"]
