@@ -135,6 +135,9 @@ class Run:
     kernel: KernelDrops = field(default_factory=KernelDrops)
     #: What a UDP socket of this machine gets when it asks as the server does.
     grant: BufferGrant | None = None
+    #: The server's ``Stats`` once the clients have drained: a gap is counted when the value
+    #: after it arrives, which can be seconds after the last phase behind a deep queue.
+    final_stats: Params | None = None
 
 
 #: A phase plan: (name, seconds, what to do with the slow consumer first: start/stop/None).
@@ -207,12 +210,13 @@ def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str],
         for w in workers:
             w.send("stop")
         results = [w.expect("result", 120 + s.drain_s) for w in workers]
+        final = probe.server_stats()
     drops = kernel() - kernel0
     for phase in phases:
         phase.sessions = [r for res in results for r in res["sessions"]]
     return Run(s, phases, [r for res in results for r in res["sessions"]],
                sum(int(r["skipped"]) for r in results), load_before, os.getloadavg(),
-               drops, _grant(s.udp_receive_buffer))
+               drops, _grant(s.udp_receive_buffer), final)
 
 
 def _grant(size: int) -> BufferGrant:
@@ -288,6 +292,13 @@ def phase_table(r: Run) -> str:
     return markdown_table(headers, rows)
 
 
+def _last_stats(r: Run) -> Params:
+    """The server's counters after the drain if the run has them, else after the last phase."""
+    if r.final_stats is not None:
+        return r.final_stats
+    return r.phases[-1].stats1 if r.phases else {}
+
+
 def first_hop_lost(r: Run) -> int:
     """Values that never reached the server (sequence gaps its publish channels counted).
 
@@ -295,9 +306,7 @@ def first_hop_lost(r: Run) -> int:
     so a subscribe channel reports ``lost`` as -1 ("measured by the client"), and summing
     those took one per subscription off the figure, down to below zero.
     """
-    if not r.phases:
-        return 0
-    return sum(int(c["lost"]) for s in r.phases[-1].stats1.get("sessions", [])
+    return sum(int(c["lost"]) for s in _last_stats(r).get("sessions", [])
                for c in s["channels"].values() if c.get("direction") == "publish")
 
 
@@ -306,9 +315,11 @@ def totals_line(r: Run) -> str:
     received = sum(int(x["received"]) for x in r.results)
     lost = sent - received
     pct = 100 * lost / sent if sent else 0.0
+    when = ("once the clients had drained" if r.final_stats is not None
+            else "by the end of the last phase")
     return (f"Whole run: {sent:,} values written, {received:,} delivered to the subscribing "
             f"channels, {lost:,} not delivered ({pct:.2f} %), of which {first_hop_lost(r):,} never "
-            f"reached the server (its sequence gaps, by the end of the last phase); gaps seen "
+            f"reached the server (its sequence gaps, {when}); gaps seen "
             f"by the clients "
             f"{sum(int(x['lost_seq']) for x in r.results):,}; session writes the clients "
             f"skipped (behind schedule) {r.skipped_ticks:,}.")
@@ -316,9 +327,7 @@ def totals_line(r: Run) -> str:
 
 def clients_dropped(r: Run) -> int:
     """Values of the load clients' subscriptions the server dropped (not the slow consumer's)."""
-    if not r.phases:
-        return 0
-    return sum(int(c.get("dropped", 0)) for s in r.phases[-1].stats1.get("sessions", [])
+    return sum(int(c.get("dropped", 0)) for s in _last_stats(r).get("sessions", [])
                if str(s.get("name", "")).startswith("load-") for c in s["channels"].values())
 
 
