@@ -49,7 +49,8 @@ def report(r: Run, command: Sequence[str]) -> str:
     headers = ["t (min)", "written values/s", "delivered values/s",
                "latency p50 µs (median session)", "p99 µs (median session)",
                "p99 µs (worst session)",
-               "hop 1: datagrams dropped by the kernel", "server dropped",
+               "server receive queue MiB (max)", "hop 1: datagrams dropped by the kernel",
+               "server dropped",
                "server CPU %", "server CPU µs per value (in + out)", "server waited for a CPU %",
                "clients CPU % (all processes)", "server RSS MiB (end of interval)"]
     rows, rss = [], []
@@ -57,7 +58,8 @@ def report(r: Run, command: Sequence[str]) -> str:
         x = phase_row(ph)
         rss.append(x["rss1"])
         rows.append([ph.name, fmt(x["offered"]), fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
-                     fmt(x["p99_worst"]), fmt(x["hop1_drops"]), fmt(x["dropped"]),
+                     fmt(x["p99_worst"]), f"{x['queued_max']:.1f}", fmt(x["hop1_drops"]),
+                     fmt(x["dropped"]),
                      fmt(x["cpu_pct"]),
                      fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]),
                      fmt(x["clients_cpu_pct"]), f"{x['rss1']:.1f}"])

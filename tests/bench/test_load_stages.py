@@ -11,10 +11,11 @@ from __future__ import annotations
 import os
 import socket
 import sys
+import time
 
 import pytest
 
-from rlbridge.bench.load_sockets import parse_proc_net_udp, udp_drops, udp_sockets
+from rlbridge.bench.load_sockets import parse_proc_net_udp, udp_drops, udp_queued, udp_sockets
 from rlbridge.bench.load_stages import KernelDrops, stage_table, stages
 
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/net/udp")
@@ -33,6 +34,10 @@ def test_a_full_receive_buffer_is_counted_on_its_socket() -> None:
         sent = 200
         for _ in range(sent):
             tx.sendto(b"x" * 512, ("127.0.0.1", port))
+        deadline = time.monotonic() + 5.0
+        while udp_queued(os.getpid()) == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)  # loopback delivers in a softirq: normally already done
+        assert udp_queued(os.getpid()) > 0  # what fitted waits to be read
         rx.settimeout(0.5)  # read what fitted; a deferred softirq has time to deliver
         read = 0
         try:

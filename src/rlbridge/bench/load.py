@@ -43,7 +43,7 @@ from rlbridge.bench.common import (
     report_header,
     start_server,
 )
-from rlbridge.bench.load_sockets import udp_drops
+from rlbridge.bench.load_sockets import udp_drops, udp_queued
 from rlbridge.bench.load_stages import KernelDrops, stage_table, stages
 from rlbridge.server.config import UDP_RECEIVE_BUFFER
 from rlbridge.sockbuf import BufferGrant, request_buffer
@@ -115,6 +115,8 @@ class Phase:
     sessions: list[Params] = field(default_factory=list)
     #: Datagrams the kernel dropped on the server's and the clients' sockets in the phase.
     kernel: KernelDrops = field(default_factory=KernelDrops)
+    #: Bytes waiting in the server's UDP receive queue, sampled every second (kernel memory).
+    queued: list[int] = field(default_factory=list)
 
     def server_delta(self, key: str) -> int:
         return int(self.stats1["server"].get(key, 0) - self.stats0["server"].get(key, 0))
@@ -236,14 +238,17 @@ def _phase(name: str, seconds: float, workers: list[Worker], server: Worker,
     wait0 = run_delay_s(server.pid)
     t0 = time.monotonic()
     rss = [rss_bytes(server.pid)]
+    queued = [udp_queued(server.pid)]
     while (left := t0 + seconds - time.monotonic()) > 0:
         time.sleep(min(1.0, left))
         rss.append(rss_bytes(server.pid))
+        queued.append(udp_queued(server.pid))
     cpu = cpu_seconds(server.pid) - cpu0
     clients_cpu = sum(w.cpu_since_mark() for w in workers)
     elapsed = time.monotonic() - t0
     wait = run_delay_s(server.pid) - wait0
-    return Phase(name, elapsed, cpu, clients_cpu, wait, rss, stats0, probe.server_stats())
+    return Phase(name, elapsed, cpu, clients_cpu, wait, rss, stats0, probe.server_stats(),
+                 queued=queued)
 
 
 # -- report --------------------------------------------------------------------------------
@@ -268,6 +273,7 @@ def phase_row(phase: Phase) -> dict[str, float]:
         "server_in": phase.server_delta("values_in") / phase.seconds,
         "dropped": phase.server_delta("dropped"),
         "hop1_drops": phase.kernel.server,
+        "queued_max": max(phase.queued, default=0) / MiB,
         # CPU the server spends per value it takes in and hands back out: the figure that
         # says what one core can carry, whatever share of it this machine gave the server.
         "cpu_us_per_value": phase.cpu_s * 1e6 / max(1, phase.server_delta("values_in")),

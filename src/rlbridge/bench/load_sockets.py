@@ -69,6 +69,11 @@ def udp_sockets(pid: int) -> list[UdpSocketState]:
     return found
 
 
+def udp_queued(pid: int) -> int:
+    """Bytes waiting in the receive queues of process ``pid``'s UDP sockets (kernel memory)."""
+    return sum(s.rx_queue for s in udp_sockets(pid))
+
+
 def udp_drops(pids: list[int]) -> int:
     """Datagrams the kernel dropped on the UDP sockets of ``pids`` (receive buffers full)."""
     return sum(s.drops for pid in pids for s in udp_sockets(pid))
