@@ -99,9 +99,10 @@ def serve(
     max_sessions: Annotated[int, typer.Option(help="Concurrent sessions.")] = 256,
     max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
-    udp_receive_buffer: Annotated[int, typer.Option(
-        help="Bytes of datagrams the UDP socket may queue while the server is busy; capped "
-             "at net.core.rmem_max without CAP_NET_ADMIN (logged; docs/load.md).")] = 32 << 20,
+    udp_receive_buffer: Annotated[int | None, typer.Option(
+        help="Bytes of datagrams the UDP socket may queue while the server is busy (default: "
+             "32 MiB, or what net.core.rmem_max allows without CAP_NET_ADMIN; a size given "
+             "here that the kernel caps is warned about; docs/load.md).")] = None,
     metrics_port: Annotated[int | None, typer.Option(
         help="Serve http://HOST:PORT/metrics (Prometheus), /healthz and /status (JSON); "
              "default: off.")] = None,

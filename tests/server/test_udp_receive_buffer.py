@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import inspect
 import json
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -112,4 +114,60 @@ def test_the_setting_is_validated_and_the_cli_default_is_the_servers() -> None:
     assert "--udp-receive-buffer: Input should be greater than or equal to 65536" in (
         result.output)
     default = inspect.signature(serve).parameters["udp_receive_buffer"].default
-    assert default == ServerConfig().udp_receive_buffer == UDP_RECEIVE_BUFFER
+    assert default is None  # 32 MiB, quietly
+    assert ServerConfig().udp_receive_buffer is None
+    assert UDP_RECEIVE_BUFFER == 32 << 20
+
+
+def _serve_without_net_admin(port: int, *args: str) -> subprocess.Popen[str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("RLBRIDGE_PSK", "PYTHONWARNINGS")}
+    return subprocess.Popen(
+        ["setpriv", "--bounding-set=-net_admin", "--inh-caps=-net_admin", sys.executable, "-m",
+         "rlbridge", "serve", "-p", str(port), *args], stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _first_line(server: subprocess.Popen[str]) -> str:
+    assert server.stderr is not None
+    first = server.stderr.readline()
+    if "setpriv" in first:
+        pytest.skip(f"setpriv cannot drop the capability here: {first.strip()}")
+    assert "listening" in first
+    return first
+
+
+def _stop(server: subprocess.Popen[str]) -> str:
+    server.send_signal(signal.SIGTERM)
+    return server.communicate(timeout=60)[1]
+
+
+needs_setpriv = pytest.mark.skipif(shutil.which("setpriv") is None,
+                                   reason="needs setpriv (util-linux)")
+
+
+@linux
+@needs_setpriv
+def test_a_capped_explicit_size_is_warned_about_after_the_listening_line(
+        free_port: Callable[[], int]) -> None:
+    size = 2 * rmem_max() + 4096
+    server = _serve_without_net_admin(free_port(), "--udp-receive-buffer", str(size))
+    try:
+        _first_line(server)
+        assert server.stderr is not None
+        second = server.stderr.readline()
+        assert " WARNING " in second, second
+        assert (f"UDP receive buffer: asked {size:,} bytes, got {rmem_max():,}; capped by "
+                f"net.core.rmem_max: raise it (sysctl -w net.core.rmem_max={size})") in second
+    finally:
+        _stop(server)
+
+
+@linux
+@needs_setpriv
+@pytest.mark.skipif(rmem_max() >= UDP_RECEIVE_BUFFER, reason="the default is not capped here")
+def test_the_default_size_takes_what_it_gets_quietly(free_port: Callable[[], int]) -> None:
+    server = _serve_without_net_admin(free_port())
+    try:
+        _first_line(server)
+    finally:
+        rest = _stop(server)
+    assert "UDP receive buffer" not in rest, rest

@@ -42,10 +42,11 @@ class ServerConfig(BaseModel):
     udp_payload: int = Field(
         1400, ge=256, le=MAX_DATAGRAM, description="Largest UDP datagram the server sends."
     )
-    udp_receive_buffer: int = Field(
-        UDP_RECEIVE_BUFFER, ge=64 << 10, le=1 << 30,
-        description="Bytes of queued datagrams the UDP socket may hold (SO_RCVBUF; above "
-        "net.core.rmem_max only with CAP_NET_ADMIN); a full buffer drops (docs/load.md).")
+    udp_receive_buffer: int | None = Field(
+        None, ge=64 << 10, le=1 << 30,
+        description="Bytes of queued datagrams the UDP socket may hold; a full buffer drops "
+        "(docs/load.md). None: 32 MiB, or what net.core.rmem_max allows without "
+        "CAP_NET_ADMIN; a size given here that the kernel caps is warned about.")
     use_uvloop: bool = True
     # -- access and limits (docs/security.md) --
     psk_file: Path | None = Field(

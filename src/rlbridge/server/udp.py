@@ -7,12 +7,13 @@ import logging
 from dataclasses import dataclass
 from typing import cast
 
+from rlbridge.server.config import UDP_RECEIVE_BUFFER
 from rlbridge.server.gate import Gate
 from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
-from rlbridge.sockbuf import request_buffer
+from rlbridge.sockbuf import BufferGrant, request_buffer
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     AuthProof,
@@ -60,6 +61,8 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         self._hello_sessions: dict[tuple[tuple[str, int], str], tuple[int, Hello]] = {}
         self._gate = Gate(registry)
         self._pending: dict[tuple[str, int], _Pending] = {}
+        #: What the kernel granted the socket's receive buffer (``udp_receive_buffer``).
+        self.receive_buffer: BufferGrant | None = None
         registry.on_forget.append(lambda s: self.forget(s.id))
         #: Set when the transport has really closed; shutdown waits for it, else the loop
         #: can end first and the socket is reaped by the garbage collector (ResourceWarning).
@@ -71,10 +74,10 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         sock = transport.get_extra_info("socket")
         if sock is not None:
             # Every client's datagrams queue here while the loop is busy; the default buffer
-            # (~200 KiB, under 200 small datagrams) drops a single client's burst. A capped
-            # request is logged with the sysctl to raise (rlbridge.sockbuf, docs/load.md).
-            grant = request_buffer(sock, "receive", self._registry.ctx.config.udp_receive_buffer)
-            (log.warning if grant.capped else log.debug)("%s", grant.describe())
+            # (~200 KiB, under 200 small datagrams) drops a single client's burst. What the
+            # kernel granted is logged after the listening line (rlbridge.sockbuf).
+            self.receive_buffer = request_buffer(
+                sock, "receive", self._registry.ctx.config.udp_receive_buffer or UDP_RECEIVE_BUFFER)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.closed.set()
