@@ -10,9 +10,10 @@
 FROM python:3.11-slim
 
 # iproute2 brings `tc`, used by the optional impaired-link service (profile "impaired").
+# apt-get clean: the official image's apt config drops downloaded .debs, another base may not.
 RUN apt-get update \
     && apt-get install -y --no-install-recommends iproute2 \
-    && rm -rf /var/lib/apt/lists/*
+    && apt-get clean && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /opt/rlbridge
 COPY pyproject.toml README.md ./

@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge import Bridge
 from rlbridge.csp.patterns import DEFAULT_LAYOUT, BaseCoupling, IsolatedCoupling, LoopOptions
 
 F64 = "std_msgs/msg/Float64"
@@ -41,8 +41,8 @@ def parser(description: str, *, layouts: bool = True) -> argparse.ArgumentParser
     return p
 
 
-_ROOT = Path(__file__).resolve().parents[2]
-"""The repository's root, where ``benchmarks`` is found."""
+_PUBLISHER = Path(__file__).resolve().with_name("_publisher.py")
+"""The publisher process's script, beside this one: the examples need only the package."""
 
 
 @contextlib.contextmanager
@@ -50,16 +50,16 @@ def publisher(host: str, port: int, seconds: float, enabled: bool = True,
               rate: float = 100.0) -> Iterator[None]:
     """A sine on SETPOINT at ``rate`` from a separate process, killed on exit.
 
-    The process is the jitter benchmark's publisher (``python -m benchmarks.jitter publisher``,
-    run from the repository's root, where the examples live too).
+    The process is ``_publisher.py`` beside this file, run by this interpreter: nothing from
+    a checkout (the examples run after ``pip install rlbridge-sdk``).
     """
     if not enabled:
         yield
         return
     proc = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.jitter", "publisher", "--host", host,
-         "--port", str(port), "--topic", SETPOINT, "--rate", str(rate),
-         "--seconds", str(seconds)], start_new_session=True, cwd=_ROOT)
+        [sys.executable, str(_PUBLISHER), "--host", host, "--port", str(port),
+         "--topic", SETPOINT, "--rate", str(rate), "--seconds", str(seconds)],
+        start_new_session=True)
     try:
         yield
     finally:

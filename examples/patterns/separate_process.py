@@ -15,7 +15,7 @@ import math
 
 from _common import F64, OUTPUT, SETPOINT, parser, publisher, wait_for_publisher
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge import Bridge
 from rlbridge.csp.coupling import Coupling, Ticker
 from rlbridge.csp.process import Parallel
 from rlbridge.csp.shm import HrtProcess, ShmLink, forwarder

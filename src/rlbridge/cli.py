@@ -11,18 +11,17 @@ import typer
 from rlbridge._version import __version__
 from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.cli_options import (
+    LOCAL_SERVER,
     LOG_LEVEL_HELP,
-    CaOpt,
-    FingerprintOpt,
     Host,
     Port,
-    PskFileOpt,
-    TlsOpt,
+    ServerTarget,
     TransportOpt,
     check_log_level,
     checked_transport,
     configure_logging,
     option,
+    server_options,
 )
 from rlbridge.cli_topic import topic_app
 
@@ -104,8 +103,12 @@ def serve(
              "32 MiB, or what net.core.rmem_max allows without CAP_NET_ADMIN; a size given "
              "here that the kernel caps is warned about; docs/load.md).")] = None,
     metrics_port: Annotated[int | None, typer.Option(
-        help="Serve http://HOST:PORT/metrics (Prometheus), /healthz and /status (JSON); "
-             "default: off.")] = None,
+        help="Serve http://METRICS-HOST:PORT/metrics (Prometheus), /healthz and /status "
+             "(JSON); default: off.")] = None,
+    metrics_host: Annotated[str, typer.Option(
+        help="Address of the metrics endpoint. It asks no key and names every client and "
+             "topic, so it stays on loopback whatever --host is; another address is warned "
+             "at start.")] = "127.0.0.1",
     log_level: LogLevel = None,
 ) -> None:
     """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md).
@@ -130,7 +133,7 @@ def serve(
                               allow=tuple(allow or ()), max_rate=max_rate,
                               max_sessions=max_sessions, max_channels=max_channels,
                               max_packet=max_packet, udp_receive_buffer=udp_receive_buffer,
-                              metrics_port=metrics_port)
+                              metrics_port=metrics_port, metrics_host=metrics_host)
     except ValidationError as exc:
         raise fail(config_error(exc), 2) from None
     Server(config).run()
@@ -138,22 +141,16 @@ def serve(
 
 @app.command()
 @one_line_errors
+@server_options
 def stats(
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
+    server: ServerTarget = LOCAL_SERVER,
     as_json: Annotated[bool, typer.Option("--json", help="Print the whole reply as JSON.")]
     = False,
 ) -> None:
     """Print the server's counters: totals, then per session and per channel."""
-    from rlbridge.csp.bridge import Bridge
     from rlbridge.server.report import format_stats
 
-    with Bridge.connect(host, port, name="rlbridge-stats", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+    with server.connect("rlbridge-stats") as bridge:
         body = bridge.server_stats()
     typer.echo(json.dumps(body, indent=2, sort_keys=True) if as_json else format_stats(body))
 

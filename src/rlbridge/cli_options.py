@@ -9,10 +9,14 @@ wherever there is a transport, and no command gives either letter another meanin
 
 from __future__ import annotations
 
+import functools
+import inspect
 import logging
 import re
 import sys
-from typing import TYPE_CHECKING, Annotated, Any
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, cast
 
 import typer
 
@@ -20,6 +24,8 @@ from rlbridge.cli_errors import fail
 
 if TYPE_CHECKING:
     from pydantic import ValidationError
+
+    from rlbridge.csp.bridge import Bridge
 
 #: Long option -> its one short form, for every command.
 SHORT_OPTIONS: dict[str, str] = {
@@ -48,11 +54,12 @@ def check_log_level(value: str | None) -> str | None:
     return value.lower()
 
 
-def check_transport(value: str) -> str:
-    """A typer callback: ``udp`` or ``tcp``, checked before the command connects anywhere."""
+def checked_transport(value: str) -> Literal["udp", "tcp"]:
+    """``udp`` or ``tcp``, else a one-line usage error (exit 2); also ``--transport``'s
+    callback, so a wrong one is refused before the command connects anywhere."""
     if value not in ("udp", "tcp"):
         raise fail(f"--transport must be 'udp' or 'tcp', not '{value}'", 2)
-    return value
+    return cast(Literal["udp", "tcp"], value)
 
 
 def configure_logging(level: str) -> None:
@@ -79,7 +86,7 @@ def config_error(exc: ValidationError) -> str:
 Host = Annotated[str, option("--host", "Bridge server address.")]
 Port = Annotated[int, option("--port", "Bridge server port.")]
 Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
-TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=check_transport)]
+TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=checked_transport)]
 TlsOpt = Annotated[bool, typer.Option("--tls", help="Connect with TLS, trusting the system's "
                                       "CAs (or --ca / --fingerprint).")]
 CaOpt = Annotated[str | None, typer.Option("--ca", help="CA file the server's TLS certificate "
@@ -92,8 +99,54 @@ PskFileOpt = Annotated[str | None, typer.Option(
     "default line); without it $RLBRIDGE_PSK.")]
 
 
-def checked_transport(value: str) -> str:
-    """``udp`` or ``tcp``, else a one-line usage error (exit 2)."""
-    if value not in ("udp", "tcp"):
-        raise fail(f"--transport must be 'udp' or 'tcp', not '{value}'", 2)
-    return value
+@dataclass(frozen=True)
+class ServerTarget:
+    """Where a command's session goes and how it proves itself: ``--host``, ``--port``,
+    ``--tls``, ``--ca``, ``--fingerprint``, ``--psk-file``, the same in every command that
+    talks to a running server (see :func:`server_options`)."""
+
+    host: Host = "127.0.0.1"
+    port: Port = 7411
+    tls: TlsOpt = False
+    ca: CaOpt = None
+    fingerprint: FingerprintOpt = None
+    psk_file: PskFileOpt = None
+
+    def connect(self, name: str) -> Bridge:
+        """One session named ``name``, no reconnect: a command does one thing and exits."""
+        from rlbridge.csp.bridge import Bridge
+
+        return Bridge.connect(self.host, self.port, name=name, reconnect=False, tls=self.tls,
+                              ca=self.ca, fingerprint=self.fingerprint, psk_file=self.psk_file)
+
+
+#: The ``server`` parameter's default, for calling a command function directly.
+LOCAL_SERVER = ServerTarget()
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def server_options(command: F) -> F:
+    """Give ``command`` the :class:`ServerTarget` options in place of its ``server`` parameter.
+
+    Typer reads a command's options from its signature, so each command listed host, port,
+    TLS and key options and passed them on to ``Bridge.connect`` by hand (and the ``service``,
+    ``param`` and ``action`` commands had drifted to host and port only). Here the options are
+    the dataclass's fields, declared once; the command receives them as one ``ServerTarget``.
+    """
+    hints = inspect.signature(ServerTarget, eval_str=True).parameters
+    added = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
+                               default=hints[name].default, annotation=hints[name].annotation)
+             for name in (f.name for f in fields(ServerTarget))]
+    signature = inspect.signature(command, eval_str=True)
+    own = [p for name, p in signature.parameters.items() if name != "server"]
+
+    @functools.wraps(command)
+    def with_target(*args: Any, **kwargs: Any) -> Any:
+        target = ServerTarget(**{p.name: kwargs.pop(p.name) for p in added})
+        return command(*args, server=target, **kwargs)
+
+    with_target.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=[*own, *added])
+    with_target.__annotations__ = {p.name: p.annotation for p in (*own, *added)}
+    return cast(F, with_target)

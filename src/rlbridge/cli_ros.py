@@ -1,7 +1,8 @@
 """``rlbridge service``, ``param`` and ``action``: the ``ros2`` command's verbs, through a server.
 
-Each command opens one session (``--host``/``--port``, the key from ``$RLBRIDGE_PSK`` as for
-``topic``), does one thing and prints JSON, so scripts can read it. Requests, goals and
+Each command opens one session (the server options of ``topic`` and ``stats``: ``--host``,
+``--port``, ``--tls``, ``--ca``, ``--fingerprint``, ``--psk-file``, else ``$RLBRIDGE_PSK``),
+does one thing and prints JSON, so scripts can read it. Requests, goals and
 parameter values are JSON or YAML flow style (``'{data: true}'``, as ``ros2 service call``
 takes them); YAML needs PyYAML (part of the ``ros2`` extra).
 """
@@ -14,11 +15,7 @@ from typing import Annotated, Any
 import typer
 
 from rlbridge.cli_errors import fail, one_line_errors
-from rlbridge.cli_options import option
-
-# The same options as ``topic`` (rlbridge.cli), built the same way (cli_options).
-Host = Annotated[str, option("--host", "Bridge server address.")]
-Port = Annotated[int, option("--port", "Bridge server port.")]
+from rlbridge.cli_options import LOCAL_SERVER, ServerTarget, option, server_options
 
 service_app = typer.Typer(help="Call and list services through a running server.",
                           no_args_is_help=True)
@@ -55,84 +52,78 @@ def _fields(text: str, what: str) -> dict[str, Any]:
     return parsed
 
 
-def _connect(host: str, port: int, name: str) -> Any:
-    from rlbridge.csp.bridge import Bridge
-
-    return Bridge.connect(host, port, name=name, reconnect=False)
-
-
 @service_app.command("list")
 @one_line_errors
+@server_options
 def service_list(
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
+    server: ServerTarget = LOCAL_SERVER,
     show_types: Annotated[bool, option("--show-types", "Print types too.")] = False,
 ) -> None:
     """List the services the server's middleware knows."""
-    with _connect(host, port, "rlbridge-service-list") as bridge:
+    with server.connect("rlbridge-service-list") as bridge:
         for name, srv_type in bridge.service_list():
             typer.echo(f"{name} [{srv_type}]" if show_types else name)
 
 
 @service_app.command("call")
 @one_line_errors
+@server_options
 def service_call(
     service: str,
     srv_type: Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_srvs/srv/SetBool")],
     request: Annotated[str, typer.Argument(help="Request fields, JSON or YAML: "
                                                 "'{data: true}'.")] = "{}",
     timeout: Timeout = 5.0,
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
+    server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Call SERVICE of type TYPE with REQUEST; print the response as JSON."""
     fields = _fields(request, "the request")
-    with _connect(host, port, "rlbridge-service-call") as bridge:
+    with server.connect("rlbridge-service-call") as bridge:
         response = bridge.call(service, srv_type, fields, timeout=timeout)
     typer.echo(json.dumps(response))
 
 
 @param_app.command("get")
 @one_line_errors
-def param_get(
-    node: str, name: str, timeout: Timeout = 5.0, host: Host = "127.0.0.1", port: Port = 7411,
-) -> None:
+@server_options
+def param_get(node: str, name: str, timeout: Timeout = 5.0,
+              server: ServerTarget = LOCAL_SERVER) -> None:
     """Print the value of parameter NAME of NODE (JSON)."""
-    with _connect(host, port, "rlbridge-param-get") as bridge:
+    with server.connect("rlbridge-param-get") as bridge:
         value = bridge.get_parameter(node, name, timeout=timeout)
     typer.echo(json.dumps(list(value) if isinstance(value, bytes) else value))
 
 
 @param_app.command("set")
 @one_line_errors
+@server_options
 def param_set(
     node: str,
     name: str,
     value: Annotated[str, typer.Argument(help="JSON or YAML: 2.5, true, text, [1, 2].")],
     timeout: Timeout = 5.0,
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
+    server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Set parameter NAME of NODE to VALUE."""
     parsed = parse_document(value, "the value")
-    with _connect(host, port, "rlbridge-param-set") as bridge:
+    with server.connect("rlbridge-param-set") as bridge:
         bridge.set_parameter(node, name, parsed, timeout=timeout)
     typer.echo("Set parameter successful")
 
 
 @param_app.command("list")
 @one_line_errors
-def param_list(
-    node: str, timeout: Timeout = 5.0, host: Host = "127.0.0.1", port: Port = 7411,
-) -> None:
+@server_options
+def param_list(node: str, timeout: Timeout = 5.0, server: ServerTarget = LOCAL_SERVER) -> None:
     """List the parameter names of NODE."""
-    with _connect(host, port, "rlbridge-param-list") as bridge:
+    with server.connect("rlbridge-param-list") as bridge:
         for name in bridge.list_parameters(node, timeout=timeout):
             typer.echo(name)
 
 
 @action_app.command("send")
 @one_line_errors
+@server_options
 def action_send(
     action: str,
     action_type: Annotated[str, typer.Argument(metavar="TYPE",
@@ -142,14 +133,13 @@ def action_send(
     timeout: Annotated[float, option(
         "--timeout", "Seconds to wait for the goal to be accepted, and then for its result "
         "(0 = no limit for the result).")] = 5.0,
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
+    server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Send GOAL to ACTION; print each feedback and the result as JSON lines."""
     from rlbridge.csp.errors import ChannelClosed
 
     fields = _fields(goal, "the goal")
-    with _connect(host, port, "rlbridge-action-send") as bridge:
+    with server.connect("rlbridge-action-send") as bridge:
         handle = bridge.send_goal(action, action_type, fields, timeout=timeout)
         typer.echo("goal accepted", err=True)
         while True:

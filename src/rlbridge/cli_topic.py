@@ -17,16 +17,13 @@ import typer
 
 from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.cli_options import (
-    CaOpt,
+    LOCAL_SERVER,
     Field,
-    FingerprintOpt,
-    Host,
-    Port,
-    PskFileOpt,
-    TlsOpt,
+    ServerTarget,
     TransportOpt,
     checked_transport,
     option,
+    server_options,
 )
 
 topic_app = typer.Typer(help="Publish, echo, measure and list topics through a running server.",
@@ -43,6 +40,7 @@ def _parse_value(text: str) -> Any:
 
 @topic_app.command("pub")
 @one_line_errors
+@server_options
 def topic_pub(
     topic: str,
     msg_type: Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_msgs/msg/Float64")],
@@ -51,12 +49,7 @@ def topic_pub(
     rate: Annotated[float, typer.Option(help="Publish at this rate (Hz); 0 = once.")] = 0.0,
     count: Annotated[int, typer.Option(help="Number of messages (with --rate).")] = 1,
     transport: TransportOpt = "udp",
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
+    server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Publish VALUE on TOPIC through the bridge.
 
@@ -65,12 +58,10 @@ def topic_pub(
     saying how many of how many the server took.
     """
     from rlbridge.cli_delivery import confirm_delivery
-    from rlbridge.csp.bridge import Bridge
 
     parsed = _parse_value(value)
-    with Bridge.connect(host, port, name="rlbridge-topic-pub", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
-        out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport))  # type: ignore[arg-type]
+    with server.connect("rlbridge-topic-pub") as bridge:
+        out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport))
         n = max(1, count) if rate > 0 else 1
         period = 1.0 / rate if rate > 0 else 0.0
         start = time.monotonic()
@@ -88,6 +79,7 @@ def topic_pub(
 
 @topic_app.command("echo")
 @one_line_errors
+@server_options
 def topic_echo(
     topic: str,
     msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
@@ -96,20 +88,12 @@ def topic_echo(
     transport: TransportOpt = "udp",
     timeout: Annotated[float, typer.Option(help="Exit with an error after this many seconds "
                                                 "without a value (0 = wait forever).")] = 0.0,
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
+    server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
-    from rlbridge.csp.bridge import Bridge
-
-    with Bridge.connect(host, port, name="rlbridge-topic-echo", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+    with server.connect("rlbridge-topic-echo") as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
-                              transport=checked_transport(transport),  # type: ignore[arg-type]
+                              transport=checked_transport(transport),
                               blocking=True, buffer_size=4096)
         seen = 0
         while count == 0 or seen < count:
@@ -146,6 +130,7 @@ def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
 
 @topic_app.command("hz")
 @one_line_errors
+@server_options
 def topic_hz(
     topic: str,
     msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
@@ -154,24 +139,17 @@ def topic_hz(
     duration: Annotated[float, typer.Option(help="Stop after this many seconds (0 = never).")]
     = 0.0,
     transport: TransportOpt = "udp",
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
+    server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
 
     With --duration, exits 1 if no value arrived in that time (like echo's --timeout).
     """
-    from rlbridge.csp.bridge import Bridge
     from rlbridge.csp.errors import ChannelClosed
 
-    with Bridge.connect(host, port, name="rlbridge-topic-hz", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+    with server.connect("rlbridge-topic-hz") as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
-                              transport=checked_transport(transport),  # type: ignore[arg-type]
+                              transport=checked_transport(transport),
                               blocking=True, buffer_size=65536)
         arrivals: list[float] = []
         end = time.monotonic() + duration if duration > 0 else math.inf
@@ -210,20 +188,13 @@ def format_rate(arrivals: list[float]) -> str:
 
 @topic_app.command("list")
 @one_line_errors
+@server_options
 def topic_list(
-    host: Host = "127.0.0.1",
-    port: Port = 7411,
-    tls: TlsOpt = False,
-    ca: CaOpt = None,
-    fingerprint: FingerprintOpt = None,
-    psk_file: PskFileOpt = None,
+    server: ServerTarget = LOCAL_SERVER,
     show_types: Annotated[bool, option("--show-types", "Print types too.")]
     = False,
 ) -> None:
     """List the topics the server's middleware knows."""
-    from rlbridge.csp.bridge import Bridge
-
-    with Bridge.connect(host, port, name="rlbridge-topic-list", reconnect=False,
-                        tls=tls, ca=ca, fingerprint=fingerprint, psk_file=psk_file) as bridge:
+    with server.connect("rlbridge-topic-list") as bridge:
         for name, msg_type in bridge.server_stats()["topics"]:
             typer.echo(f"{name} [{msg_type}]" if show_types else name)

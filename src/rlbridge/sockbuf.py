@@ -13,8 +13,9 @@ Linux caps ``SO_RCVBUF``/``SO_SNDBUF`` requests at ``net.core.rmem_max``/``wmem_
 silently (many distributions ship 208 KiB). A process with ``CAP_NET_ADMIN`` may go beyond
 with ``SO_RCVBUFFORCE``/``SO_SNDBUFFORCE``, which is what the capability is for; anyone else
 gets the cap, and :func:`request_buffer` reports it so the server can say which sysctl to
-raise (when the size was asked for explicitly), as UDP-heavy programs do. Linux also doubles the request for its bookkeeping
-and reports the doubled figure; :class:`BufferGrant` gives both.
+raise (when the size was asked for explicitly), as UDP-heavy programs do. Linux also doubles
+the request for its bookkeeping and reports the doubled figure; :class:`BufferGrant` gives
+both.
 """
 
 from __future__ import annotations

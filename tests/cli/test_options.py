@@ -4,12 +4,13 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import fields
 from typing import Any
 
 import typer
 
 from rlbridge.cli import build_app
-from rlbridge.cli_options import SHORT_OPTIONS
+from rlbridge.cli_options import SHORT_OPTIONS, ServerTarget
 
 
 def _commands(group: Any, path: str = "rlbridge") -> Iterator[tuple[str, Any]]:
@@ -58,3 +59,19 @@ def test_the_commands_a_user_meets_first_share_host_and_port() -> None:
     for path in ("rlbridge serve", "rlbridge"):
         opts = {o for p in commands[path].params for o in getattr(p, "opts", ())}
         assert "--log-level" in opts, path
+
+
+#: Every command that opens a session with a running server (``ping`` only probes: no key).
+SESSION_COMMANDS = ("stats", "topic pub", "topic echo", "topic hz", "topic list",
+                    "service list", "service call", "param get", "param set", "param list",
+                    "action send")
+
+
+def test_every_command_that_opens_a_session_takes_the_same_server_options() -> None:
+    """One list (``ServerTarget``): TLS and the key file reach service, param and action too."""
+    commands = dict(_all())
+    wanted = {"--" + f.name.replace("_", "-") for f in fields(ServerTarget)}
+    assert {"--host", "--port", "--tls", "--ca", "--fingerprint", "--psk-file"} <= wanted
+    for path in SESSION_COMMANDS:
+        opts = {o for p in commands[f"rlbridge {path}"].params for o in getattr(p, "opts", ())}
+        assert wanted <= opts, f"{path}: lacks {sorted(wanted - opts)}"

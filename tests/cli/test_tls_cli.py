@@ -68,6 +68,8 @@ def test_client_commands_take_the_servers_key_file(cli: Any, cli_server: Callabl
     assert refused.returncode == 1
     assert "may not publish to /x" in refused.stderr
     assert refused.stderr.count("\n") == 1
+    services = cli.run("service", "list", "-p", str(port), "--psk-file", str(keys))
+    assert services.returncode == 0, services.stderr  # the ros verbs take the same options
     missing = cli.run("stats", "-p", str(port))
     assert missing.returncode == 1
     assert "requires a pre-shared key" in missing.stderr

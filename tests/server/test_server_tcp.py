@@ -19,6 +19,8 @@ from rlbridge.wire import (
     ErrorCode,
     Heartbeat,
     Hello,
+    Malformed,
+    PacketCodec,
     Stats,
     TopicAck,
     TopicConnect,
@@ -172,6 +174,30 @@ def test_malformed_packet_in_a_session_is_answered_and_the_session_goes_on(
     body = client.stats()
     assert body["session"]["malformed"] == 3
     assert body["server"]["malformed"] == 3
+
+
+def test_value_frames_of_one_read_count_and_answer_as_if_each_came_alone(
+    raw_tcp: Callable[..., Any],
+) -> None:
+    """Values that arrive together (one read: the server hands them on as one run) are
+    published, refused and counted one frame at a time."""
+    client = raw_tcp()
+    client.hello()
+    client.send(TopicConnect(1, "publish", "/run/of/values", F64, transport="tcp"))
+    client.expect(TopicAck)
+    codec = PacketCodec()
+    frames = [Value(1, 0, 0, 0.5), Value(1, 1, 0, 1.5), Value(1, 2, 0, "not a float"),
+              Value(9, 0, 0, 1.0), Value(1, 3, 0, 2.5), Malformed, Value(1, 4, 0, 3.5)]
+    before = client.stats()["session"]["packets_in"]
+    client.send_bytes(b"".join(frame(b"\x92\x63\x01") if f is Malformed
+                               else codec.encode_frame(f) for f in frames))
+    answers = [client.expect(Error) for _ in range(3)]
+    assert [(e.code, e.channel) for e in answers] == [
+        (ErrorCode.BAD_VALUE, 1), (ErrorCode.UNKNOWN_CHANNEL, 9), (ErrorCode.MALFORMED, 1)]
+    body = client.stats()
+    assert body["session"]["packets_in"] - before == 6 + 1  # the frames but the bad one, stats
+    channel = body["session"]["channels"]["1"]
+    assert (channel["values_in"], channel["bad_values"]) == (4, 1)
 
 
 def test_malformed_packet_before_hello_closes(raw_tcp: Callable[..., Any]) -> None:

@@ -7,6 +7,7 @@ import json
 import re
 import socket
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -30,6 +31,14 @@ def scrape(port: int, path: str = "/metrics", method: str = "GET") -> tuple[int,
         return resp.status, resp.getheader("Content-Type") or "", resp.read().decode()
     finally:
         conn.close()
+
+
+def metrics_port(srv: ServerThread) -> int:
+    """The port a started server's metrics endpoint got."""
+    assert srv.server.address is not None
+    mport = srv.server.address.metrics_port
+    assert mport is not None
+    return mport
 
 
 def samples(text: str) -> dict[str, float]:
@@ -104,9 +113,7 @@ def test_a_reconnecting_client_is_one_series_whose_counters_never_go_back(
         make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
         wait_until: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     series: list[int] = []
     values: list[float] = []
     key = f"rlbridge_channel_values_in_total{{{channel('robot', '/m/r', transport='udp')}}}"
@@ -135,9 +142,7 @@ def test_closed_clients_beyond_the_cap_fold_into_other(
         make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
         wait_until: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     names = [f"rlbridge-{pid}" for pid in range(MAX_CLIENTS + 6)]  # a new pid per restart
     for name in names:
         client = raw_tcp(srv.port)
@@ -154,12 +159,57 @@ def test_closed_clients_beyond_the_cap_fold_into_other(
     assert sum(got[k] for k in opened) == len(names)
 
 
+def test_a_live_client_is_never_folded_while_departed_ones_are(
+        make_server: Callable[..., ServerThread], raw_tcp: Callable[..., Any],
+        wait_until: Callable[..., Any]) -> None:
+    """The oldest retired totals belong to a client connected now: the departed go first."""
+    srv = make_server(metrics_port=0)
+    mport = metrics_port(srv)
+    first = raw_tcp(srv.port)
+    first.hello("robot")
+    first.close()  # the oldest entry of the ledger
+    robot = raw_tcp(srv.port)
+    robot.hello("robot")  # and back: live from here on
+    robot.send(TopicConnect(3, "subscribe", "/m/live", F64, transport="tcp"))
+    robot.expect(TopicAck)
+    names = [f"gone-{n}" for n in range(MAX_CLIENTS + 6)]
+    for name in names:
+        client = raw_tcp(srv.port)
+        client.hello(name)
+        client.close()
+    wait_until(lambda: samples(scrape(mport)[2]).get(
+        'rlbridge_client_sessions_opened_total{client="gone-69"}') == 1, what="all retired")
+    got = samples(scrape(mport)[2])
+    assert got['rlbridge_client_sessions_opened_total{client="robot"}'] == 2  # never went back
+    opened = [k for k in got if k.startswith("rlbridge_client_sessions_opened_total")]
+    assert sum(got[k] for k in opened) == len(names) + 2
+    assert 'rlbridge_client_sessions_opened_total{client="gone-0"}' not in got
+
+
+def test_ledger_folds_departed_labels_before_live_ones() -> None:
+    live: tuple[set[str], set[tuple[str, str, str, str]]] = ({"a"}, {("a", "/t0", "publish",
+                                                                      "udp")})
+    ledger = Ledger(max_clients=2, max_channels=2, live=lambda: live)
+    for name in ("a", "b", "c", "d"):
+        ledger.retire_session(name, {"packets_in": 1})
+    # b and c left: folded; a is live, d just retired: over the cap by the live ones only
+    assert list(ledger.clients) == ["a", "(other)", "d"]
+    assert ledger.clients["(other)"] == {"packets_in": 2, "sessions": 2}
+    for n in range(4):
+        ledger.retire_channel("a", {"topic": f"/t{n}", "direction": "publish",
+                                    "transport": "udp", "values_in": 1})
+    assert ("a", "/t0", "publish", "udp") in ledger.channels
+    assert ledger.channels[("(other)",) * 4] == {"values_in": 2}
+    live = (set(), set())  # everyone gone: back to the cap, oldest first
+    ledger.retire_session("e", {})
+    assert list(ledger.clients) == ["(other)", "e"]
+    assert ledger.clients["(other)"] == {"packets_in": 4, "sessions": 4}
+
+
 def test_healthz_and_json_status(make_server: Callable[..., ServerThread],
                                  raw_tcp: Callable[..., Any]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     assert scrape(mport, "/healthz")[::2] == (200, "ok\n")
     client = raw_tcp(srv.port)
     client.hello("watched")
@@ -180,9 +230,7 @@ def test_healthz_and_json_status(make_server: Callable[..., ServerThread],
 
 def test_bad_requests_get_http_errors(make_server: Callable[..., ServerThread]) -> None:
     srv = make_server(metrics_port=0)
-    assert srv.server.address is not None
-    mport = srv.server.address.metrics_port
-    assert mport is not None
+    mport = metrics_port(srv)
     assert scrape(mport, "/other")[0] == 404
     assert "/healthz" in scrape(mport, "/other")[2]
     assert scrape(mport, "/metrics", "POST")[0] == 405
@@ -209,6 +257,35 @@ def test_metrics_off_by_default_and_closed_with_the_server() -> None:
     with_metrics.stop()
     with pytest.raises(ConnectionRefusedError):
         scrape(mport)
+
+
+def _reaches(host: str, port: int) -> bool:
+    with socket.socket() as sock:
+        try:
+            sock.connect((host, port))
+        except ConnectionRefusedError:
+            return False
+        return True
+
+
+def test_metrics_stay_on_loopback_when_the_server_listens_on_every_address(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """/metrics and /status name clients and topics and ask no key: not on --host's 0.0.0.0."""
+    key = tmp_path / "k"
+    key.write_text("00112233445566778899aabbccddeeff\n")
+    key.chmod(0o600)
+    with ServerThread(ServerConfig(host="0.0.0.0", port=0, psk_file=key,
+                                   metrics_port=0)) as srv:
+        mport = metrics_port(srv)
+        assert _reaches("127.0.0.2", srv.port)  # the bridge listens on every address
+        assert not _reaches("127.0.0.2", mport)  # its metrics on 127.0.0.1 only
+        assert srv.server.address.metrics_host == "127.0.0.1"
+        assert scrape(mport)[0] == 200
+    assert "ask no key" not in caplog.text
+    with ServerThread(ServerConfig(port=0, metrics_port=0, metrics_host="0.0.0.0")) as srv:
+        mport = metrics_port(srv)
+        assert _reaches("127.0.0.2", mport)  # asked for: served there, and warned
+    assert re.search(r"metrics on 0\.0\.0\.0: /metrics and /status ask no key", caplog.text)
 
 
 def test_metrics_port_in_use_is_a_clear_error() -> None:

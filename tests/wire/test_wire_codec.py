@@ -264,6 +264,35 @@ def test_coalesced_frames_in_one_feed() -> None:
     assert decoder.buffered == 0
 
 
+def test_bad_bodies_among_good_frames_cost_only_themselves() -> None:
+    """One read chunk: every good frame decodes, each bad body becomes a Malformed with the
+    error ``decode_body`` gives it alone (tag and channel salvaged), and the decoder's buffer
+    is not held by any of them (the next feed works)."""
+    codec = PacketCodec()
+
+    def frame(body: bytes) -> bytes:
+        return FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, len(body)) + body
+
+    bad_bodies = [b"\xc1", msgspec.msgpack.encode([2, 7, "not a seq", 0, 1.0]),
+                  b"\xa2\xff\xfe"]
+    good = [Value(1, i, i, float(i)) for i in range(3)]
+    chunk = b"".join(codec.encode_frame(g) + frame(b) for g, b in zip(good, bad_bodies,
+                                                                      strict=True))
+    decoder = FrameDecoder(codec)
+    got = decoder.feed(chunk)
+    assert [g for g in got if not isinstance(g, Malformed)] == good
+    bad = [g for g in got if isinstance(g, Malformed)]
+    assert len(bad) == 3
+    for item, body in zip(bad, bad_bodies, strict=True):
+        with pytest.raises(RemoteProtocolError) as alone:
+            codec.decode_body(body)
+        assert (item.error.code, item.error.reason) == (alone.value.code, alone.value.reason)
+        assert (item.error.tag, item.error.channel) == (alone.value.tag, alone.value.channel)
+    assert bad[1].error.channel == 7
+    assert decoder.feed(codec.encode_frame(good[0])) == [good[0]]
+    assert decoder.buffered == 0
+
+
 @PROPS
 @given(st.lists(packets, min_size=1, max_size=6), st.data())
 def test_any_chunking_gives_the_same_packets(batch: list[Packet], data: st.DataObject) -> None:

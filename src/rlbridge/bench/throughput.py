@@ -173,8 +173,6 @@ def publisher(params: Params) -> None:
     control = Control()
     batch = int(params["batch"])
     buffer = max(4 * batch, 1 << 16)
-    bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub",
-                            bundles=bool(params.get("bundles", True)))
     form = str(params.get("send_form", ""))
     half: list[float] = []
     bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub",

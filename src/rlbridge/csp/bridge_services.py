@@ -202,15 +202,6 @@ class ServiceMethods:
             found = self._outgoing.get(channel)
         if found is not None:
             found.ros_lost = ros_lost
-    def server_stats(self) -> dict[str, Any]:
-        """The server's counters for this session, its totals, and the topics it knows."""
-        return dict(self._conn.request_stats())
-
-    @property
-    def session_id(self) -> int:
-        """The number the server gave this session: it names it in logs and ``rlbridge stats``."""
-        assert self._conn.ack is not None
-        return self._conn.ack.session
 
     # -- parameters --------------------------------------------------------------------
     def get_parameter(self, node: str, name: str, *,

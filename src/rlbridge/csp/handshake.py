@@ -169,8 +169,12 @@ def udp_socket(host: str, port: int) -> socket.socket:
     # Room for a burst while the receive thread waits for the GIL (the default ~200 KiB
     # holds under 200 small datagrams); past net.core.rmem_max only with CAP_NET_ADMIN
     # (rlbridge.sockbuf), else capped: the rest are gaps the channels count.
-    request_buffer(sock, "receive", UDP_RECEIVE_BUFFER)
-    sock.connect((host, port))
+    try:
+        request_buffer(sock, "receive", UDP_RECEIVE_BUFFER)
+        sock.connect((host, port))
+    except BaseException:  # a name that does not resolve: the socket is ours to close
+        sock.close()
+        raise
     return sock
 
 

@@ -107,12 +107,7 @@ class Receiver:
                         if not data:
                             conn.end_session("server closed the TCP connection", generation)
                             return
-                        for packet in decoder.feed(conn.tcp_received(data)):
-                            if isinstance(packet, Malformed):
-                                log.warning("malformed packet from server: %s",
-                                            packet.error.reason)
-                            else:
-                                self._dispatch(packet)
+                        self._stream(decoder.feed(conn.tcp_received(data)))
                     elif udp is not None and sock is udp:
                         self._receive_datagrams(sock, token)
                     else:
@@ -179,6 +174,29 @@ class Receiver:
             if conn.udp is not None:
                 conn.send_udp_packet(hb)
             self._tcp_bytes_at_heartbeat = (conn.tcp_bytes_out, self._tcp_bytes_in)
+
+    def _stream(self, packets: list[Packet | Malformed]) -> None:
+        """One TCP read's packets, in order. A ``Value`` that continues its channel's run
+        (nearly every one) joins it right here, without ``_dispatch`` and ``_gather``."""
+        link = self._conn.link
+        assert link is not None
+        now = time.monotonic_ns()
+        values = False
+        for packet in packets:
+            if type(packet) is Value:
+                values = True
+                run = self._runs.get(packet.channel)  # re-read: a dispatch may flush
+                if run is not None and packet.seq == run[0] + len(run[2]):
+                    run[1].append(packet.stamp_ns)
+                    run[2].append(packet.value)
+                else:
+                    self._gather(packet.channel, packet.seq, [packet.stamp_ns], [packet.value])
+            elif isinstance(packet, Malformed):
+                log.warning("malformed packet from server: %s", packet.error.reason)
+            else:
+                self._dispatch(packet)
+        if values:
+            link.on_receive(now)  # one arrival for the read's values
 
     def _dispatch(self, packet: Packet) -> None:
         conn = self._conn

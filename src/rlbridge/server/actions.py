@@ -16,9 +16,10 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from rlbridge.adapters.base import BindingError, GoalHandle
-from rlbridge.server.services import MAX_CALLS, error_code, timeout_s
+from rlbridge.adapters.base import GoalHandle
+from rlbridge.server.services import MAX_CALLS
 from rlbridge.server.sinks import PacketSink
+from rlbridge.server.worker_calls import Failure, channel_in_use, off_loop, outcome, timeout_s
 from rlbridge.wire import ErrorCode, GoalResult, GoalSend, TopicAck, TopicError, Value
 
 if TYPE_CHECKING:
@@ -52,8 +53,7 @@ class SessionGoals:
         s = self._session
         ch = req.channel
         if in_use or ch in self.goals:
-            s.send_control(TopicError(ch, int(ErrorCode.CHANNEL_IN_USE),
-                                      f"channel {ch} is already connected"), via)
+            s.send_control(channel_in_use(ch), via)
             return
         if len(self.goals) >= MAX_CALLS:
             s.send_control(TopicError(ch, int(ErrorCode.LIMIT), f"this session already has "
@@ -70,24 +70,17 @@ class SessionGoals:
         def done(status: int, result: dict[str, Any]) -> None:
             loop.call_soon_threadsafe(self._done, goal, status, result, "")
 
-        future = s.ctx.workers.submit(s.ctx.adapter.send_goal, req.action, req.action_type,
-                                      req.goal, feedback, done, timeout_s(req.timeout_ms))
-        future.add_done_callback(
-            lambda f: loop.call_soon_threadsafe(self._answered, goal, f, via))
+        off_loop(s.ctx, lambda f: self._answered(goal, f, via), s.ctx.adapter.send_goal,
+                 req.action, req.action_type, req.goal, feedback, done,
+                 timeout_s(req.timeout_ms))
 
     def _answered(self, goal: _Goal, future: Future[GoalHandle], via: PacketSink | None) -> None:
         s = self._session
         ch = goal.request.channel
-        try:
-            handle = future.result()
-        except BindingError as exc:
+        handle = outcome(future, f"sending a goal to {goal.request.action}")
+        if isinstance(handle, Failure):
             self.goals.pop(ch, None)
-            s.send_control(TopicError(ch, int(error_code(exc.code)), exc.reason[:1024]), via)
-            return
-        except Exception as exc:
-            self.goals.pop(ch, None)
-            log.exception("sending a goal to %s failed", goal.request.action)
-            s.send_control(TopicError(ch, int(ErrorCode.INTERNAL), f"{exc}"[:1024]), via)
+            s.send_control(TopicError(ch, int(handle.code), handle.reason), via)
             return
         goal.handle = handle
         if s.closed or goal.cancel_asked:  # ended or cancelled while it was being accepted

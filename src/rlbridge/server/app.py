@@ -21,7 +21,7 @@ from rlbridge.adapters import MiddlewareAdapter, load_adapter
 from rlbridge.server.access import AllowList
 from rlbridge.server.access import load as load_keys
 from rlbridge.server.authz import Access
-from rlbridge.server.config import ServerConfig
+from rlbridge.server.config import ServerConfig, is_loopback
 from rlbridge.server.context import ServerContext
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.metrics import MetricsEndpoint
@@ -48,6 +48,7 @@ class BoundAddress:
     tcp: bool
     udp: bool
     metrics_port: int | None = None
+    metrics_host: str | None = None
 
 
 def new_event_loop(use_uvloop: bool = True) -> asyncio.AbstractEventLoop:
@@ -127,14 +128,11 @@ class Server:
         try:
             tcp_server, udp_transport, port = await self._bind(loop, registry)
             if cfg.metrics_port is not None:
-                try:
-                    metrics = await MetricsEndpoint(registry).start(cfg.host, cfg.metrics_port)
-                except OSError as exc:
-                    raise ServerError(f"cannot serve metrics on {cfg.host}:{cfg.metrics_port}: "
-                                      f"{exc}") from None
+                metrics = await _metrics(registry, cfg)
             self.address = BoundAddress(cfg.host, port, tcp_server is not None,
                                         udp_transport is not None,
-                                        metrics.port if metrics is not None else None)
+                                        metrics.port if metrics is not None else None,
+                                        cfg.metrics_host if metrics is not None else None)
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     loop.add_signal_handler(sig, self._stop.set)
@@ -142,7 +140,7 @@ class Server:
             log.info("%s", listening_line(
                 cfg.host, port, tcp_server is not None, udp_transport is not None,
                 adapter.name, _authentication(keys is not None, tls is not None, cfg),
-                self.address.metrics_port))
+                self.address.metrics_port, cfg.metrics_host))
             endpoint = udp_transport.get_protocol() if udp_transport is not None else None
             if isinstance(endpoint, UdpEndpoint) and endpoint.receive_buffer is not None:
                 # An explicit size the kernel capped is warned about, with the sysctl to raise
@@ -178,15 +176,18 @@ class Server:
                 if cfg.tcp:
                     tcp_server = await loop.create_server(
                         lambda: TcpConnection(registry), cfg.host, port, reuse_address=True,
-                        family=socket.AF_INET if ":" not in cfg.host else socket.AF_INET6,
-                    )
+                        family=_family(cfg.host))
                     port = tcp_server.sockets[0].getsockname()[1]
                 udp_transport: asyncio.DatagramTransport | None = None
                 what = "UDP"
                 if cfg.udp:
-                    udp_transport, _ = await loop.create_datagram_endpoint(
-                        lambda: UdpEndpoint(registry), local_addr=(cfg.host, port)
-                    )
+                    sock = await _bound_udp(loop, cfg.host, port)
+                    try:
+                        udp_transport, _ = await loop.create_datagram_endpoint(
+                            lambda: UdpEndpoint(registry), sock=sock)
+                    except BaseException:
+                        sock.close()
+                        raise
                     port = udp_transport.get_extra_info("sockname")[1]
                 return tcp_server, udp_transport, port
             except OSError as exc:
@@ -225,6 +226,52 @@ class Server:
                      registry.ctx.counters.get("sessions_opened", 0))
 
 
+async def _metrics(registry: SessionRegistry, cfg: ServerConfig) -> MetricsEndpoint:
+    """The monitoring endpoint on ``metrics_host`` (loopback unless the operator says else).
+
+    It asks no key: /metrics and /status name every client (its identity) and topic, with
+    counters. So it does not follow ``--host``: a keyed or TLS server on 0.0.0.0 would hand
+    those to anyone on the network. Elsewhere than loopback only when asked, with a warning.
+    """
+    assert cfg.metrics_port is not None
+    try:
+        endpoint = await MetricsEndpoint(registry).start(cfg.metrics_host, cfg.metrics_port)
+    except OSError as exc:
+        raise ServerError(f"cannot serve metrics on {cfg.metrics_host}:{cfg.metrics_port}: "
+                          f"{exc}") from None
+    if not is_loopback(cfg.metrics_host):
+        log.warning("metrics on %s: /metrics and /status ask no key; anyone who can reach "
+                    "port %d reads every client's name, topic and counters (docs/security.md)",
+                    cfg.metrics_host, endpoint.port)
+    return endpoint
+
+
+def _family(host: str) -> socket.AddressFamily:
+    """IPv6 for an IPv6 literal, else IPv4: TCP and UDP listen in the same family."""
+    return socket.AF_INET6 if ":" in host else socket.AF_INET
+
+
+async def _bound_udp(loop: asyncio.AbstractEventLoop, host: str, port: int) -> socket.socket:
+    """A UDP socket bound to ``host:port``, owned here until the transport takes it.
+
+    Not ``create_datagram_endpoint(local_addr=...)``: when that bind fails (port 0 gave TCP a
+    port whose UDP twin is taken, so ``_bind`` retries), uvloop leaves its half-made
+    ``UDPTransport`` open for the garbage collector (a ResourceWarning). Binding first means a
+    failed bind closes its socket here and the transport only ever gets a bound one.
+    """
+    infos = await loop.getaddrinfo(host, port, family=_family(host), type=socket.SOCK_DGRAM,
+                                   flags=socket.AI_PASSIVE)
+    family, kind, proto, _, addr = infos[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setblocking(False)
+        sock.bind(addr)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
 def _authentication(keyed: bool, tls: bool, cfg: ServerConfig) -> str:
     """The listening line's authentication mode, e.g. ``TLS (mutual) + pre-shared key``."""
     parts = []
@@ -238,7 +285,12 @@ def _authentication(keyed: bool, tls: bool, cfg: ServerConfig) -> str:
 
 
 class ServerThread:
-    """A server on a background thread: ``with ServerThread(cfg) as srv: srv.port``."""
+    """A server on a background thread: ``with ServerThread(cfg) as srv: srv.port``.
+
+    ``start`` is idempotent while the thread runs, so ``with ServerThread(cfg).start() as srv``
+    and ``srv.start(); with srv:`` serve once (a second ``serve`` on the same ``Server`` would
+    start a second loop and thread that ``stop`` never reaches). After ``stop`` it may start again.
+    """
 
     def __init__(self, config: ServerConfig | None = None, adapter: MiddlewareAdapter | None = None,
                  **overrides: Any) -> None:
@@ -255,7 +307,15 @@ class ServerThread:
         return self.server.address.port
 
     def start(self, timeout: float = 10.0) -> ServerThread:
-        """Start serving; return once it listens, or raise ``ServerError`` saying why not."""
+        """Start serving; return once it listens, or raise ``ServerError`` saying why not.
+
+        A no-op returning ``self`` when this thread already serves.
+        """
+        if self._thread is not None and self._thread.is_alive():
+            return self
+        self._ready.clear()
+        self._error = None
+
         def main() -> None:
             try:
                 run_on_loop(self.server.serve(started=lambda _a: self._ready.set()),

@@ -85,9 +85,9 @@ class Inbound:
         """``_admit`` for one value, inlined: this runs once per datagram on a busy server."""
         if not self.tracker.accept(packet.seq):
             return
-        if self.credit is not None:
-            self._publish_flow([packet.stamp_ns], [packet.value])
-            return
+        credit = self.credit
+        if credit is not None:  # one comparison unless a grant may be due (server/flow.py)
+            credit.grant(self.tracker.highest + 1)
         stamp = packet.stamp_ns
         clock = self._clock
         now = time.time_ns() + (clock.offset_ns if clock is not None else 0)  # client clock
@@ -232,7 +232,7 @@ class Outbound:
             self._release()
             return
         credit = self.credit
-        if credit is not None:
+        if credit is not None and not credit.passes(self._seq, n):  # else: straight out
             self.dropped += credit.queue(stamp, values)
             self._pump()
             return

@@ -78,8 +78,11 @@ class ServerConfig(BaseModel):
         return value
     metrics_port: int | None = Field(
         None, ge=0, le=65535,
-        description="Serve /metrics, /healthz and /status on this port of host."
+        description="Serve /metrics, /healthz and /status on this port of metrics_host."
     )
+    metrics_host: str = Field(
+        "127.0.0.1", description="Address of the metrics endpoint: loopback unless asked, "
+        "whatever host is (it names clients and topics to anyone, no key asked).")
 
     @property
     def loopback(self) -> bool:

@@ -5,15 +5,20 @@ topic and direction), never by session id: a client that reconnects a hundred ti
 series, not a hundred. When a session or a channel closes, its counters move here, so a
 client's counters never go back when it reconnects. What stays bounded: the label sets of
 closed clients and channels. Beyond ``max_clients`` / ``max_channels`` of them, the oldest one
-is folded into the ``(other)`` label set (its counts are kept, under that name), so the number
-of series a scrape returns is at most the open sessions' plus these caps.
+*that is not live now* is folded into the ``(other)`` label set (its counts are kept, under that
+name), so the number of series a scrape returns is at most the open sessions' plus these caps.
+
+Live first: a client connected now (or a channel bound now) keeps its own label set however
+old its retired totals are. Folding it away would make its series drop to the current
+session's counts, a counter going back, while clients that left stayed named. The ledger asks
+``live`` (set by the session registry) only when it is over a cap.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Collection, Hashable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 #: The label value that absorbs closed clients and channels beyond the caps.
 OTHER = "(other)"
@@ -28,6 +33,15 @@ CHANNEL_COUNTERS = ("values_in", "values_out", "dropped", "late", "lost", "dupli
                     "bad_values", "malformed", "expired", "overtaken", "ros_lost")
 
 ChannelKey = tuple[str, str, str, str]  # client, topic, direction, transport
+#: The clients with an open session and the channels bound now (``SessionRegistry.live``).
+LiveLabels = tuple[Collection[str], Collection[ChannelKey]]
+
+
+K = TypeVar("K", bound=Hashable)
+
+
+def _nothing_live() -> LiveLabels:
+    return (), ()
 
 
 def channel_key(client: str, channel: Mapping[str, Any]) -> ChannelKey:
@@ -60,6 +74,8 @@ class Ledger:
     #: Insertion order is age: the first entries are folded into ``(other)`` first.
     clients: dict[str, dict[str, int]] = field(default_factory=dict)
     channels: dict[ChannelKey, dict[str, int]] = field(default_factory=dict)
+    #: Who is connected and what is bound now: never folded while over the caps.
+    live: Callable[[], LiveLabels] = _nothing_live
 
     def retire_session(self, client: str, stats: Mapping[str, Any]) -> None:
         """A session closed: keep its counters under its client's name."""
@@ -67,9 +83,8 @@ class Ledger:
         _add(totals, counters(stats, SESSION_COUNTERS))
         totals["sessions"] = totals.get("sessions", 0) + 1
         self.clients[client] = totals
-        while len(self.clients) > self.max_clients:
-            oldest = next(k for k in self.clients if k != OTHER)
-            _add(self.clients.setdefault(OTHER, {}), self.clients.pop(oldest))
+        if len(self.clients) > self.max_clients:
+            _fold(self.clients, self.max_clients, OTHER, set(self.live()[0]) | {client})
 
     def retire_channel(self, client: str, stats: Mapping[str, Any]) -> None:
         """A channel closed (unbound, or with its session): keep its counters."""
@@ -77,7 +92,19 @@ class Ledger:
         totals = self.channels.pop(key, {})
         _add(totals, counters(stats, CHANNEL_COUNTERS))
         self.channels[key] = totals
-        other: ChannelKey = (OTHER, OTHER, OTHER, OTHER)
-        while len(self.channels) > self.max_channels:
-            oldest = next(k for k in self.channels if k != other)
-            _add(self.channels.setdefault(other, {}), self.channels.pop(oldest))
+        if len(self.channels) > self.max_channels:
+            _fold(self.channels, self.max_channels, (OTHER, OTHER, OTHER, OTHER),
+                  set(self.live()[1]) | {key})
+
+
+def _fold(entries: dict[K, dict[str, int]], cap: int, other: K, keep: set[K]) -> None:
+    """Fold the oldest entries not in ``keep`` into ``other`` until ``cap`` or none is left.
+
+    Only live entries (and the one just retired) can hold it above the cap: at most the open
+    sessions' worth.
+    """
+    keep = keep | {other}
+    for key in [k for k in entries if k not in keep]:
+        if len(entries) <= cap:
+            return
+        _add(entries.setdefault(other, {}), entries.pop(key))

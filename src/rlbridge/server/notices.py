@@ -56,10 +56,12 @@ def session_level(name: str) -> int:
 
 
 def listening_line(host: str, port: int, tcp: bool, udp: bool, adapter: str,
-                   authentication: str, metrics_port: int | None) -> str:
+                   authentication: str, metrics_port: int | None,
+                   metrics_host: str = "127.0.0.1") -> str:
     """``listening on 127.0.0.1 port 7411 (TCP and UDP), adapter inproc, authentication ...``."""
     transports = " and ".join(name for name, on in (("TCP", tcp), ("UDP", udp)) if on)
-    metrics = f", metrics on http://{host}:{metrics_port}/metrics" if metrics_port else ""
+    where = f"[{metrics_host}]" if ":" in metrics_host else metrics_host
+    metrics = f", metrics on http://{where}:{metrics_port}/metrics" if metrics_port else ""
     return (f"rlbridge listening on {host} port {port} ({transports}), adapter {adapter}, "
             f"authentication: {authentication}{metrics}")
 

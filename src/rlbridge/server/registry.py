@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from rlbridge.server.context import ServerContext
+from rlbridge.server.ledger import LiveLabels, channel_key
 from rlbridge.server.session import Session
 from rlbridge.server.session_stats import CHANNEL_TOTALS
 from rlbridge.wire import PROTOCOL_VERSION, ConnectAck, ConnectError, ErrorCode, Hello, Limits
@@ -30,6 +31,7 @@ class SessionRegistry:
         #: Counters of sessions that have closed, so the server's totals never go back.
         self._retired: dict[str, int] = dict.fromkeys(SESSION_TOTALS, 0)
         ctx.report = self.stats
+        ctx.ledger.live = self.live
 
     def __len__(self) -> int:
         return len(self._by_id)
@@ -84,6 +86,13 @@ class SessionRegistry:
         server = {**self.ctx.counters, **totals, "sessions": len(sessions),
                   "handoff_dropped_batches": self.ctx.handoff.dropped_batches}
         return {"server": server, "sessions": sessions}
+
+    def live(self) -> LiveLabels:
+        """Clients with an open session, channels bound now: the ledger never folds these."""
+        names = {s.name for s in self}
+        channels = {channel_key(s.name, b.stats()) for s in self for b in s.inbound.values()}
+        channels.update(channel_key(s.name, b.stats()) for s in self for b in s.outbound.values())
+        return names, channels
 
     def _forget(self, session: Session) -> None:
         final = session.stats()

@@ -22,6 +22,16 @@ from typing import TYPE_CHECKING, Any
 
 from rlbridge.adapters.base import BindingError, ServiceReply, ServiceServer
 from rlbridge.server.sinks import PacketSink
+from rlbridge.server.worker_calls import (
+    MAX_REASON,
+    MAX_TIMEOUT_S,
+    Failure,
+    channel_in_use,
+    error_code,
+    off_loop,
+    outcome,
+    timeout_s,
+)
 from rlbridge.wire import (
     ErrorCode,
     ServiceCall,
@@ -44,20 +54,6 @@ log = logging.getLogger("rlbridge.server")
 MAX_CALLS = 16
 #: Requests to one offered service that may wait for the client's answer.
 MAX_PENDING = 256
-#: The longest a call or a goal's acceptance may hold a worker thread (a longer timeout is cut).
-MAX_TIMEOUT_S = 300.0
-
-
-def timeout_s(timeout_ms: int) -> float:
-    """A packet's ``timeout_ms`` in seconds, at most :data:`MAX_TIMEOUT_S`."""
-    return min(timeout_ms / 1000, MAX_TIMEOUT_S)
-
-
-def error_code(name: str) -> ErrorCode:
-    """The wire code of a ``BindingError`` code name (``INTERNAL`` for an unknown one)."""
-    return ErrorCode.__members__.get(name, ErrorCode.INTERNAL)
-
-
 @dataclass(eq=False)
 class Offer:
     """A service a client provides: the middleware's server and the requests in flight."""
@@ -99,31 +95,20 @@ class SessionServices:
             return
         s.ctx.count("service_calls")
         self.calls += 1
-        future = s.ctx.workers.submit(s.ctx.adapter.call_service, packet.service,
-                                      packet.srv_type, packet.request,
-                                      timeout_s(packet.timeout_ms))
-        self._calls[packet.call] = future
-        loop = s.ctx.loop
-        future.add_done_callback(
-            lambda f: loop.call_soon_threadsafe(self._called, packet, f, via))
+        self._calls[packet.call] = off_loop(
+            s.ctx, lambda f: self._called(packet, f, via), s.ctx.adapter.call_service,
+            packet.service, packet.srv_type, packet.request, timeout_s(packet.timeout_ms))
 
     def _called(self, packet: ServiceCall, future: Future[dict[str, Any]],
                 via: PacketSink | None) -> None:
         """Loop thread: a call completed; answer it unless the session ended meanwhile."""
         if self._calls.pop(packet.call, None) is not future or self._session.closed:
             return
-        try:
-            response = future.result()
-        except BindingError as exc:
+        response = outcome(future, f"service call to {packet.service}")
+        if isinstance(response, Failure):
             self.call_errors += 1
-            self._result(ServiceResult(packet.call, int(error_code(exc.code)), None,
-                                       exc.reason[:1024]), via)
-            return
-        except Exception as exc:
-            self.call_errors += 1
-            log.exception("service call to %s failed", packet.service)
-            self._result(ServiceResult(packet.call, int(ErrorCode.INTERNAL), None,
-                                       f"{type(exc).__name__}: {exc}"[:1024]), via)
+            self._result(ServiceResult(packet.call, int(response.code), None, response.reason),
+                         via)
             return
         self._result(ServiceResult(packet.call, 0, response), via)
 
@@ -135,8 +120,7 @@ class SessionServices:
         s = self._session
         ch = req.channel
         if in_use or ch in self.offers:
-            s.send_control(TopicError(ch, int(ErrorCode.CHANNEL_IN_USE),
-                                      f"channel {ch} is already connected"), via)
+            s.send_control(channel_in_use(ch), via)
             return
         offer = Offer(req)
         loop = s.ctx.loop
@@ -147,7 +131,8 @@ class SessionServices:
         try:
             offer.server = s.ctx.adapter.serve_service(req.service, req.srv_type, handler)
         except BindingError as exc:
-            s.send_control(TopicError(ch, int(error_code(exc.code)), exc.reason[:1024]), via)
+            s.send_control(TopicError(ch, int(error_code(exc.code)), exc.reason[:MAX_REASON]),
+                           via)
             return
         self.offers[ch] = offer
         log.info("session %d (%s): channel %d serves %s [%s]", s.id, s.name, ch, req.service,

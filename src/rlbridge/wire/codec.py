@@ -73,6 +73,9 @@ class PacketCodec:
         self._decoder: msgspec.msgpack.Decoder[Packet] = msgspec.msgpack.Decoder(Packet)
         self._part_decoder: msgspec.msgpack.Decoder[Value | Batch] = msgspec.msgpack.Decoder(
             Value | Batch)
+        #: One body to a packet, msgspec's own errors unchanged: for loops that decode many
+        #: bodies and grade the rare bad one with :meth:`decode_body` (``FrameDecoder``).
+        self.raw_decode = self._decoder.decode
 
     def encode_frame(self, packet: Packet) -> bytes:
         """One TCP frame: header + body."""
@@ -229,28 +232,38 @@ class FrameDecoder:
         return len(self._buf)
 
     def feed(self, data: bytes) -> list[Packet | Malformed]:
+        """Every packet the bytes so far complete, in order (a read chunk in one go).
+
+        Per frame the loop makes one C call to decode (msgspec's, on a view of the buffer:
+        no copy per frame); only a body that does not decode takes the slower path that
+        grades its error (:meth:`PacketCodec.decode_body`).
+        """
         if self._broken is not None:
             raise self._broken
         buf = self._buf
         buf += data
         out: list[Packet | Malformed] = []
+        append = out.append
+        decode = self._codec.raw_decode
+        unpack = FRAME_HEADER.unpack_from
         pos = 0
         size = len(buf)
         hsize = FRAME_HEADER.size
+        limit = self._max
         view = memoryview(buf)
         try:
             while size - pos >= hsize:
-                magic, version, _flags, length = FRAME_HEADER.unpack_from(buf, pos)
+                magic, version, _flags, length = unpack(buf, pos)
                 if magic != MAGIC or version != PROTOCOL_VERSION:
                     try:
                         check_header(magic, version)
                     except RemoteProtocolError as exc:
                         self._broken = exc
                         raise
-                if length > self._max:
+                if length > limit:
                     self._broken = RemoteProtocolError(
                         ErrorCode.TOO_LARGE,
-                        f"frame of {length} bytes exceeds the limit of {self._max} bytes",
+                        f"frame of {length} bytes exceeds the limit of {limit} bytes",
                         fatal=True,
                     )
                     raise self._broken
@@ -258,19 +271,26 @@ class FrameDecoder:
                 if end > size:
                     break
                 try:
-                    out.append(self._codec.decode_body(view[pos + hsize : end]))
-                except RemoteProtocolError as exc:
-                    # A fresh error: the caught one's traceback and context hold a view of
-                    # ``buf``, which would make the ``del buf[:pos]`` below (and every later
-                    # ``feed``) fail with BufferError.
-                    fresh = (PartlyMalformed(exc.bundle, exc.errors)
-                             if isinstance(exc, PartlyMalformed)
-                             else RemoteProtocolError(exc.code, exc.reason))
-                    fresh.tag, fresh.channel = exc.tag, exc.channel
-                    out.append(Malformed(fresh))
+                    append(decode(view[pos + hsize : end]))
+                except Exception:  # msgspec's errors, graded in _invalid
+                    append(self._invalid(view[pos + hsize : end]))
                 pos = end
         finally:
             view.release()
         if pos:
             del buf[:pos]
         return out
+
+    def _invalid(self, body: memoryview) -> Packet | Malformed:
+        """A body the fast decode refused, with its error graded as ``decode_body`` does."""
+        try:
+            return self._codec.decode_body(body)
+        except RemoteProtocolError as exc:
+            # A fresh error: the caught one's traceback and context hold a view of the
+            # buffer, which would make ``del buf[:pos]`` in ``feed`` (and every later feed)
+            # fail with BufferError.
+            fresh = (PartlyMalformed(exc.bundle, exc.errors)
+                     if isinstance(exc, PartlyMalformed)
+                     else RemoteProtocolError(exc.code, exc.reason))
+            fresh.tag, fresh.channel = exc.tag, exc.channel
+        return Malformed(fresh)
