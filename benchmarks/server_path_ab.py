@@ -23,6 +23,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from rlbridge.bench.load_raw import _RawSession
@@ -45,6 +46,19 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def wait_listening(port: int, timeout: float = 60.0) -> None:
+    """Until the server accepts on ``port`` (a loaded machine may take seconds to start it)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
 def measure(tree: str, args: argparse.Namespace) -> tuple[float, float, float]:
     """(CPU µs per value, of which system µs, fraction delivered) for one server run."""
     port = free_port()
@@ -52,7 +66,7 @@ def measure(tree: str, args: argparse.Namespace) -> tuple[float, float, float]:
     server = subprocess.Popen([*SERVE, "--port", str(port)], env=env, stderr=subprocess.DEVNULL)
     sessions: list[_RawSession] = []
     try:
-        time.sleep(2.0)  # the server's start (imports) is not measured
+        wait_listening(port)  # the server's start (imports) is not measured
         params = {"host": "127.0.0.1", "port": port, "channels": 10}
         codec = PacketCodec()
         sessions = [_RawSession(params, i, ["m"], codec) for i in range(args.sessions)]
@@ -101,16 +115,27 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=100.0)
     parser.add_argument("--seconds", type=float, default=4.0)
     args = parser.parse_args()
+
+    def run(tree: str) -> tuple[float, str]:
+        us, sys_us, delivered = measure(tree, args)
+        return us, f"(system {sys_us:5.1f})  delivered {delivered:.3f}"
+
+    interleave(run, args.a, args.b, args.repeats, digits=1)
+
+
+def interleave(run: Callable[[str], tuple[float, str]], a: str, b: str, repeats: int,
+               digits: int) -> None:
+    """``run`` each tree ``repeats`` times, A and B alternating (ABBA...): every run as it
+    ends (µs per value and ``run``'s detail), then the medians and B/A."""
     results: dict[str, list[float]] = {"A": [], "B": []}
-    for i in range(args.repeats):
+    for i in range(repeats):
         for name in ("A", "B") if i % 2 == 0 else ("B", "A"):
-            us, sys_us, delivered = measure(args.a if name == "A" else args.b, args)
+            us, detail = run(a if name == "A" else b)
             results[name].append(us)
-            print(f"{name} {us:6.1f} µs/value (system {sys_us:5.1f})  delivered {delivered:.3f}",
-                  flush=True)
+            print(f"{name} {us:6.{digits}f} µs/value {detail}", flush=True)
     med = {k: statistics.median(v) for k, v in results.items()}
     for k, v in results.items():
-        print(f"{k} median {med[k]:.1f} µs/value  runs {[round(x, 1) for x in v]}")
+        print(f"{k} median {med[k]:.{digits}f} µs/value  runs {[round(x, digits) for x in v]}")
     print(f"B/A {med['B'] / med['A']:.2f}  load average {os.getloadavg()}")
 
 

@@ -39,21 +39,6 @@ PEER_SCRIPT = Path(__file__).with_name("ros2_peer.py")
 REQUIRE_ROS2 = os.environ.get("RLBRIDGE_TEST_REQUIRE_ROS2") == "1"
 
 
-def _rclpy_major() -> int:
-    from importlib import metadata
-
-    try:
-        return int(metadata.version("ros-rclpy").split(".")[0])
-    except (metadata.PackageNotFoundError, ValueError):
-        return 0  # not the wheels (a sourced ROS) or no rclpy: assume the newest behaviour
-
-
-#: ROS-side loss counting does not add up on Jazzy's wheels (rclpy 7.1, Fast DDS 2.14): a
-#: flood's KEEP_LAST overwrites are neither delivered nor reported there (seen in the matrix's
-#: Jazzy leg). Not strict: a burst the machine happens to deliver whole passes there too.
-JAZZY_LOSS_UNCOUNTED = pytest.mark.xfail(
-    0 < _rclpy_major() < 8, strict=False,
-    reason="rclpy 7.1 / Fast DDS 2.14 (Jazzy wheels) do not report the samples KEEP_LAST drops")
 if REQUIRE_ROS2 and importlib.util.find_spec("rclpy") is None:
     # scripts/test.sh installed rclpy: without it the ROS 2 tests would skip, and pass unseen.
     raise pytest.UsageError("RLBRIDGE_TEST_REQUIRE_ROS2=1 but this Python has no rclpy")

@@ -116,10 +116,11 @@ class LoggedProcess:
         return "".join(self.lines)
 
 
-def start_server(namespace: str, env: dict[str, str], node_name: str) -> tuple[LoggedProcess, int]:
+def start_server(namespace: str, env: dict[str, str], node_name: str,
+                 *options: str) -> tuple[LoggedProcess, int]:
     server = LoggedProcess(in_namespace(namespace, [
         *rlbridge_argv(), "--log-level", "info", "serve", "--port", "0", "--adapter", "ros2",
-        "--node-name", node_name]), env, watch=SERVING)
+        "--node-name", node_name, *options]), env, watch=SERVING)
     return server, int(server.wait_ready().group(1))
 
 
@@ -151,9 +152,10 @@ class World:
 
 
 @contextlib.contextmanager
-def world(role: str, log_dir: Path, *, serve_peer: bool = False) -> Iterator[World]:
-    """A namespace, ``rlbridge serve --adapter ros2`` in it (after the peer node in ``serve``
-    mode, if asked); everything stopped and the namespace removed afterwards."""
+def world(role: str, log_dir: Path, *, serve_peer: bool = False,
+          server_options: Sequence[str] = ()) -> Iterator[World]:
+    """A namespace, ``rlbridge serve --adapter ros2 SERVER_OPTIONS`` in it (after the peer
+    node in ``serve`` mode, if asked); everything stopped and the namespace removed afterwards."""
     require_netns()
     namespace = new_namespace(role)
     env = ros_env(log_dir)
@@ -163,7 +165,7 @@ def world(role: str, log_dir: Path, *, serve_peer: bool = False) -> Iterator[Wor
             peer = World(namespace, env, 0).peer("serve", watch=r"^ready")
             processes.append(peer)
             peer.wait_ready()
-        server, port = start_server(namespace, env, f"h16a_{role}_bridge")
+        server, port = start_server(namespace, env, f"h16a_{role}_bridge", *server_options)
         processes.append(server)
         yield World(namespace, env, port)
     finally:

@@ -13,7 +13,8 @@ Imports nothing from rlbridge. Modes:
     stdin closes.
 ``flood TOPIC N``
     Publish std_msgs/Int64 probes ``-1, -2, ...`` every 50 ms until a line arrives on stdin,
-    then ``0 .. N-1`` as fast as rclpy goes (reliable, depth 1000); print ``probes P``.
+    then ``0 .. N-1`` as fast as rclpy goes (reliable, depth 1000), each exactly once (a
+    publish rmw refuses is made again); print ``probes P refused R``.
 ``count TOPIC DEPTH [LAST]``
     Subscribe to std_msgs/Int64 with a reliable KEEP_LAST(DEPTH) queue and a slow callback
     (1 ms a message); count messages and the gaps in their publication sequence numbers (from
@@ -40,6 +41,7 @@ with warnings.catch_warnings():
 import contextlib
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -136,9 +138,15 @@ def flood(topic: str, count: int) -> None:
     while not go.wait(0.05):
         probes += 1
         pub.publish(Int64(data=-probes))
+    refused = 0
     for i in range(count):
-        pub.publish(Int64(data=i))
-    print(f"probes {probes}", flush=True)
+        while True:  # every value is published once, so the sequence numbers stay contiguous
+            try:
+                pub.publish(Int64(data=i))
+                break
+            except RCLError:  # Fast DDS: the history is full of unacknowledged samples and
+                refused += 1  # the reader did not acknowledge within max_blocking_time
+    print(f"probes {probes} refused {refused}", flush=True)
     sys.stdin.read()
     node.destroy_node()
     rclpy.try_shutdown()

@@ -231,9 +231,10 @@ def test_a_raising_callback_does_not_stop_delivery(
             pub.publish([v])
             assert good.wait_until(lambda got, v=v: got[-1:] == [v], TIMEOUT)
     deadline = time.monotonic() + TIMEOUT
-    while sum(calls) < len(good.values) and time.monotonic() < deadline:
+    while failing.lost < len(good.values) and time.monotonic() < deadline:
         time.sleep(0.01)
     assert failing.errors == len(calls) >= 2  # it kept being called after failing
+    assert failing.lost == sum(calls) == len(good.values)  # taken, not handed on: lost
     assert "subscriber bug" in caplog.text
     assert _executor_threads()
 
@@ -305,3 +306,51 @@ def test_rebinding_right_after_close_sees_no_stale_type(
         adapter.subscribe(name, INT8, "data", QoS(), Collector()).close()
         adapter.create_publisher(name, "std_msgs/msg/String", "data", QoS()).close()
         assert name not in dict(adapter.topics())
+
+
+class _OnePublisherOrMore:
+    """The rclpy subscription as :meth:`Ros2Subscription._anonymous` sees it."""
+
+    def __init__(self) -> None:
+        self.count = 1
+
+    def get_publisher_count(self) -> int:
+        return self.count
+
+
+def test_sequence_gaps_without_publisher_ids_count_while_one_publisher() -> None:
+    """rclpy < 8 (Jazzy) gives sequence numbers but no publisher id: they are one publisher's
+    while the subscription has one, and are not compared across publishers."""
+    from types import SimpleNamespace
+
+    from rlbridge.adapters.ros2_endpoints import Ros2Subscription
+
+    codec = SimpleNamespace(spec=None, msg_cls=object, decode=lambda m: m)
+    got: list[Any] = []
+    sub = Ros2Subscription(None, "/t", codec, got.extend)  # type: ignore[arg-type]
+    ros = _OnePublisherOrMore()
+    sub.ros = ros  # type: ignore[assignment]
+    sub._drain = lambda taken: None  # type: ignore[method-assign]
+
+    def message(seq: int, gid: bytes | None = None) -> None:
+        info: dict[str, Any] = {"publication_sequence_number": seq}
+        if gid is not None:
+            info["publisher_gid"] = {"data": gid}
+        sub.on_message(seq, info)
+
+    for seq in (5, 6, 9, 10):  # one publisher: 7 and 8 lost
+        message(seq)
+    assert sub.lost == 2
+    ros.count = 2  # a second one: its numbers cannot be told apart, nothing is counted
+    for seq in (1, 11, 2, 14):
+        message(seq)
+    assert sub.lost == 2
+    ros.count = 1  # one again: counting starts afresh at its next message
+    for seq in (3, 4, 6):
+        message(seq)
+    assert sub.lost == 3
+    for seq in (1, 3):  # with ids (rclpy >= 8), per publisher whatever their number
+        message(seq, b"a")
+        message(seq + 100, b"b")
+    assert sub.lost == 5
+    assert len(got) == 4 + 4 + 3 + 4

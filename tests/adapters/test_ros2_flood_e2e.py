@@ -4,8 +4,9 @@ In a private network namespace (:mod:`reach_netns`), with real rclpy nodes:
 
 * node -> client: an rclpy node publishes a burst as fast as it can; the server's ROS
   subscription has the default depth (10), so its queue overflows while the executor thread
-  is busy. Every message after the first one the server took is either delivered to the SDK
-  or counted in ``ros_lost`` (sequence gaps), in ``rlbridge stats`` and ``health()``.
+  is busy. Once the burst's last message has reached the SDK, every message after the first
+  one the server took is either delivered to the SDK or counted in ``ros_lost`` (sequence
+  gaps), in ``rlbridge stats`` and ``health()``: exactly, the sum is the number published.
 * client -> node: the SDK floods a TCP channel; the server hands each accepted value to
   rclpy (or counts ROS's refusal in ``ros_lost``); the slow node receives each or sees its
   gap (its own queue of 10 overflowing), counted by the node from the same sequence numbers.
@@ -15,6 +16,7 @@ The assertions are sums that must hold whatever the timing; how much was lost is
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections.abc import Iterator
@@ -22,8 +24,8 @@ from collections.abc import Iterator
 import pytest
 from reach_netns import World, world
 
-from conftest import JAZZY_LOSS_UNCOUNTED
 from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.bridge_channels import IncomingChannel
 
 pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(240)]
 
@@ -33,7 +35,10 @@ N = 20_000
 
 @pytest.fixture(scope="module")
 def flood_world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
-    with world("flood", tmp_path_factory.mktemp("ros_log")) as made:
+    # A flood saturates a 2-core machine on purpose; these tests count values, and the
+    # watchdog (600 ms by default, tested in tests/server) must not end the session meanwhile.
+    with world("flood", tmp_path_factory.mktemp("ros_log"),
+               server_options=("--timeout-ms", "10000")) as made:
         yield made
 
 
@@ -50,44 +55,54 @@ def channel_stats(bridge: Bridge, channel: int) -> dict[str, int]:
     return bridge.server_stats()["session"]["channels"][str(channel)]
 
 
-@JAZZY_LOSS_UNCOUNTED
-@pytest.mark.xfail(strict=False, reason=(
-    "known gap (closing note of session 5): now and then a few hundred of the 20,000 values are "
-    "neither delivered nor counted, seen on Python 3.12 and 3.13 under CI; a loss after the "
-    "last delivered message leaves no sequence gap to count. Passing runs still check the sum."))
+def read_until(ch: IncomingChannel, last: int, received: list[int]) -> float:
+    """Read into ``received`` until ``last`` arrives (the publisher's final message: a
+    KEEP_LAST queue never drops its newest, so it always does, and after it every earlier
+    message of that publisher is delivered or counted). Not "until quiet": a reliable DDS
+    writer repairs a sample lost in transport at its next heartbeat, up to 3 s later with
+    Fast DDS's defaults, and what is still in flight then is neither delivered nor lost yet.
+    Returns the longest stop between two arrivals (seconds), for the printout."""
+    deadline = time.monotonic() + 120
+    at = time.monotonic()
+    longest = 0.0
+    while received[-1] != last:
+        got = ch.read_many()
+        if not got:
+            with contextlib.suppress(TimeoutError):
+                got = [ch.read(timeout=1.0)]
+        if got:
+            now = time.monotonic()
+            longest, at = max(longest, now - at), now
+            received += got
+        assert time.monotonic() < deadline, f"{last} never arrived; {len(received)} did"
+    return longest
+
+
 def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge) -> None:
     ch = sdk.subscribe("/flood/down", INT64, transport="tcp", blocking=True,
                        buffer_size=4 * N)
-    peer = flood_world.peer("flood", "/flood/down", str(N), watch=r"^probes (\d+)")
+    peer = flood_world.peer("flood", "/flood/down", str(N), watch=r"^probes (\d+) refused (\d+)")
     try:
         first = ch.read(timeout=60)  # a probe: the server's subscription is matched
         assert first < 0
         assert peer.proc.stdin is not None
         peer.proc.stdin.write("go\n")
         peer.proc.stdin.flush()
-        probes = int(peer.wait_ready().group(1))
+        done = peer.wait_ready()
+        probes, refused = int(done.group(1)), int(done.group(2))
         received = [first]
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:  # until nothing more arrives for 2 s
-            got = ch.read_many()
-            if got:
-                received += got
-                continue
-            try:
-                received.append(ch.read(timeout=2.0))
-            except TimeoutError:
-                break
+        stop = read_until(ch, N - 1, received)
     finally:
         peer.stop()
     stats = channel_stats(sdk, ch.channel_id)
     expected = (probes + first) + N  # probes after the first one (-k), then the burst
     lost = stats["ros_lost"]
-    print(f"node->client: {N} published, {len(received) - 1} delivered, {lost} lost in the "
-          "server's ROS subscription queue (depth 10)")
+    print(f"node->client: {N} published ({refused} refused by rmw and published again), "
+          f"{len(received) - 1} delivered, {lost} lost in the server's ROS subscription queue "
+          f"(depth 10); longest stop in the burst {stop:.2f} s")
     assert ch.health().overwritten == 0
     assert stats["dropped"] == 0
     assert (len(received) - 1) + lost == expected
-    assert received[-1] == N - 1 or lost > 0
     deadline = time.monotonic() + 10  # the RosLoss report, once per heartbeat period
     while ch.health().ros_lost != lost and time.monotonic() < deadline:
         time.sleep(0.05)

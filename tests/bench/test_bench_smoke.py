@@ -108,6 +108,22 @@ def test_latency_idle_rows_report_cpu(tmp_path: Path) -> None:
     assert "unknown idle strategy 'nap'" in bad.output
 
 
+def test_latency_stages_probe_every_stage(tmp_path: Path) -> None:
+    out = tmp_path / "bench.md"
+    result = CliRunner().invoke(bench_app, [
+        "latency", "--stages", "--seconds", "0.05", "--repeats", "1", "--rates", "1000",
+        "--idle", "park,busy", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = _rows(result.output)
+    total = rows["total: `write` -> `read` returns"][1:]
+    assert len(total) == 2  # a column per strategy
+    assert all(float(x.replace(",", "")) > 0 for x in total)
+    probed = [label for label in rows if label.startswith(("`write`", "->"))]
+    assert len(probed) == 8  # every stage has a figure, none missing a probe
+    assert all(x != "-" for label in probed for x in rows[label][1:])
+    assert "<!-- bench:latency-stages begin -->" in out.read_text()
+
+
 def test_feedback_runs(tmp_path: Path) -> None:
     out = tmp_path / "bench.md"
     result = CliRunner().invoke(bench_app, [

@@ -77,3 +77,18 @@ def test_bridge_threads_move_values_on_every_strategy(
         for i in range(20):
             out.write(i)
             assert inbox.read(timeout=10.0) == i
+
+
+def test_busy_spin_yields_the_cpu_between_polls(monkeypatch: pytest.MonkeyPatch) -> None:
+    yields: list[int] = []
+    monkeypatch.setattr("os.sched_yield", lambda: yields.append(1))
+    c = Counting(after=5)
+    assert BusySpin().idle(c.poll, c.block, None) == "work"
+    assert len(yields) == 5  # one after every poll that found nothing: the GIL goes too
+
+
+def test_bridge_blocking_reads_wait_by_the_receive_strategy(server: ServerThread) -> None:
+    with Bridge.connect("127.0.0.1", server.port, idle=("park", "busy"), name="rd") as b:
+        inbox = b.subscribe("/idle_rd", "std_msgs/msg/Int64", transport="udp", blocking=True,
+                            buffer_size=64)
+        assert inbox.read_idle.name == "busy"

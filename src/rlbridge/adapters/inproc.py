@@ -77,12 +77,27 @@ class _Publisher:
     #: ``transient_local`` publishers keep their last ``depth`` values for late subscribers.
     latched: deque[Any] | None = None
 
+    #: The topic's subscribers when ``_targets`` was computed (a new tuple on every change).
+    _seen: tuple[_Subscriber, ...] | None = field(default=None, init=False, repr=False)
+    #: Each subscriber with the converter this publisher's values need (None: as they are).
+    _targets: tuple[tuple[_Subscriber, _Convert | None], ...] = field(
+        default=(), init=False, repr=False)
+
     def publish(self, values: Sequence[Any]) -> None:
+        """``_Topic.deliver`` with this publisher's fan-out computed once per subscriber set."""
         if self.closed:
             raise RuntimeError(f"publisher on {self.topic.name} is closed")
         if self.latched is not None:
             self.latched.extend(values)
-        self.topic.deliver(self.spec, values)
+        if not values:
+            return
+        subscribers = self.topic.subscribers
+        if subscribers is not self._seen:
+            self._targets = self.topic.targets(self.spec)
+            self._seen = subscribers
+        for sub, convert in self._targets:
+            if not sub.closed:  # closed during this delivery (by an earlier subscriber)
+                sub.callback(values if convert is None else convert(values))
 
     def close(self) -> None:
         self.topic.remove_publisher(self)
@@ -101,18 +116,28 @@ class _Topic:
     latching: list[_Publisher] = field(default_factory=list)
     converters: dict[tuple[str | None, str | None], _Convert] = field(default_factory=dict)
 
-    def deliver(self, spec: ValueSpec, values: Sequence[Any]) -> None:
-        if not values:
-            return
-        for sub in self.subscribers:  # a tuple: subscribe/close during delivery is safe
-            if not sub.closed:
-                self.deliver_to(sub, spec, values)
+    def targets(self, spec: ValueSpec) -> tuple[tuple[_Subscriber, _Convert | None], ...]:
+        """Every subscriber, with what values of ``spec`` need to reach it (None: nothing).
 
-    def deliver_to(self, sub: _Subscriber, spec: ValueSpec, values: Sequence[Any]) -> None:
+        A tuple over ``subscribers`` (itself replaced, never changed, on subscribe and close),
+        so a subscribe or close during a delivery does not disturb it.
+        """
+        out = []
+        for sub in self.subscribers:
+            convert = self.converter(spec, sub)
+            out.append((sub, None if convert is _same else convert))
+        return tuple(out)
+
+    def converter(self, spec: ValueSpec, sub: _Subscriber) -> _Convert:
+        """The cached converter from values of ``spec`` to ``sub``'s field."""
         key = (spec.field, sub.spec.field)
         convert = self.converters.get(key)
         if convert is None:
             convert = self.converters[key] = _converter(spec, sub.spec, self.template)
+        return convert
+
+    def deliver_to(self, sub: _Subscriber, spec: ValueSpec, values: Sequence[Any]) -> None:
+        convert = self.converter(spec, sub)
         sub.callback(values if convert is _same else convert(values))
 
     def remove_subscriber(self, sub: _Subscriber) -> None:

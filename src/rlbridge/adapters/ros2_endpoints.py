@@ -16,6 +16,9 @@
   before this subscription took them (``lost``). Counting starts at the first message of
   each publisher (a volatile subscription never sees what came before it matched). An rmw
   that gives no sequence numbers (they are an rmw_fastrtps feature) leaves ``lost`` at 0.
+  rclpy before 8 (Jazzy) gives the sequence number but not the publisher's id: there the
+  numbers are used while the subscription has exactly one publisher (whose they must be),
+  and not while it has several (they cannot be told apart).
 
 Both are created and destroyed by :class:`~rlbridge.adapters.ros2.Ros2Adapter`, which owns the
 node; an endpoint's ``close()`` stops it here and asks the adapter to destroy it.
@@ -36,6 +39,9 @@ from rlbridge.adapters.ros2_rclpy import (
     RclpyPublisher,
     RclpySubscription,
 )
+
+#: The key of the messages that carry no publisher id (rclpy < 8), while one publisher is matched.
+ANONYMOUS = b""
 
 # The adapter's logger: one name for everything the ROS 2 adapter logs.
 log = logging.getLogger("rlbridge.adapters.ros2")
@@ -127,9 +133,13 @@ class Ros2Subscription:
         self.delivered = 0
         self.batches = 0
         self.errors = 0
-        #: Messages lost before this subscription took them (sequence gaps; module doc).
+        #: Messages lost before this subscription took them (sequence gaps; module doc), and
+        #: messages it took but could not deliver (a batch that failed to decode or deliver).
         self.lost = 0
         self._last_seq: dict[bytes, int] = {}
+        #: rclpy < 8: matched publishers when last looked (once per batch; -1: not yet).
+        self._publishers = -1
+        self._looked = False
         self._adapter = adapter
         self._msg_cls = codec.msg_cls
         self._decode = codec.decode
@@ -141,14 +151,19 @@ class Ros2Subscription:
         self.ros: RclpySubscription[Any] | None = None  # set by the adapter right after
 
     def on_message(self, msg: Any, info: Any) -> None:
-        """Executor thread: decode ``msg`` plus whatever is queued behind it, deliver once.
+        """Executor thread: take whatever is queued behind ``msg``, decode, deliver once.
 
-        Two parameters, so rclpy passes the message info (sequence numbers) too.
+        Two parameters, so rclpy passes the message info (sequence numbers) too. Messages
+        taken from ROS and then not delivered (a decode error, a failing callback) are
+        counted in ``lost`` as well: the server took them from ROS and could not hand them on.
         """
+        taken = [msg]
+        self._looked = False
         try:
             self._count_gap(info)
-            batch = [self._decode(msg)]
-            self._drain(batch)
+            self._drain(taken)
+            decode = self._decode
+            batch = [decode(m) for m in taken]
             with self._lock:
                 if self._closed:
                     return
@@ -159,21 +174,24 @@ class Ros2Subscription:
             # The executor thread is shared by every subscription: one failing callback must
             # not stop delivery to the others, so log it with its traceback and count it.
             self.errors += 1
-            log.exception("ros2 subscription on %s: delivering a batch failed", self.topic)
+            self.lost += len(taken)
+            log.exception("ros2 subscription on %s: delivering a batch of %d failed",
+                          self.topic, len(taken))
 
-    def _drain(self, batch: list[Any]) -> None:
+    def _drain(self, taken: list[Any]) -> None:
+        """Take the messages already queued behind the first (at most ``MAX_BATCH`` in all)."""
         ros = self.ros
         if ros is None:
             return
-        decode, cls, handle = self._decode, self._msg_cls, ros.handle
+        cls, handle = self._msg_cls, ros.handle
         try:
             with handle:
-                while len(batch) < MAX_BATCH:
-                    taken: tuple[Any, Any] | None = handle.take_message(cls, False)
-                    if taken is None:
+                while len(taken) < MAX_BATCH:
+                    message: tuple[Any, Any] | None = handle.take_message(cls, False)
+                    if message is None:
                         return
-                    self._count_gap(taken[1])
-                    batch.append(decode(taken[0]))
+                    self._count_gap(message[1])
+                    taken.append(message[0])
         except InvalidHandle:  # destroyed by close() on another thread: deliver what we have
             return
 
@@ -181,16 +199,37 @@ class Ros2Subscription:
         """Count the messages of this message's publisher that never reached us."""
         try:
             seq = info["publication_sequence_number"]
-            gid = info["publisher_gid"]["data"]
-        except (KeyError, TypeError):
+            publisher = info.get("publisher_gid")
+        except (KeyError, TypeError, AttributeError):
             return
         if seq is None:
+            return
+        gid = self._anonymous() if publisher is None else publisher["data"]
+        if gid is None:
             return
         last = self._last_seq.get(gid)
         if last is not None and seq > last + 1:
             self.lost += seq - last - 1
         if last is None or seq > last:
             self._last_seq[gid] = seq
+
+    def _anonymous(self) -> bytes | None:
+        """rclpy < 8 (no publisher id): the key to count under, if one publisher is matched.
+
+        Looked up once per batch. When the number of publishers changes, the numbers seen so
+        far may be another publisher's: counting starts again at the next message.
+        """
+        if not self._looked:
+            self._looked = True
+            ros = self.ros
+            try:
+                count = ros.get_publisher_count() if ros is not None else 0
+            except (InvalidHandle, RCLError):
+                count = 0
+            if count != self._publishers:
+                self._publishers = count
+                self._last_seq.pop(ANONYMOUS, None)
+        return ANONYMOUS if self._publishers == 1 else None
 
     def stop(self) -> bool:
         """Stop delivering (waits for a running callback); ``True`` if it was open."""

@@ -21,7 +21,8 @@ from rlbridge.bench.base import Params, Role
 
 #: Modules whose ``ROLES`` a child may run (the child's entry point refuses anything else).
 WORKER_MODULES = ("rlbridge.bench.child", "rlbridge.bench.throughput",
-                  "rlbridge.bench.latency", "rlbridge.bench.baselines",
+                  "rlbridge.bench.latency", "rlbridge.bench.latency_stages",
+                  "rlbridge.bench.baselines",
                   "rlbridge.bench.ros2_roles", "rlbridge.bench.netpath",
                   "rlbridge.bench.load_roles", "rlbridge.bench.cpu",
                   "rlbridge.bench.feedback")

@@ -144,6 +144,11 @@ def latency(
              "per thread, e.g. park/spin): the rlbridge rows once per strategy, with CPU % "
              "per process and the publisher loop's lateness.")]
     = "",
+    stages: Annotated[bool, typer.Option(
+        "--stages/--no-stages",
+        help="Probe rlbridge UDP at the first rate stage by stage (send thread, server, receive "
+             "thread, reader), per --idle strategy (default park), next to a raw UDP pair.")]
+    = False,
 ) -> None:
     """One-way latency p50/p99/max of 1 kHz and 100 Hz streams, next to raw UDP and ZeroMQ.
 
@@ -165,6 +170,10 @@ def latency(
         typer.echo(f"rlbridge bench latency: error: unknown idle strategy {unknown[0]!r}; "
                    f"choose from {', '.join(STRATEGIES)}", err=True)
         raise typer.Exit(2)
+    if stages:
+        _latency_stages(ctx, strategies or ("park",), seconds, repeats,
+                        float(_keys(rates)[0]), out)
+        return
     settings = lat.Settings(seconds=seconds, count=count, repeats=repeats,
                             rates=tuple(float(r) for r in _keys(rates)), only=_keys(only),
                             idle=strategies)
@@ -233,6 +242,20 @@ def load(
                     warmup_s=min(10.0, phase_s), bundles=bundles,
                     udp_receive_buffer=udp_receive_buffer)
     _run("load", lambda: ld.report(ld.run(s, ld.load_plan(s), progress), _command(ctx)), out)
+
+
+def _latency_stages(ctx: typer.Context, strategies: tuple[str, ...], seconds: float,
+                    repeats: int, rate_hz: float, out: Path) -> None:
+    from rlbridge.bench import latency_stages as st
+    from rlbridge.bench.common import LoopbackLink, progress
+
+    def measure() -> str:
+        results, raw = st.run(LoopbackLink(), strategies, seconds=seconds, repeats=repeats,
+                              rate_hz=rate_hz, progress=progress)
+        return st.report(results, raw, seconds=seconds, repeats=repeats, rate_hz=rate_hz,
+                         command=_command(ctx))
+
+    _run("latency-stages", measure, out)
 
 
 def _latency_link(transport: str, delay: float, loss: float, rate: float, count: int,

@@ -111,9 +111,9 @@ class Bridge(BridgeStatus, ServiceMethods):
         ``$RLBRIDGE_PSK``; TLS is ``tls=True``, ``ca=``, ``fingerprint=`` (pin) or an
         ``ssl.SSLContext``; ``client_cert=(cert, key)`` for mutual TLS.
         ``bundles=False``: a datagram per UDP channel, not a bundle per round (protocol.md 6.16).
-        ``idle``: how the send and receive threads wait (:mod:`rlbridge.csp.idle`): ``"park"``
-        (block in the kernel), ``"spin"`` (poll 20 us, yield 200 us, then park), ``"busy"``
-        (never park), an ``IdleStrategy`` or a ``(send, receive)`` pair; costs: docs/concepts.md.
+        ``idle``: how the send and receive threads (and reads) wait (:mod:`rlbridge.csp.idle`):
+        ``"park"`` (in the kernel), ``"spin"`` (poll 20 us, yield 200 us, park), ``"busy"`` (poll
+        and yield), an ``IdleStrategy`` or a ``(send, receive)`` pair; costs: docs/concepts.md.
         """
         send_idle, receive_idle = idle_pair(idle)
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:
@@ -185,13 +185,13 @@ class Bridge(BridgeStatus, ServiceMethods):
                 "arrive from the network whether or not a reader waits")
         ch_id = next(self._ids)
         kind = IncomingChannel if guard is None else GuardedChannel
-        channel = kind(ch_id, topic, msg_type, field, transport=transport,
-                                  blocking=blocking, buffer_size=buffer_size,
-                                  initial=initial if not blocking else _MISSING,
-                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
-                                  credit_bell=self._sender.doorbell if flow else None)
+        channel = kind(ch_id, topic, msg_type, field, transport=transport, blocking=blocking,
+                       buffer_size=buffer_size, initial=initial if not blocking else _MISSING,
+                       latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
+                       credit_bell=self._sender.doorbell if flow else None)
         if isinstance(channel, GuardedChannel):
             channel.failsafe = guard
+        channel.read_idle = self._conn.idle  # blocking reads wait as the receive thread does
         with self._lock:
             self._incoming[ch_id] = channel
         try:

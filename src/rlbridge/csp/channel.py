@@ -27,17 +27,23 @@ sequential consistency, which the GIL provides. ``threading.Condition.notify`` a
 take a lock on every write, even with nobody waiting. Non-blocking channels never have a
 waiting reader, so they never ring. Several channels may share a doorbell so that one
 consumer (the SDK's send thread) can sleep until any of them is written.
+
+How a blocking read waits is its ``read_idle`` strategy (:mod:`rlbridge.csp.idle`; the
+SDK's incoming channels take the receive thread's): ``PARK`` sleeps on the doorbell at once; a
+spinning strategy first polls the buffer, giving up the CPU and the GIL between polls, and
+is not registered in the doorbell meanwhile, so the writer finds nobody to wake.
 """
 
 from __future__ import annotations
 
 import enum
-import threading
+import os
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Final, Generic, TypeVar
 
+from rlbridge.csp.doorbell import Doorbell
 from rlbridge.csp.errors import (
     ChannelClosed,
     ChannelMisuseError,
@@ -45,6 +51,7 @@ from rlbridge.csp.errors import (
     RealTimeWarning,
     WouldBlock,
 )
+from rlbridge.csp.idle import PARK, IdleStrategy
 from rlbridge.csp.process import current_process
 from rlbridge.csp.rendezvous import Rendezvous
 from rlbridge.csp.ring import EMPTY, SpscRing
@@ -60,35 +67,7 @@ class _Missing(enum.Enum):
 
 
 _MISSING: Final = _Missing.MISSING
-
-
-class Doorbell:
-    """Lets a consumer sleep until a producer signals, without producers taking a lock.
-
-    Producers call :meth:`ring` only when :attr:`waiting` is non-zero; consumers call
-    :meth:`wait_for` with a predicate that reads the lock-free state. ``waiting`` is
-    written under the lock only and is public so that the check costs one attribute read.
-    """
-
-    __slots__ = ("_cond", "waiting")
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition(threading.Lock())
-        self.waiting = 0
-
-    def ring(self) -> None:
-        """Wake every thread blocked in :meth:`wait_for` (a futex wake: a system call)."""
-        with self._cond:
-            self._cond.notify_all()
-
-    def wait_for(self, predicate: Callable[[], object], timeout: float | None = None) -> bool:
-        """Block until ``predicate()`` is true or ``timeout`` passes; return its last value."""
-        with self._cond:
-            self.waiting += 1  # registered before the predicate re-checks the state
-            try:
-                return bool(self._cond.wait_for(predicate, timeout))
-            finally:
-                self.waiting -= 1
+_yield_cpu = os.sched_yield
 
 
 class Channel(Generic[T]):
@@ -96,7 +75,7 @@ class Channel(Generic[T]):
 
     __slots__ = ("_bell", "_blocking", "_closed", "_hrt_blocking_reads", "_hrt_warned",
                  "_initial", "_name", "_read_token", "_ring", "_rv", "_stale_reads",
-                 "_waiting_readers", "_write_token")  # fmt: skip
+                 "_waiting_readers", "_write_token", "read_idle")  # fmt: skip
 
     def __init__(
         self,
@@ -124,6 +103,10 @@ class Channel(Generic[T]):
         self._read_token: Final[list[None]] = [None]
         self._waiting_readers = self._stale_reads = self._hrt_blocking_reads = 0
         self._hrt_warned = False
+        #: How a blocking read waits for a value (:mod:`rlbridge.csp.idle`): ``PARK`` blocks
+        #: on the doorbell at once; a spinning strategy polls the buffer first, yielding the
+        #: CPU and the GIL between polls, so that a value written meanwhile costs no wake-up.
+        self.read_idle: IdleStrategy = PARK
 
     @property
     def name(self) -> str:
@@ -309,6 +292,20 @@ class Channel(Generic[T]):
     def _readable(self) -> bool:
         return len(self._ring) > 0 or self._closed
 
+    def _poll_readable(self) -> bool:
+        """A spinning read's poll: the buffer, else a ``sched_yield`` (lets the GIL go).
+
+        The writer is often the same process's receive thread, which needs the GIL to deliver:
+        a poll that held it would delay the very value it waits for.
+        """
+        if len(self._ring) > 0 or self._closed:
+            return True
+        _yield_cpu()
+        return False
+
+    def _park(self, timeout: float | None) -> bool:
+        return self._bell.wait_for(self._readable, timeout)
+
     def _wait_and_pop(self, timeout: float | None) -> T:
         """Slow path of a blocking buffered read: the buffer was empty."""
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -327,7 +324,11 @@ class Channel(Generic[T]):
                 self._note_blocking_read()
             self._waiting_readers += 1
             try:
-                self._bell.wait_for(self._readable, remaining)
+                idle = self.read_idle
+                if idle is PARK:
+                    self._bell.wait_for(self._readable, remaining)
+                else:
+                    idle.idle(self._poll_readable, self._park, remaining)
             finally:
                 self._waiting_readers -= 1
             value = self._ring.pop()

@@ -1,26 +1,32 @@
 """Idle strategies: how an SDK I/O thread waits for work (after Aeron's IdleStrategy family).
 
 Theory of operation. The send thread waits for a written value (its doorbell), the receive
-thread for a readable socket (``select``). Parking in the kernel costs nothing while idle
-but a wake-up costs tens of microseconds on a VM (futex or socket wake, then the scheduler);
-polling reacts within one poll but burns a core. The strategy is a named object, chosen per
-thread (``Bridge.connect(idle=...)``), that gets two functions from the thread:
+thread for a readable socket (``poll``), a blocking read of an incoming channel for a value
+(its doorbell; it uses the receive thread's strategy). Parking in the kernel costs nothing
+while idle but a wake-up costs tens of microseconds on a VM (futex or socket wake, then the
+scheduler, then often the GIL); polling reacts within one poll but burns a core. The strategy
+is a named object, chosen per thread (``Bridge.connect(idle=...)``), that gets two functions
+from the thread:
 
-* ``poll()``: look once without waiting (the send thread's work predicate; ``select`` with a
-  zero timeout for the receive thread); a truthy result is the work;
-* ``block(timeout)``: wait in the kernel (doorbell or ``select``), the park.
+* ``poll()``: look once without waiting (the send thread's work predicate; ``poll`` with a
+  zero timeout for the receive thread; the ring's length for a read); a truthy result is the
+  work;
+* ``block(timeout)``: wait in the kernel (doorbell or ``poll``), the park.
 
-:class:`Park` only blocks (today's behaviour). :class:`SpinThenPark` polls for ``spin_us``,
+:class:`Park` only blocks (the default). :class:`SpinThenPark` polls for ``spin_us``,
 then polls with ``os.sched_yield()`` between polls for ``yield_us``, then blocks: a value that
 arrives within the spin window costs no wake-up, an idle thread sleeps after the window.
-:class:`BusySpin` polls until its timeout, never blocking.
+:class:`BusySpin` polls, with ``os.sched_yield()`` between polls, until its timeout, never
+blocking.
 
 **The GIL.** A Python thread that spins holds the GIL between polls; the control loop then
 waits for it (up to ``sys.getswitchinterval()``, 5 ms by default) whenever it wants to run.
-The receive thread's poll is a system call (``select``), which releases the GIL every time;
-the send thread's poll is pure Python, so its spin phase holds the GIL, and only the yield
-phase (``sched_yield`` releases it) lets the loop in. docs/concepts.md has what each costs,
-measured: ``rlbridge bench latency --idle``.
+The receive thread's poll is a system call, which releases the GIL every time; the send
+thread's poll is pure Python, so a spin phase without yields holds the GIL. That is why
+:class:`BusySpin` yields between polls (without it, busy threads in publisher and subscriber
+starved the control loop and, on 2 cores, the server: p50 540x the raw UDP pair's), and why a
+spinning read yields in its poll (the value it waits for comes from a thread that needs the
+GIL). docs/concepts.md has what each costs, measured: ``rlbridge bench latency --idle``.
 """
 
 from __future__ import annotations
@@ -101,18 +107,27 @@ class SpinThenPark:
 
 
 class BusySpin:
-    """Poll until work or the timeout, never parking: the lowest latency, a whole core."""
+    """Poll until work or the timeout, never parking: the lowest latency, a whole core.
+
+    Between polls it calls ``os.sched_yield()``, which lets the GIL go and hands the CPU to
+    any other runnable thread: a Python thread that polled without it would keep the GIL
+    from the control loop (its poll may be pure Python) and, with a busy thread in every
+    process, starve the server of the machine's cores (measured: 540x the raw UDP pair's
+    p50 before the yield). With nothing else runnable the yield returns at once.
+    """
 
     name = "busy"
 
     def idle(self, poll: Callable[[], T], block: Callable[[float | None], T],
              timeout: float | None) -> T:
-        """Poll until work or the timeout; never calls ``block``."""
+        """Poll, yield, poll, until work or the timeout; never calls ``block``."""
         deadline = None if timeout is None else _now() + int(timeout * 1e9)
+        yield_cpu = os.sched_yield
         while True:
             got = poll()
             if got or (deadline is not None and _now() >= deadline):
                 return got
+            yield_cpu()
 
     def __repr__(self) -> str:
         return "BusySpin()"

@@ -1,16 +1,16 @@
-"""The receive thread of one client session: select loop, datagrams, dispatch, heartbeats.
+"""The receive thread of one client session: poll loop, datagrams, dispatch, heartbeats.
 
 One :class:`Receiver` per session (generation) of a
 :class:`~rlbridge.csp.connection.Connection`; its :meth:`Receiver.run` is the body of the
-``rlbridge-recv`` thread. It waits in ``select`` on the TCP and UDP sockets and the
+``rlbridge-recv`` thread. It waits in ``poll`` on the TCP and UDP sockets and the
 connection's wake-up socket (blocked in C, holding no GIL), decodes whole packets with the
 sans-IO codec, and gathers consecutive values of a channel into runs handed to the channels
 once per read burst. Between reads it sends heartbeats and runs the watchdog, with timeouts
 taken from the session's :class:`~rlbridge.wire.link.LinkMonitor`. It ends when the session
 does: the connection's generation moves on, the session is no longer up, or the wake-up
 socket is readable (``close``). How it waits is the connection's idle strategy
-(:mod:`rlbridge.csp.idle`): ``select`` with the timeout (park), or zero-timeout ``select``
-polls first (spin). ``Credit`` and ``LossReport`` packets go to the connection's handlers.
+(:mod:`rlbridge.csp.idle`): ``poll`` with the timeout (park), or zero-timeout ``poll``
+calls first (spin). ``Credit`` and ``LossReport`` packets go to the connection's handlers.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import logging
 import select
 import socket
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from rlbridge.wire import (
     Batch,
@@ -83,38 +83,51 @@ class Receiver:
                 self._dispatch(packet)
         self._leftover = []
         self._flush_values()
-        sockets = [s for s in (conn.tcp, conn.udp, self._wake) if s is not None]
+        # One poll object for the session, registered once: no descriptor sets built per
+        # wake-up (as select() does), and the answer is file descriptors, compared as ints.
+        poller = select.poll()
+        for sock in (conn.tcp, conn.udp, self._wake):
+            if sock is not None:
+                poller.register(sock, select.POLLIN)
+        tcp_fd = conn.tcp.fileno() if conn.tcp is not None else -1
+        udp_fd = conn.udp.fileno() if conn.udp is not None else -1
+        wait = poller.poll
         idle = conn.idle
 
-        def poll() -> list[Any]:
-            return select.select(sockets, [], [], 0)[0]
+        def poll() -> list[tuple[int, int]]:
+            return wait(0)
 
-        def block(timeout: float | None) -> list[Any]:
-            return select.select(sockets, [], [], timeout)[0]
+        def block(timeout: float | None) -> list[tuple[int, int]]:
+            return wait(None if timeout is None else timeout * 1000.0)
 
         try:
             if conn.udp is not None and conn.control == "tcp":
                 conn.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
+            now = time.monotonic_ns()
+            timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
             while generation == conn.generation and conn.up:
-                now = time.monotonic_ns()
-                timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
                 readable = idle.idle(poll, block, timeout)
                 tcp, udp = conn.tcp, conn.udp
-                for sock in readable:
-                    if tcp is not None and sock is tcp:
-                        data = sock.recv(1 << 18)
+                for fd, _events in readable:
+                    if fd == tcp_fd and tcp is not None:
+                        data = tcp.recv(1 << 18)
                         self._tcp_bytes_in += len(data)
                         if not data:
                             conn.end_session("server closed the TCP connection", generation)
                             return
                         self._stream(decoder.feed(conn.tcp_received(data)))
-                    elif udp is not None and sock is udp:
-                        self._receive_datagrams(sock, token)
+                    elif fd == udp_fd and udp is not None:
+                        self._receive_datagrams(udp, token)
                     else:
                         return
-                # Last before blocking again: a woken reader then finds the GIL free soon.
-                self._flush_values()
                 self._tick(link, generation)
+                now = time.monotonic_ns()
+                timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
+                # Last before blocking again: the reader this wakes needs the GIL, and finds
+                # it free when this thread is back in poll by then (measured: handing values
+                # on before more Python or a system call costs the reader a second wake-up,
+                # on the GIL).
+                self._flush_values()
         except RemoteProtocolError as exc:
             conn.end_session(f"server sent an invalid stream: {exc.reason}", generation)
         except OSError as exc:
@@ -123,9 +136,10 @@ class Receiver:
     def _receive_datagrams(self, sock: socket.socket, token: int) -> None:
         """Read the datagrams already queued (at most ``MAX_DRAIN``), without blocking.
 
-        Values are handed on every ``RUN_DATAGRAMS`` datagrams (and when the queue is empty),
-        so a long burst neither waits for its end nor costs a channel wake-up per datagram.
-        After ``MAX_DRAIN`` datagrams the loop goes back to ``select``: under a flood the queue
+        Values are handed on every ``RUN_DATAGRAMS`` datagrams (and by ``run`` when the
+        queue is empty), so a long burst neither waits for its end nor costs a channel
+        wake-up per datagram.
+        After ``MAX_DRAIN`` datagrams the loop goes back to ``poll``: under a flood the queue
         never empties, and heartbeats (the server's watchdog) and TCP must still be served.
         """
         conn = self._conn

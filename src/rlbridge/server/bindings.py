@@ -43,6 +43,10 @@ from rlbridge.wire.sequence import SequenceTracker
 HOLD_POLL_S = 0.001
 
 
+class _NoValue:
+    """A type no decoded value has: ``Inbound._exact_type`` when the fast test does not apply."""
+
+
 class Inbound:
     """Client -> middleware. Duplicates and overtaken values (UDP) are dropped and counted."""
 
@@ -60,6 +64,10 @@ class Inbound:
         #: For one value per packet (the common case): a value accepted unchanged skips
         #: ``_convert`` and its list checks; anything else still goes through it.
         self._exact = exact_check(spec.python_type)
+        #: The same test without a call when the type is plain ``float``, ``bool`` or ``str``
+        #: (``exact`` is then ``type(v) is ...``); ``_NoValue`` matches no value.
+        self._exact_type: type = (spec.python_type if spec.python_type in (float, bool, str)
+                                  else _NoValue)
         self._clock = clock
         self._max_age_ns = request.max_age_ms * 1_000_000
         self.tracker = SequenceTracker()
@@ -81,24 +89,40 @@ class Inbound:
         t = self.tracker
         return ChannelLoss(self.channel, t.accepted, t.lost, t.highest + 1, self.refused)
 
-    def on_value(self, packet: Value) -> None:
-        """``_admit`` for one value, inlined: this runs once per datagram on a busy server."""
-        if not self.tracker.accept(packet.seq):
+    def on_value(self, packet: Value, wall_ns: int | None = None) -> None:
+        """``_admit`` for one value, inlined: this runs once per value on a busy server.
+
+        ``wall_ns`` is when its datagram arrived (CLOCK_REALTIME; a bundle's parts share one
+        reading), else now. The common case (the next sequence number, no credit, fresh, a
+        value of the channel's type as it is) costs no Python call but the publish.
+        """
+        tracker = self.tracker
+        seq = packet.seq
+        if seq == tracker.highest + 1:  # in order: what SequenceTracker.accept does for it
+            tracker.highest = seq
+            tracker.accepted += 1
+        elif not tracker.accept(seq):
             return
         credit = self.credit
         if credit is not None:  # one comparison unless a grant may be due (server/flow.py)
             credit.grant(self.tracker.highest + 1)
         stamp = packet.stamp_ns
         clock = self._clock
-        now = time.time_ns() + (clock.offset_ns if clock is not None else 0)  # client clock
-        self.jitter.add(stamp, now)
-        self._track_age(now - stamp)
-        if self._max_age_ns and stamp < now - self._max_age_ns:
+        now = ((time.time_ns() if wall_ns is None else wall_ns)
+               + (clock.offset_ns if clock is not None else 0))  # the client's clock
+        age = now - stamp  # the transit time: jitter.add and _track_age, inlined
+        jitter = self.jitter
+        last = jitter.last_transit
+        jitter.last_transit = age
+        if last is not None:
+            jitter.jitter_ns += (abs(age - last) - jitter.jitter_ns) // 16
+        one_way = self.one_way_ns
+        self.one_way_ns = age if one_way < 0 else one_way + (age - one_way) // 16
+        if self._max_age_ns and age > self._max_age_ns:
             self.expired += 1
             return
         value = packet.value
-        exact = self._exact
-        if exact is not None and exact(value):
+        if type(value) is self._exact_type or (self._exact is not None and self._exact(value)):
             self.values_in += 1
             self._publisher.publish([value])
         else:
@@ -236,6 +260,13 @@ class Outbound:
             self.dropped += credit.queue(stamp, values)
             self._pump()
             return
+        if n == 1 and self._history is None:  # _emit's common case, without the call
+            seq = self._seq
+            self._seq = seq + 1
+            self.values_out += 1
+            if not self.sink.send(Value(self.channel, seq, stamp, values[0]), data=True):
+                self.dropped += 1
+            return
         self._emit(stamp, values)
 
     def on_credit(self, limit: int) -> None:
@@ -295,10 +326,6 @@ class Outbound:
         self._seq = seq + n
         self.values_out += n
         history = self._history
-        if history is None and n == 1:
-            if not self.sink.send(Value(self.channel, seq, stamp, values[0]), data=True):
-                self.dropped += 1
-            return
         fresh = list(values)
         values = fresh
         stamps = [stamp] * n

@@ -65,10 +65,18 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
             inb.credit = InboundCredit(req.channel, flow, session.send_control)
             flow.inbound[inb.credit] = lambda: inb.tracker.highest + 1
         return inb
-    out = Outbound(req.channel, spec, ChannelSink(session, req.transport), ctx.config.max_batch,
+    # The transport's sink itself when the session has it (a sink, once made, stays the
+    # session's: a new client address is set on it), else one looked up at send time.
+    known = session.udp if req.transport == "udp" else session.tcp
+    sink = known if known is not None else ChannelSink(session, req.transport)
+    out = Outbound(req.channel, spec, sink, ctx.config.max_batch,
                    req.redundancy if req.transport == "udp" else 0, req)
+
+    def on_drop(count: int) -> None:  # batches the loop was too far behind to take
+        out.dropped += count
+
     out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
-                                         ctx.handoff.wrap(out.on_values))
+                                         ctx.handoff.wrap(out.on_values, on_drop))
     if flow is not None:
         out.credit = OutboundCredit(req.buffer_size, flow,
                                     lambda: getattr(session.tcp, "queued", 0),
@@ -80,8 +88,10 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
 class ChannelSink:
     """The sink of a channel's chosen transport, looked up at send time.
 
-    A UDP channel may be connected before the client's first datagram told us its address, and
-    a client's address may change (NAT rebinding); looking the sink up per send handles both.
+    A UDP channel may be connected before the client's first datagram told us its address
+    (a TCP session's UDP channel); looking the sink up per send handles it. A channel whose
+    session has its transport's sink already is bound to that sink directly (``bind``): a
+    client's new address (NAT rebinding) is set on the sink, which stays the session's.
     """
 
     def __init__(self, session: SessionOwner, transport: str) -> None:

@@ -68,7 +68,8 @@ CHANNEL = {
     "expired": ("values_expired_total", "Values older than max_age_ms, dropped."),
     "overtaken": ("values_overtaken_total", "Values replaced by a newer one (latest)."),
     "ros_lost": ("values_ros_lost_total", "Values lost on the ROS side: subscribe, messages "
-                 "the server's subscription queue dropped; publish, values ROS refused."),
+                 "the server's subscription queue dropped or it took and could not hand on; "
+                 "publish, values ROS refused."),
 }
 #: Per channel gauges in nanoseconds, exposed in seconds: ns key -> (suffix, help).
 CHANNEL_SECONDS = {

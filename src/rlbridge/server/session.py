@@ -18,7 +18,6 @@ from collections.abc import Callable
 from typing import Any
 
 from rlbridge.adapters.base import BindingError
-from rlbridge.server.admission import ValuesRefused
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import ack_for, bind, refusal
 from rlbridge.server.context import ServerContext
@@ -28,6 +27,7 @@ from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.reach import REACH_PACKETS, SessionReach
 from rlbridge.server.session_stats import ChannelTotals, stats_reply
 from rlbridge.server.sinks import PacketSink, UdpSink
+from rlbridge.server.values_in import bundle, value_packet
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
     Batch,
@@ -95,7 +95,7 @@ class Session:
         #: Topic-connects refused by the key file's rules (server/authz.py).
         self.topics_refused = 0
         #: Totals of channels closed before now, so a session's counters never go back.
-        self._totals = ChannelTotals()
+        self.totals = ChannelTotals()
         self.closed = False
         #: Seals and opens this session's datagrams (the gate swaps in a SealedCodec).
         self.codec: PacketCodec = ctx.codec
@@ -167,14 +167,14 @@ class Session:
         self.link.on_receive(time.monotonic_ns())
         sink = self.tcp if via == "tcp" else self.udp
         if type(packet) is Value:  # nearly every packet: skip the match below
-            self._data(packet.channel, packet, sink)
+            value_packet(self, packet.channel, packet, sink)
             return
         if type(packet) is Bundle:
-            self._bundle(packet, sink)
+            bundle(self, packet, sink)
             return
         match packet:
             case Value(channel=ch) | Batch(channel=ch):
-                self._data(ch, packet, sink)
+                value_packet(self, ch, packet, sink)
             case Heartbeat():
                 self.link.on_heartbeat(packet, time.monotonic_ns(), time.time_ns())
             case Credit(channel=ch):
@@ -208,7 +208,7 @@ class Session:
             if not self.closed:
                 self.packets_in += 1
                 self.link.on_receive(time.monotonic_ns())
-                self._bundle(error.bundle, via)
+                bundle(self, error.bundle, via)
             for part in error.errors:
                 self.malformed_packet(part, via)
             return
@@ -221,59 +221,6 @@ class Session:
             self._refuse_channel(error.channel, ErrorCode.MALFORMED, error.reason, via)
             return
         self.error(ErrorCode.MALFORMED, error.reason, error.channel, via=via)
-
-    def _bundle(self, bundle: Bundle, via: PacketSink | None) -> None:
-        """Each part of a bundle as if it had come alone: one bad part loses only itself."""
-        data = self._data
-        for part in bundle.parts:
-            data(part.channel, part, via)
-
-    def _data(self, channel: int, packet: Value | Batch, via: PacketSink | None) -> None:
-        """One value packet (alone, or a bundle's part): publish it or say what is wrong."""
-        binding = self.inbound.get(channel)
-        if binding is None:
-            n = 1 if isinstance(packet, Value) else len(packet.values)
-            self._totals.retired["dropped"] += n
-            self.ctx.count("dropped_unknown_channel", n)
-            code = ErrorCode.UNKNOWN_CHANNEL
-            what = "is bound for subscribing" if channel in self.outbound else "is not connected"
-            self.error(code, f"channel {channel} {what}; cannot publish on it", channel, via)
-            return
-        if self.rate is not None:
-            admitted = self._limit(packet, via, binding)
-            if admitted is None:
-                return
-            packet = admitted
-        try:
-            if isinstance(packet, Value):
-                binding.on_value(packet)
-            else:
-                binding.on_batch(packet)
-        except ValuesRefused as exc:
-            self.error(ErrorCode.BAD_VALUE,
-                       f"channel {channel} ({binding.spec.msg_type} field "
-                       f"{binding.spec.field or '<whole message>'}): {exc.reason}", channel, via,
-                       values=exc.count)
-
-    def _limit(self, packet: Value | Batch, via: PacketSink | None,
-               binding: Inbound) -> Value | Batch | None:
-        """The values ``--max-rate`` lets through (a batch's first ones); the rest counted."""
-        assert self.rate is not None
-        now = time.monotonic_ns()
-        n = 1 if isinstance(packet, Value) else len(packet.values)
-        ok = self.rate.admit(n, now)
-        if ok < n:
-            binding.refused += n - ok
-            self.ctx.count("rate_dropped", n - ok)
-            if self.rate.should_warn(now):
-                self.error(ErrorCode.LIMIT, f"over the server's limit of {self.rate.rate:g} "
-                           f"values per second per session; {self.rate.dropped} values dropped "
-                           "so far", packet.channel, via)
-        if ok == n:
-            return packet
-        if ok == 0 or isinstance(packet, Value):
-            return None
-        return Batch(packet.channel, packet.first_seq, packet.stamps[:ok], packet.values[:ok])
 
     def _connect(self, req: TopicConnect, via: PacketSink | None) -> None:
         ch = req.channel
@@ -363,7 +310,7 @@ class Session:
         self.send_control(reply, sink)
 
     def _retire(self, channel: dict[str, Any]) -> None:
-        self._totals.retire(channel)
+        self.totals.retire(channel)
         self.ctx.ledger.retire_channel(self.name, channel)
 
     def channel_stats(self) -> dict[str, dict[str, Any]]:
@@ -378,7 +325,7 @@ class Session:
         now = time.monotonic_ns()
         link = self.link.stats(now)
         channels = self.channel_stats()
-        totals = self._totals.totals(channels)
+        totals = self.totals.totals(channels)
         return {
             "session": self.id,
             "name": self.name,

@@ -26,12 +26,15 @@ from typing import Protocol
 import msgspec
 
 from rlbridge.tcpstate import congested
-from rlbridge.wire import PROTOCOL_VERSION, Batch, Packet, PacketCodec, Value
-from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire import PROTOCOL_VERSION, Batch, Bundle, Packet, PacketCodec, Value
+from rlbridge.wire.bundle import BUNDLE_OVERHEAD, MAX_PARTS, DatagramPacker
 from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC
 
 #: PacketCodec's encoder settings (msgspec defaults); tests/server check the bytes match.
 _ENCODE = msgspec.msgpack.Encoder().encode
+#: Values of these types make a ``Value`` of at most 34 bytes, which always fits a datagram
+#: (``udp_payload`` is at least 256): the UDP sink may gather them unencoded.
+_SCALARS = frozenset((float, int, bool))
 
 
 class PacketSink(Protocol):
@@ -119,6 +122,12 @@ class UdpSink:
     iteration (``call_soon``) as bundles of every channel, one datagram and one ``sendto`` per
     ``max_payload`` bytes instead of one per value. Control packets flush what is corked first,
     so order is kept.
+
+    Without keys, the common corked value (one number: it cannot be too large) is not even
+    encoded when it is sent: the iteration's values are kept as they are and encoded as one
+    ``Bundle`` at the flush, one msgspec call for all of them; the bytes are those the packer
+    would have made. Only if that bundle would not fit one datagram do they go through the
+    packer one by one, as any other value does.
     """
 
     def __init__(
@@ -143,6 +152,13 @@ class UdpSink:
         self._packer = DatagramPacker(codec, token, max_payload, self._sendto, bundles=False)
         #: A flush is scheduled for the end of this loop iteration.
         self._corked = False
+        #: Corked scalar values not yet encoded (they come before anything in the packer).
+        self._values: list[Value | Batch] = []  # Values only; typed as Bundle takes them
+        #: Numbers may wait unencoded: corked values, a plain codec (``bundles`` sets it).
+        self._defer = False
+        #: A value went to the packer this iteration: later numbers follow it there (order).
+        self._packed = False
+        self._budget = max_payload
         self._dropped = 0
         self.bytes_out = 0
 
@@ -157,8 +173,10 @@ class UdpSink:
 
     @bundles.setter
     def bundles(self, on: bool) -> None:
+        self._spill()
         self._packer.flush()
         self._packer.bundles = on
+        self._defer = on and self._loop is not None and self._header is not None
 
     @property
     def datagrams(self) -> int:
@@ -172,8 +190,15 @@ class UdpSink:
         if self._transport.is_closing():
             self._dropped += data
             return False
+        if (self._defer and type(packet) is Value and data and not self._packed
+                and type(packet.value) in _SCALARS):
+            if not self._corked:
+                self._cork()
+            self._values.append(packet)  # encoded at the flush, with the others
+            return True
         packer = self._packer
-        if not data or not isinstance(packet, (Value, Batch)):
+        if not data or (type(packet) is not Value and not isinstance(packet, Batch)):
+            self._spill()
             packer.flush()  # corked values first: the order of sends is the order on the wire
             header = self._header
             if header is not None:
@@ -183,22 +208,57 @@ class UdpSink:
             return True
         if packer.bundles and self._loop is not None:
             if not self._corked:
-                self._corked = True
-                self._loop.call_soon(self.flush)
+                self._cork()
+            self._spill()
+            self._packed = True
             refused = packer.add(packet)
         else:
             refused = packer.add(packet)
             packer.flush()
-        self._dropped += refused  # values larger than a datagram: refused, counted
-        return not refused
+        if refused:
+            self._dropped += refused  # values larger than a datagram: refused, counted
+            return False
+        return True
+
+    def _cork(self) -> None:
+        """Send what this loop iteration gathers at its end (once per iteration)."""
+        assert self._loop is not None
+        self._corked = True
+        self._loop.call_soon(self.flush)
 
     def flush(self) -> None:
         """Send the corked values (the end of the loop iteration that gathered them)."""
         self._corked = False
+        self._packed = False
+        values = self._values
         if self._transport.is_closing():
-            self._dropped += self._packer.discard()
+            self._values = []
+            self._dropped += len(values) + self._packer.discard()
             return
+        if len(values) > 1:
+            # One encode for all: ``92 20`` + the parts' array header + the parts, the bytes
+            # the packer joins; sent whole if the packer would not have split it.
+            body = _ENCODE(Bundle(values))
+            parts = len(body) - (3 if len(values) < 16 else 5)
+            if (DATAGRAM_HEADER.size + BUNDLE_OVERHEAD + parts <= self._budget
+                    and len(values) <= MAX_PARTS):
+                assert self._header is not None  # only a plain codec's values wait here
+                self._values = []
+                self._packer.datagrams += 1
+                self._packer.bundles_sent += 1
+                self._sendto(self._header + body)
+                return
+        self._spill()
         self._packer.flush()
+
+    def _spill(self) -> None:
+        """Hand the values waiting unencoded to the packer (before anything sent after them)."""
+        values = self._values
+        if values:
+            self._values = []
+            add = self._packer.add
+            for value in values:
+                add(value)  # a scalar value always fits: nothing is refused
 
     def _sendto(self, datagram: bytes) -> None:
         self.bytes_out += len(datagram)

@@ -81,15 +81,16 @@ class ClockOffset:
 class InterarrivalJitter:
     """RFC 3550 interarrival jitter in ns (module docstring); ``jitter_ns`` is the estimate."""
 
-    __slots__ = ("_last_transit", "jitter_ns")
+    __slots__ = ("jitter_ns", "last_transit")
 
     def __init__(self) -> None:
-        self._last_transit: int | None = None
+        #: The previous value's transit time (public: the server's value path inlines ``add``).
+        self.last_transit: int | None = None
         self.jitter_ns = 0
 
     def add(self, stamp_ns: int, arrival_ns: int) -> None:
         transit = arrival_ns - stamp_ns
-        last = self._last_transit
-        self._last_transit = transit
+        last = self.last_transit
+        self.last_transit = transit
         if last is not None:
             self.jitter_ns += (abs(transit - last) - self.jitter_ns) // 16
