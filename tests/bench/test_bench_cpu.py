@@ -13,7 +13,7 @@ from rlbridge.bench.cli import bench_app
 pytestmark = pytest.mark.timeout(120)
 
 
-def test_cpu_bench_reports_both_rows(tmp_path: Path) -> None:
+def test_cpu_bench_reports_every_row(tmp_path: Path) -> None:
     out = tmp_path / "bench.md"
     before = children()
     result = CliRunner().invoke(bench_app, [
@@ -21,8 +21,9 @@ def test_cpu_bench_reports_both_rows(tmp_path: Path) -> None:
         "--out", str(out)])
     assert result.exit_code == 0, result.output
     rows = {line.split("|")[1].strip(): line for line in result.output.splitlines()
-            if line.startswith(("| bundled", "| single"))}
-    assert set(rows) == {"bundled", "single"}
-    assert rows["bundled"].split("|")[2].strip() == "150"  # 3 channels x 100 Hz x 0.5 s
+            if line.startswith(("| bundled", "| single", "| send loop"))}
+    assert set(rows) == {"bundled", "single", "send loop"}
+    for row in rows.values():
+        assert row.split("|")[2].strip() == "150"  # 3 channels x 100 Hz x 0.5 s
     assert "<!-- bench:cpu begin -->" in out.read_text()
     assert children() == before

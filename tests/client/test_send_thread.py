@@ -83,3 +83,76 @@ def test_send_thread_survives_a_session_closed_under_its_round(server: ServerThr
         wait_for(lambda: pub.reconnects >= 1, "the supervisor to open a new session")
         assert roundtrip(out, inbox, 2.0), "values flow again on the new session"
         assert sender.native_id == thread_id
+
+
+def test_send_takes_no_lock_on_the_control_loops_path(server: ServerThread) -> None:
+    """``send()`` (no wait) neither takes the lock that ``send(wait=True)`` waits under nor
+    blocks: another thread holds that lock, and the values still go."""
+    with Bridge.connect("127.0.0.1", server.port, name="nolock") as pub, \
+            Bridge.connect("127.0.0.1", server.port, name="reader") as sub:
+        inbox = sub.subscribe("/nolock", F64, transport="udp", blocking=True)
+        out = pub.publish("/nolock", F64, transport="udp", through_buffer=True)
+        sent = threading.Event()
+        with pub._sender._flushed:  # held by this thread while the loop's thread sends
+            def loop() -> None:
+                out.write(2.0)
+                pub.send()
+                sent.set()
+
+            t = threading.Thread(target=loop)
+            t.start()
+            assert sent.wait(WAIT), "send() waited for the flush lock"
+            t.join(WAIT)
+        assert inbox.read(timeout=WAIT) == 2.0
+
+
+class FlushesDuringItsTake:
+    """A source with a policy (not plain) whose first ``take`` writes a value into a buffered
+    channel and asks for a flush, as a second thread calling ``send()`` mid-round would."""
+
+    transport = "udp"
+    immediate = False
+    latest = False
+    pacing: Pacing | None = None
+    deferred = False
+    holding = False
+    channel_id = 10_000
+
+    def __init__(self, bridge: Bridge, out: object) -> None:
+        self._bridge, self._out = bridge, out
+        self.fired = threading.Event()
+
+    def take(self, congested: bool = False) -> tuple[int, list[int], list[object], int]:
+        if not self.fired.is_set():
+            self.fired.set()
+            self._out.write(3.0)  # type: ignore[attr-defined]
+            self._bridge.send()
+        return 0, [], [], 0
+
+    def pending(self) -> int:
+        return 0
+
+    def ready(self, now_ns: int) -> bool:
+        return False
+
+    def retry_in(self, now_ns: int) -> float | None:
+        return None
+
+    def refused(self, count: int) -> None:
+        pass
+
+
+def test_a_flush_asked_during_a_round_gets_a_round_of_its_own(server: ServerThread) -> None:
+    with Bridge.connect("127.0.0.1", server.port, name="midround") as pub, \
+            Bridge.connect("127.0.0.1", server.port, name="reader") as sub:
+        inbox = sub.subscribe("/midround", F64, transport="udp", blocking=True)
+        # Written only from inside the round (the send thread is its one writer).
+        late = pub.publish("/midround", F64, transport="udp", through_buffer=True)
+        source = FlushesDuringItsTake(pub, late)
+        pub._sender.add(source)
+        try:
+            pub.send()  # this round's take writes 3.0 and asks again: a second round sends it
+            assert source.fired.wait(WAIT)
+            assert inbox.read(timeout=WAIT) == 3.0
+        finally:
+            pub._sender.remove(source)

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from rlbridge.wire import DATAGRAM_HEADER, Batch, Bundle, PacketCodec, Value
 from rlbridge.wire.auth import SealedCodec
-from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire.bundle import BATCH_TAG, VALUE_TAG, DatagramPacker, Part, as_packet
 from rlbridge.wire.codec import FLAG_BUNDLES, PartlyMalformed, peek_header
 
 PROPS = settings(deadline=None, max_examples=150, suppress_health_check=[HealthCheck.too_slow])
@@ -91,6 +91,63 @@ def test_one_round_of_small_parts_is_one_datagram_byte_for_byte_a_bundle() -> No
     packer.add(Value(3, 7, 1, 1.5))
     packer.flush()
     assert out == [codec.encode_datagram(Value(3, 7, 1, 1.5), TOKEN)]
+
+
+def as_tuple(packet: Value | Batch) -> tuple[Any, ...]:
+    """The tuple form of a part, as the SDK's send round makes it."""
+    if isinstance(packet, Value):
+        return (VALUE_TAG, packet.channel, packet.seq, packet.stamp_ns, packet.value)
+    return (BATCH_TAG, packet.channel, packet.first_seq, packet.stamps, packet.values)
+
+
+@PROPS
+@given(st.lists(parts(), min_size=1, max_size=30), st.integers(200, 1500), st.booleans())
+def test_a_round_in_one_call_is_byte_for_byte_the_bundle_of_its_parts(
+        packets: list[Value | Batch], budget: int, tuples: bool) -> None:
+    """``send_parts`` (one msgspec call) sends exactly the datagram of ``Bundle(parts)`` (of
+    the part itself when alone) when it fits ``budget``; otherwise it sends nothing."""
+    codec = PacketCodec()
+    out: list[bytes] = []
+    packer = DatagramPacker(codec, TOKEN, budget, out.append, limit=65507, flags=FLAG_BUNDLES)
+    round_: list[Part] = [as_tuple(p) if tuples else p for p in packets]
+    expected = codec.encode_datagram(packets[0] if len(packets) == 1 else Bundle(packets),
+                                     TOKEN, FLAG_BUNDLES)
+    if packer.send_parts(round_):
+        assert out == [expected]
+        assert (packer.datagrams, packer.bundles_sent) == (1, int(len(packets) > 1))
+    else:
+        assert len(expected) > budget
+        assert (out, packer.datagrams) == ([], 0)
+    assert round_ == [as_tuple(p) if tuples else p for p in packets]  # parts untouched
+
+
+def test_a_round_in_one_call_needs_a_plain_codec_that_bundles() -> None:
+    out: list[bytes] = []
+    round_: list[Part] = [as_tuple(Value(1, 0, 0, 1.0)), as_tuple(Value(2, 0, 0, 2.0))]
+    for packer in (DatagramPacker(PacketCodec(), TOKEN, 1400, out.append, bundles=False),
+                   DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, 1400, out.append)):
+        assert packer.one_call is False
+        assert packer.send_parts(round_) is False
+    assert out == []
+    assert DatagramPacker(PacketCodec(), TOKEN, 1400, out.append).send_parts([]) is False
+
+
+def test_parts_added_before_a_round_in_one_call_go_first() -> None:
+    codec = PacketCodec()
+    out: list[bytes] = []
+    packer = DatagramPacker(codec, TOKEN, 1400, out.append)
+    packer.add(Value(1, 0, 0, 1.0))
+    assert packer.send_parts([as_tuple(Value(2, 0, 0, 2.0))])
+    assert [codec.decode_datagram(d)[2] for d in out] == [Value(1, 0, 0, 1.0),
+                                                           Value(2, 0, 0, 2.0)]
+
+
+def test_as_packet_gives_the_packet_a_part_stands_for() -> None:
+    value, batch = Value(1, 2, 3, 4.0), Batch(5, 6, [7, 8], [9.0, 10.0])
+    assert [as_packet(as_tuple(value)), as_packet(as_tuple(batch))] == [value, batch]
+    assert as_packet(value) is value
+    with pytest.raises(ValueError, match="not a value part"):
+        as_packet((32, []))
 
 
 def test_a_value_too_large_is_refused_and_counted() -> None:

@@ -192,7 +192,8 @@ def cpu(
     repeats: Repeats = 3,
     out: Out = Path("docs/benchmarks.md"),
 ) -> None:
-    """CPU per value of one SDK client with many UDP channels: SDK and server, bundled or not."""
+    """CPU per value of one SDK client with many UDP channels: SDK and server; bundled or
+    not, send() per tick or the SDK's send loop."""
     from rlbridge.bench import cpu as cp
     from rlbridge.bench.common import progress
 

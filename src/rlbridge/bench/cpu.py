@@ -7,9 +7,12 @@ without blocking at every tick. Every value goes client -> server -> in-process 
 -> client, so each value costs the client a send and a receive and the server an input and an
 output.
 
-Two rows in the same run, interleaved: ``bundled`` (the default: every channel of a send round
-in one datagram, and the server bundles its replies) and ``single`` (``bundles=False``: one
-datagram per channel and value, both ways; the wire behaviour before bundles).
+Three rows in the same run, interleaved: ``bundled`` (the default: every channel of a send
+round in one datagram, and the server bundles its replies), ``single`` (``bundles=False``: one
+datagram per channel and value, both ways; the wire behaviour before bundles) and
+``send loop`` (bundled, but the loop never calls ``send()``: the SDK's send loop,
+``Bridge.connect(send_rate_hz=rate)``, wakes the send thread on its own timer; the other form
+of "send through buffer", whose values wait up to one period).
 
 Figures per value (one value written, carried through the server and read back):
 
@@ -46,7 +49,9 @@ from rlbridge.bench.common import (
 
 MODULE = "rlbridge.bench.cpu"
 F64 = "std_msgs/msg/Float64"
-ROWS = (("bundled", True), ("single", False))
+#: (row, bundles, the send loop's rate in multiples of ``--rate``; None: ``send()`` per tick)
+ROWS: tuple[tuple[str, bool, float | None], ...] = (
+    ("bundled", True, None), ("single", False, None), ("send loop", True, 1.0))
 
 
 @dataclass(frozen=True)
@@ -79,8 +84,11 @@ def client_role(params: Params) -> None:
 
     control = Control()
     n, rate, seconds = int(params["channels"]), float(params["rate_hz"]), float(params["seconds"])
+    send_rate = params.get("send_rate_hz")
     b = Bridge.connect(params["host"], int(params["port"]), name="bench-cpu", timeout=30,
-                       bundles=bool(params["bundles"]))
+                       bundles=bool(params["bundles"]),
+                       send_rate_hz=None if send_rate is None else float(send_rate))
+    call_send = send_rate is None
     topics = [f"/bench/cpu/c{i}" for i in range(n)]
     inboxes = [b.subscribe(t, F64, transport="udp", buffer_size=256) for t in topics]
     outs = [b.publish(t, F64, transport="udp", through_buffer=True) for t in topics]
@@ -101,7 +109,8 @@ def client_role(params: Params) -> None:
         value = float(i)
         for out in outs:
             out.write(value)
-        b.send()
+        if call_send:
+            b.send()
         for inbox in inboxes:
             received += len(inbox.read_many())
         in_calls += thread_time() - t0
@@ -126,15 +135,16 @@ ROLES = {"client": client_role}
 
 def run(settings: Settings, progress: Callable[[str], None]) -> dict[str, list[Params]]:
     """Every row ``repeats`` times, interleaved; fresh server and client per run."""
-    results: dict[str, list[Params]] = {key: [] for key, _ in ROWS}
+    results: dict[str, list[Params]] = {key: [] for key, _, _ in ROWS}
     for repeat in range(settings.repeats):
-        for key, bundles in ROWS:
+        for key, bundles, loop_rate in ROWS:
             with ProcessGroup(LoopbackLink(), lifetime_s=settings.seconds + 120) as group:
                 server, host, port = start_server(group)
                 client, _ = group.spawn("client", "b", MODULE, "client", {
                     "host": host, "port": port, "channels": settings.channels,
                     "rate_hz": settings.rate_hz, "seconds": settings.seconds,
-                    "bundles": bundles})
+                    "bundles": bundles, "send_rate_hz":
+                        None if loop_rate is None else loop_rate * settings.rate_hz})
                 server.mark_cpu()
                 client.send("go")
                 result = client.expect("result", settings.seconds + STARTUP_S + 30)
@@ -177,7 +187,8 @@ def report(results: dict[str, list[Params]], settings: Settings, command: Sequen
         "(medians): SDK = its send and receive threads plus the loop's time inside SDK calls; "
         "client process = all of it, the loop's timer wake-ups included; server = the whole "
         "server process. `single` is `Bridge.connect(bundles=False)`: one datagram per "
-        "channel and value, both ways.",
+        "channel and value, both ways. `send loop` is bundled without `send()`: "
+        f"`Bridge.connect(send_rate_hz={s.rate_hz:g})` sends what waits on its own timer.",
         "",
         markdown_table(["row", "values sent", "read back", "lost", "SDK us/value",
                         "of which: loop's SDK calls", "send thread", "receive thread",

@@ -27,7 +27,8 @@ from collections.abc import Sequence
 from operator import itemgetter
 from typing import Any, NamedTuple
 
-from rlbridge.csp.channel import _MISSING, Channel, Doorbell, _Missing
+from rlbridge.csp.bell import Bell
+from rlbridge.csp.channel import _MISSING, Channel, _Missing
 from rlbridge.csp.errors import SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.outgoing import OutgoingChannel
@@ -63,7 +64,7 @@ class IncomingChannel(Channel[Any]):
                  transport: str, blocking: bool, buffer_size: int,
                  initial: Any | _Missing = _MISSING, latest: bool = False,
                  max_age_ms: int = 0, link: LinkMonitor | None = None,
-                 credit_bell: Doorbell | None = None) -> None:
+                 credit_bell: Bell | None = None) -> None:
         if max_age_ms < 0:
             raise ValueError(f"max_age_ms must be >= 0 (0: no limit), got {max_age_ms}")
         super().__init__(buffer_size, blocking=blocking,

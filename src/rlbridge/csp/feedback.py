@@ -13,7 +13,7 @@ Two packets come back from the server for the channels a client publishes (recei
 
 from __future__ import annotations
 
-from rlbridge.csp.channel import Doorbell
+from rlbridge.csp.bell import Bell
 from rlbridge.csp.link_events import LinkEvents
 from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.wire import LossReport
@@ -23,7 +23,7 @@ class Feedback:
     """Routes credit and loss reports to the Bridge's outgoing channels (by channel id)."""
 
     def __init__(self, outgoing: dict[int, OutgoingChannel], events: LinkEvents,
-                 doorbell: Doorbell) -> None:
+                 doorbell: Bell) -> None:
         self._outgoing = outgoing
         self._events = events
         self._doorbell = doorbell

@@ -2,11 +2,13 @@
 
 An :class:`OutgoingChannel` is the writer end only: ``write`` stamps the value and stores it in
 a lock-free ring (two preallocated slot lists, :mod:`rlbridge.csp.stamped_ring`: no allocation
-per write); the send thread is its reader. With ``immediate=True`` (``through_buffer`` off) a
-write also rings the send thread's doorbell, which costs a futex wake *only* when the send
-thread sleeps; with ``through_buffer`` on, a write makes no system call at all and the value
-leaves on ``Bridge.send()`` or the next send-loop tick. The ring is single-producer: a write
-from a second thread while the first writer thread lives raises :class:`ChannelMisuseError`.
+per write); the send thread is its reader (:meth:`OutgoingChannel.take`, or for a ``plain``
+channel :func:`~rlbridge.csp.plain_round.take_plain`). With ``immediate=True``
+(``through_buffer`` off) a write also rings the send thread's bell, which costs a futex wake
+*only* when the send thread sleeps; with ``through_buffer`` on, a write makes no system call at
+all and the value leaves on ``Bridge.send()`` or the next send-loop tick. The ring is
+single-producer: a write from a second thread while the first writer thread lives raises
+:class:`ChannelMisuseError`.
 
 What may leave when is the channel's :class:`~rlbridge.csp.pacing.Pacing`: the credit a
 flow-controlled TCP channel was granted and a ``max_rate_hz`` limit. What it holds back stays
@@ -23,6 +25,7 @@ from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
+from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.errors import ChannelClosed, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
@@ -31,6 +34,7 @@ from rlbridge.csp.stamped_ring import StampedRing
 from rlbridge.csp.statistics import ChannelStatistics
 from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
 from rlbridge.wire import TopicAck
+from rlbridge.wire.bundle import BATCH_TAG, VALUE_TAG, Part
 from rlbridge.wire.clock import ClockOffset
 from rlbridge.wire.link import LinkMonitor
 from rlbridge.wire.packets import ChannelLoss
@@ -39,6 +43,7 @@ from rlbridge.wire.packets import ChannelLoss
 _NO_CLOCK = ClockOffset()
 
 _get_ident = threading.get_ident
+_time_ns = time.time_ns
 
 
 class OutgoingChannel:
@@ -48,10 +53,10 @@ class OutgoingChannel:
                  "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
                  "_overtaken", "_refused", "_rejected", "_ring", "_space", "_within", "_writer",
                  "channel_id", "deferred", "field", "flow", "immediate", "latest", "msg_type",
-                 "pacing", "redundancy", "ros_lost", "topic", "transport")  # fmt: skip
+                 "pacing", "plain", "redundancy", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
-                 transport: str, immediate: bool, buffer_size: int, doorbell: Doorbell,
+                 transport: str, immediate: bool, buffer_size: int, doorbell: Bell,
                  redundancy: int = 0, latest: bool = False, max_age_ms: int = 0,
                  link: LinkMonitor | None = None, max_rate_hz: float | None = None,
                  adapt_rate: bool = False, flow: bool = False) -> None:
@@ -93,6 +98,10 @@ class OutgoingChannel:
         self.flow = flow
         #: Send thread: the last take left values behind (rate limit or credit).
         self.deferred = False
+        #: No policy between the ring and the wire (UDP; no rate limit, credit, latest, age
+        #: limit or redundancy): the send thread takes it with :meth:`take_parts`.
+        self.plain = (transport == "udp" and self.pacing is None and not latest
+                      and not max_age_ms and not self.redundancy)
         #: Rung by the send thread after taking values, while a writer waits for room.
         self._space = Doorbell()
         #: The server's last loss report for this binding, and the totals of earlier ones.
@@ -138,7 +147,7 @@ class OutgoingChannel:
                 value = self._check(value)
             except Mismatch as exc:
                 raise self._wrong(exc) from None
-        self._ring.push_stamped(time.time_ns(), value)
+        self._ring.push_stamped(_time_ns(), value)
         if self.immediate:
             bell = self._bell
             if bell.waiting:
@@ -156,7 +165,7 @@ class OutgoingChannel:
                 values = [v if type(v) in accept else self._check(v) for v in values]
             except Mismatch as exc:
                 raise self._wrong(exc) from None
-        self._ring.push_many_stamped(time.time_ns(), values)
+        self._ring.push_many_stamped(_time_ns(), values)
         if self.immediate:
             bell = self._bell
             if bell.waiting:
@@ -291,6 +300,28 @@ class OutgoingChannel:
         return (old[0][0], [s for _, s, _ in old] + stamps, [v for _, _, v in old] + values,
                 len(old))
 
+    def take_parts(self, parts: list[Part], max_batch: int) -> int:
+        """Send thread, a :attr:`plain` channel: append what waits to ``parts``; return how
+        many values that was (``plain_round.take_plain`` has the common case inline).
+
+        :meth:`take` without its policies: each part is a tuple shaped like the ``Value`` (or
+        ``Batch`` of at most ``max_batch``) it stands for (:mod:`rlbridge.wire.bundle`), so
+        no packet object is made per value.
+        """
+        stamps, values = self._ring.drain_stamped()
+        if self._space.waiting:
+            self._space.ring()
+        n = len(values)
+        first = self._next_seq
+        self._next_seq = first + n
+        cid = self.channel_id
+        if n == 1 or max_batch == 1:  # one value per packet: a Value each
+            parts.extend([(VALUE_TAG, cid, first + i, stamps[i], values[i]) for i in range(n)])
+        else:
+            parts.extend([(BATCH_TAG, cid, first + i, stamps[i : i + max_batch],
+                           values[i : i + max_batch]) for i in range(0, n, max_batch)])
+        return n
+
     def statistics(self) -> ChannelStatistics:
         """Counters as for a :class:`Channel`; ``overwritten`` is what a full buffer dropped."""
         ring = self._ring
@@ -336,3 +367,4 @@ class OutgoingChannel:
         if self._held is not None:
             self._held = None
             self._discarded += 1
+

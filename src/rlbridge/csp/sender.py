@@ -2,14 +2,24 @@
 
 Theory of operation. Control code writes into outgoing channels, which only store the value in
 a ring buffer (no lock, no system call). This soft-real-time thread drains the rings and does
-the I/O. It wakes for three reasons: an *immediate* channel was written (the channel sets the
-wake event, one futex wake when this thread sleeps), ``Bridge.send()`` asked to flush the shared
-buffer (thesis: ``send through buffer``), or the SDK's own send loop ticks at its configured
-rate (thesis 4.3, figure 5.10). Every value waiting in a channel goes out in one packet per
-channel (a Batch when there are several); TCP frames of all channels are coalesced into one
-``sendall``, and the packets of all UDP channels into one datagram (a ``Bundle``, split only at
-``DATAGRAM_BUDGET`` bytes; :mod:`rlbridge.wire.bundle`). So the packet rate follows the send
-loop, not the control loop, and not the number of channels.
+the I/O. It wakes for three reasons: an *immediate* channel was written, ``Bridge.send()``
+asked to flush the shared buffer (thesis: ``send through buffer``), or the SDK's own send loop
+ticks at its configured rate (thesis 4.3, figure 5.10). The first two ring its bell
+(:mod:`rlbridge.csp.bell`) only while it is parked: one futex wake, no lock; ``send()`` counts
+a request, and a round is due while the count differs from the one the last round saw.
+Every value waiting in a channel goes out in one packet per channel (a Batch when there are
+several); TCP frames of all channels are coalesced into one ``sendall``, and the packets of
+all UDP channels into one datagram (a ``Bundle``, split only at ``DATAGRAM_BUDGET`` bytes;
+:mod:`rlbridge.wire.bundle`). So the packet rate follows the send loop, not the control loop,
+and not the number of channels.
+
+A round costs Python per channel, so the common case takes the short way: a *plain* UDP
+channel (no policy between its ring and the wire: no rate limit, credit, latest, age limit or
+redundancy) is taken by one inline loop (:func:`~rlbridge.csp.plain_round.take_plain`) as
+tuples shaped like ``Value`` packets, and the round's parts are encoded by one msgspec call
+into one datagram (:meth:`~rlbridge.wire.bundle.DatagramPacker.send_parts`). Channels with
+policies, TCP channels, and rounds that cannot bundle (a sealed codec, ``bundles=False``, a
+round larger than a datagram) go through ``take`` and the packer part by part, as before.
 
 While the link is down (:meth:`SendLoop.pause`, from the end of a session until its channels are
 bound again) the thread takes nothing: values wait in their channels' rings, which keep the
@@ -35,15 +45,16 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Protocol
 
-from rlbridge.csp.channel import Doorbell
+from rlbridge.csp.bell import SendBell
 from rlbridge.csp.connection import Connection, ConnectionClosed
-from rlbridge.csp.idle import PARK, IdleStrategy
-from rlbridge.csp.pacing import Pacing
+from rlbridge.csp.idle import PARK, IdleStrategy, Park
+from rlbridge.csp.outgoing import OutgoingChannel
+from rlbridge.csp.plain_round import take_plain
+from rlbridge.csp.send_sources import CreditSource, OutgoingSource
 from rlbridge.tcpstate import congested
 from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Value
-from rlbridge.wire.bundle import DatagramPacker
+from rlbridge.wire.bundle import DatagramPacker, Part, as_packet
 from rlbridge.wire.codec import FLAG_BUNDLES
 
 log = logging.getLogger("rlbridge.client")
@@ -52,57 +63,6 @@ log = logging.getLogger("rlbridge.client")
 DATAGRAM_BUDGET = 1400
 #: How often a held latest value re-checks whether the TCP connection has drained.
 HOLD_POLL_S = 0.001
-
-
-class OutgoingSource(Protocol):
-    """What the send thread needs from an outgoing channel."""
-
-    channel_id: int
-    transport: str
-    immediate: bool
-    latest: bool
-    pacing: Pacing | None
-    #: The last take left values behind for the rate limit or credit: take again later.
-    deferred: bool
-
-    def take(self, congested: bool = False) -> tuple[int, list[int], list[object], int]:
-        """What to send: ``(first_seq, stamps, values, repeated)``; empty lists when nothing.
-
-        ``repeated`` leading values are redundant copies of values sent before.
-        """
-        ...
-
-    @property
-    def holding(self) -> bool:
-        """A latest value is held back until the connection drains."""
-        ...
-
-    def pending(self) -> int:
-        """How many values wait (for monitors)."""
-        ...
-
-    def ready(self, now_ns: int) -> bool:
-        """Values wait and their credit and rate limit let one go now (wake-up predicate)."""
-        ...
-
-    def retry_in(self, now_ns: int) -> float | None:
-        """Seconds until the rate limit lets a waiting value go; None: nothing to wait for."""
-        ...
-
-    def refused(self, count: int) -> None:
-        """The server refused ``count`` values sent on this channel (receive thread)."""
-        ...
-
-
-class CreditSource(Protocol):
-    """What the send thread needs from a flow-controlled incoming channel."""
-
-    channel_id: int
-    credited: int
-
-    def credit_due(self) -> bool: ...
-
-    def credit_limit(self) -> int: ...
 
 
 class SendLoop:
@@ -117,18 +77,30 @@ class SendLoop:
         self._period = 1.0 / rate_hz if rate_hz else None
         self._max_batch = max(1, max_batch)
         self._sources: tuple[OutgoingSource, ...] = ()
+        #: Of ``_sources``: the plain ones (all; the immediate ones), and the others.
+        self._plain: tuple[OutgoingChannel, ...] = ()
+        self._plain_immediate: tuple[OutgoingChannel, ...] = ()
+        self._others: tuple[OutgoingSource, ...] = ()
+        #: The sources whose own state can wake this thread (immediate, or paced: deferred).
+        self._wakers: tuple[OutgoingSource, ...] = ()
+        #: A round's UDP parts, reused: one msgspec call encodes them all (wire/bundle.py).
+        self._parts: list[Part] = []
         self._credits: tuple[CreditSource, ...] = ()
         self.idle = idle
         #: Seconds until a rate-limited value may go (None: no such value waits).
         self._retry: float | None = None
         #: Some channel's values still wait for credit or the rate limit (``flush(wait)``).
         self._deferred = False
-        #: Rung by immediate channels' writes, only while this thread sleeps.
-        self.doorbell = Doorbell()
-        self._flush_all = False
+        #: Rung by immediate channels' writes and ``flush``, only while this thread sleeps.
+        self.doorbell = SendBell()
+        #: ``flush`` calls so far, and the count the last completed round had seen: a round
+        #: is due while they differ (two counters, so no flush is lost to a reset).
+        self._flush_asked = 0
+        self._flush_done = 0
+        #: ``flush(wait=True)`` callers waiting on ``_flushed`` (the round notifies only then).
+        self._flush_waiters = 0
         self._flushed = threading.Condition()
-        self._flush_count = 0
-        self._stop = threading.Event()
+        self._stopping = False
         self._paused = False
         self._thread = threading.Thread(target=self._run, name="rlbridge-send", daemon=True)
         self.packets_sent = 0
@@ -166,10 +138,19 @@ class SendLoop:
         self.flush()
 
     def add(self, source: OutgoingSource) -> None:
-        self._sources = (*self._sources, source)
+        self._set_sources((*self._sources, source))
 
     def remove(self, source: OutgoingSource) -> None:
-        self._sources = tuple(s for s in self._sources if s is not source)
+        self._set_sources(tuple(s for s in self._sources if s is not source))
+
+    def _set_sources(self, sources: tuple[OutgoingSource, ...]) -> None:
+        """Sort the sources once, not per round: plain ones take the short way."""
+        plain = tuple(s for s in sources if isinstance(s, OutgoingChannel) and s.plain)
+        self._plain = plain
+        self._plain_immediate = tuple(s for s in plain if s.immediate)
+        self._others = tuple(s for s in sources if s not in plain)
+        self._wakers = tuple(s for s in sources if s.immediate or s.pacing is not None)
+        self._sources = sources
 
     def add_credit(self, source: CreditSource) -> None:
         """A flow-controlled incoming channel: this thread grants the server its credit."""
@@ -187,29 +168,43 @@ class SendLoop:
         """
         if self._paused:
             return
+        if not wait:  # the control loop's hot path: no lock, a futex wake only if parked
+            self._flush_asked += 1
+            bell = self.doorbell
+            if bell.waiting:
+                bell.ring()
+            return
         with self._flushed:
-            target = self._flush_count + 1
-        self._flush_all = True
-        self.doorbell.ring()
-        if wait:
-            with self._flushed:
+            self._flush_asked = target = self._flush_asked + 1
+            self._flush_waiters += 1
+            try:
+                self.doorbell.ring()
                 self._flushed.wait_for(
-                    lambda: (self._flush_count >= target and not self._deferred)
-                    or self._stop.is_set() or self._paused, timeout)
+                    lambda: (self._flush_done >= target and not self._deferred)
+                    or self._stopping or self._paused, timeout)
+            finally:
+                self._flush_waiters -= 1
 
     def _run(self) -> None:
         period = self._period
         next_tick = time.monotonic() + period if period else None
-        while not self._stop.is_set():
+        # Parking is the default and the common case: straight to the bell, two calls fewer.
+        idle = self.idle
+        park = isinstance(idle, Park)
+        wait_for, has_work = self.doorbell.wait_for, self._has_work
+        while not self._stopping:
             timeout = None if next_tick is None else max(0.0, next_tick - time.monotonic())
             if self._holding:
                 timeout = HOLD_POLL_S if timeout is None else min(timeout, HOLD_POLL_S)
             retry = self._retry
             if retry is not None:
                 timeout = retry if timeout is None else min(timeout, retry)
-            self.idle.idle(self._has_work, self._park, timeout)
-            flush_all = self._flush_all
-            self._flush_all = False
+            if park:
+                wait_for(has_work, timeout)
+            else:
+                idle.idle(has_work, self._park, timeout)
+            asked = self._flush_asked  # read once: a flush asked from now on is the next round's
+            flush_all = asked != self._flush_done
             if next_tick is not None and time.monotonic() >= next_tick:
                 flush_all = True
                 next_tick += period  # type: ignore[operator]
@@ -223,37 +218,81 @@ class SendLoop:
                 # must not end the thread: the reconnect supervisor resumes it on the next one.
                 self.send_errors += 1
                 log.warning("send failed: %s", exc)
-            if flush_all or was_deferred:
+            self._flush_done = asked
+            if self._flush_waiters and (flush_all or was_deferred):
                 with self._flushed:
-                    self._flush_count += flush_all
                     self._flushed.notify_all()
 
     def _park(self, timeout: float | None) -> bool:
         return self.doorbell.wait_for(self._has_work, timeout)
 
     def _has_work(self) -> bool:
-        if self._stop.is_set():
+        if self._stopping:
             return True
         if self._paused:
             return False
-        if self._flush_all or any(c.credit_due() for c in self._credits):
+        if self._flush_asked != self._flush_done:  # the common wake-up: Bridge.send()
             return True
+        if self._credits and any(c.credit_due() for c in self._credits):
+            return True
+        wakers = self._wakers
+        if not wakers:
+            return False
         now = time.monotonic_ns()
-        return any((s.immediate or s.deferred) and s.ready(now) for s in self._sources)
+        return any((s.immediate or s.deferred) and s.ready(now) for s in wakers)
 
     def _send_pending(self, flush_all: bool) -> None:
         if self._paused:
             return
         conn = self._conn
-        codec = conn.codec
-        frames = bytearray()
         packer = self._packer_for(conn)
+        frames = bytearray()  # TCP frames of the round: credit, then values
+        if self._credits:
+            self._grant_credit(frames)
+        parts = self._parts
+        if parts:  # left by a round that failed before it sent them: lost with that round
+            parts.clear()
+        gathered = True  # the packer may hold parts added one by one: flush it
+        if packer is not None and packer.one_call:
+            # The short way: plain channels append their values as parts, and the round's
+            # parts are encoded by one call into one datagram (or, too large, packed below).
+            self.values_sent += take_plain(self._plain if flush_all else self._plain_immediate,
+                                           parts, self._max_batch)
+            others = self._others
+            gathered = False
+        else:
+            others = self._sources
+        if others:
+            self._take_others(others, flush_all, conn, packer, frames, parts)
+        else:  # nothing that can hold, defer or wait for a rate
+            self._holding, self._retry, self._deferred = False, None, False
+        if parts:
+            self.packets_sent += len(parts)
+            assert packer is not None
+            try:
+                if not packer.send_parts(parts):  # too large together, or no bundles
+                    gathered = True
+                    for part in parts:
+                        packet = as_packet(part)
+                        self._refused(packer.add(packet), packet.channel)
+            finally:  # a failed send loses this round's parts, never resends them later
+                parts.clear()
+        if gathered and packer is not None:
+            packer.flush()  # what was added one by one: one datagram (a bundle) again
+        if frames:
+            conn.send_tcp(frames)
+
+    def _take_others(self, sources: tuple[OutgoingSource, ...], flush_all: bool,
+                     conn: Connection, packer: DatagramPacker | None, frames: bytearray,
+                     parts: list[Part]) -> None:
+        """The sources with policies (and every source when the round cannot bundle):
+        ``take`` applies them; TCP packets become frames, UDP packets parts of the round."""
+        codec = conn.codec
         backed_up: bool | None = None  # asked of the kernel once per round, if needed
         holding = False
         deferred = False
         retry: float | None = None
-        self._grant_credit(frames)
-        for src in self._sources:
+        for src in sources:
             if not (flush_all or src.immediate or src.holding or src.deferred):
                 continue
             busy = False
@@ -274,28 +313,17 @@ class SendLoop:
                 continue
             self.values_sent += n - repeated
             self.values_repeated += repeated
-            if n == 1:  # the common case: one Value, no list of packets
-                self.packets_sent += 1
-                value = Value(src.channel_id, first_seq, stamps[0], values[0])
-                if tcp:
-                    codec.encode_frame_into(value, frames)
-                elif packer is not None:
-                    self._refused(packer.add(value), src.channel_id)
-                continue
-            for packet in packets_for(src.channel_id, first_seq, stamps, values,
-                                      self._max_batch):
-                self.packets_sent += 1
-                if tcp:
+            if tcp:
+                for packet in packets_for(src.channel_id, first_seq, stamps, values,
+                                          self._max_batch):
+                    self.packets_sent += 1
                     codec.encode_frame_into(packet, frames)
-                elif packer is not None:
-                    self._refused(packer.add(packet), src.channel_id)
+            elif packer is not None:
+                parts.extend(packets_for(src.channel_id, first_seq, stamps, values,
+                                         self._max_batch))
         self._holding = holding
-        if packer is not None:
-            packer.flush()  # every UDP channel of the round: one datagram (a bundle)
         self._retry = retry
         self._deferred = deferred
-        if frames:
-            conn.send_tcp(frames)
 
     def _grant_credit(self, frames: bytearray) -> None:
         """Credit frames for the flow-controlled incoming channels whose reader caught up."""
@@ -334,7 +362,7 @@ class SendLoop:
         """Flush what is waiting, then stop and join the thread."""
         if self._thread.is_alive():
             self.flush(wait=True, timeout=2.0)
-        self._stop.set()
+        self._stopping = True
         self.doorbell.ring()
         if self._thread.is_alive():
             self._thread.join(5.0)

@@ -18,6 +18,14 @@ once; the bytes are the same as encoding a ``Bundle`` packet. A sealing codec se
 body, so it is given a ``Bundle`` packet to encode; its parts are encoded twice (once to
 measure them), the price of not knowing how the codec seals.
 
+A sender that has a whole round at hand (the client's send thread) may instead give every
+part at once to :meth:`DatagramPacker.send_parts`, as packets or as plain tuples shaped like
+them (``(VALUE_TAG, channel, seq, stamp_ns, value)``: an array-like tagged struct is encoded
+as exactly that array). With a plain codec and bundles on, the round is then encoded by one
+msgspec call into a reused buffer behind the datagram header: no ``Value`` object, no
+per-part encoding and no join per value. A round that does not fit ``budget`` is left to the
+caller, who adds its parts one by one (:func:`as_packet`).
+
 A part larger than ``budget`` on its own is split when it is a batch (into consecutive batches
 that fit, the chunk length estimated once from the encoded size); a single value goes alone if
 it fits ``limit`` and is refused (counted by the caller) if not.
@@ -29,6 +37,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Callable
+from typing import Any
 
 import msgspec
 
@@ -48,6 +57,23 @@ MAX_PARTS = 0xFFFF
 SEAL_MARGIN = 64
 
 ValuePacket = Value | Batch
+#: The wire tags of ``Value``, ``Batch`` and ``Bundle`` (the first element of their arrays).
+VALUE_TAG: int = Value.__struct_config__.tag  # type: ignore[assignment]
+BATCH_TAG: int = Batch.__struct_config__.tag  # type: ignore[assignment]
+BUNDLE_TAG: int = Bundle.__struct_config__.tag  # type: ignore[assignment]
+#: A part of a round: a packet, or a tuple with its tag and fields (encodes to the same bytes).
+Part = ValuePacket | tuple[Any, ...]
+
+
+def as_packet(part: Part) -> ValuePacket:
+    """The packet a part stands for (a tuple becomes its ``Value`` or ``Batch``)."""
+    if not isinstance(part, tuple):
+        return part
+    if part[0] == VALUE_TAG:
+        return Value(*part[1:])
+    if part[0] == BATCH_TAG:
+        return Batch(*part[1:])
+    raise ValueError(f"not a value part: tag {part[0]!r}")
 
 
 class DatagramPacker:
@@ -71,7 +97,11 @@ class DatagramPacker:
         self._plain = type(codec) is PacketCodec
         self._header = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, flags, token)
         self._overhead = DATAGRAM_HEADER.size + (0 if self._plain else SEAL_MARGIN)
-        self._encode = msgspec.msgpack.Encoder().encode
+        encoder = msgspec.msgpack.Encoder()
+        self._encode = encoder.encode
+        self._encode_into = encoder.encode_into
+        self._round = bytearray(self._header)
+        self._bundle: list[Any] = [BUNDLE_TAG, None]
         self._bodies: list[bytes] = []
         self._packets: list[ValuePacket] = []
         self._size = 0
@@ -79,6 +109,11 @@ class DatagramPacker:
         #: Datagrams handed to ``send``, and of those, bundles (two or more parts).
         self.datagrams = 0
         self.bundles_sent = 0
+
+    @property
+    def one_call(self) -> bool:
+        """:meth:`send_parts` can encode a round in one call (a plain codec that bundles)."""
+        return self._plain and self.bundles
 
     @property
     def pending(self) -> int:
@@ -105,6 +140,31 @@ class DatagramPacker:
         if not self._plain:
             self._packets.append(packet)
         return 0
+
+    def send_parts(self, parts: list[Part]) -> bool:
+        """Send a whole round's parts in one datagram, encoded by one msgspec call.
+
+        Returns False, having sent nothing, when this packer cannot (not :attr:`one_call`) or
+        the parts do not fit ``budget`` together: the caller then adds them one by one.
+        """
+        n = len(parts)
+        if not (n and self._plain and self.bundles):
+            return False
+        buf = self._round
+        if n == 1:
+            self._encode_into(parts[0], buf, DATAGRAM_HEADER.size)
+        else:
+            bundle = self._bundle
+            bundle[1] = parts  # [32, parts]: the Bundle's array, its parts unchanged
+            self._encode_into(bundle, buf, DATAGRAM_HEADER.size)
+        if len(buf) > self.budget:
+            return False
+        if self._bodies:  # parts added before this round go first
+            self.flush()
+        self.datagrams += 1
+        self.bundles_sent += n > 1
+        self._send(bytes(buf))
+        return True
 
     def flush(self) -> None:
         """Send what is gathered: one part as itself, several as one bundle.
