@@ -329,6 +329,10 @@ class ServerThread:
         if not self._ready.wait(timeout):
             raise ServerError("server did not start in time")
         if self._error is not None:
+            # The thread is still on its way out: join it, so that a retry starts a new one
+            # instead of finding this one alive and taking the failed start for a running one.
+            self._thread.join(timeout)
+            self._thread = None
             raise ServerError(str(self._error)) from self._error
         return self
 
