@@ -73,6 +73,7 @@ def run_once(key_hex: str | None, key_file: Path | None, values: int,
                 out.write(i)
                 time.sleep(0.001)
             time.sleep(0.3)
+            assert server._thread is not None  # started by the with block
             tids = [pub._sender.native_id, server._thread.native_id,
                     sub._conn.receive_thread_id]
             assert all(t is not None for t in tids), tids

@@ -96,7 +96,9 @@ def _connect(params: Params, name: str) -> tuple[Any, ProbeIdle, ProbeIdle]:
 
 def publisher(params: Params) -> None:
     """A paced writer; the send thread's wake-up and datagram times per value."""
+    from rlbridge.csp import sender as send_module
     from rlbridge.csp.outgoing import OutgoingChannel
+    from rlbridge.wire.bundle import VALUE_TAG
 
     control = Control()
     bridge, send_probe, _ = _connect(params, "bench-stages-pub")
@@ -110,6 +112,19 @@ def publisher(params: Params) -> None:
         return got
 
     OutgoingChannel.take = probed_take  # type: ignore[method-assign]  # this process only
+    take_plain = send_module.take_plain
+
+    def probed_take_plain(channels: Any, parts: list[Any], max_batch: int) -> int:
+        first = len(parts)
+        n = take_plain(channels, parts, max_batch)
+        for part in parts[first:]:  # a Value's fields, or a Batch's (its values a list)
+            if part[0] == VALUE_TAG:
+                taken.append(part[-1])
+            else:
+                taken.extend(part[-1])
+        return n
+
+    send_module.take_plain = probed_take_plain  # plain channels' round (csp/plain_round.py)
     conn = bridge._conn  # a probe: this process only
     send_udp = conn.send_udp
     last_send = [0, 0]  # the send thread's last sendto: called, returned
