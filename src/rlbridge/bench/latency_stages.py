@@ -96,6 +96,7 @@ def _connect(params: Params, name: str) -> tuple[Any, ProbeIdle, ProbeIdle]:
 
 def publisher(params: Params) -> None:
     """A paced writer; the send thread's wake-up and datagram times per value."""
+    from rlbridge.csp import plain_round
     from rlbridge.csp import sender as send_module
     from rlbridge.csp.outgoing import OutgoingChannel
     from rlbridge.wire.bundle import VALUE_TAG
@@ -112,7 +113,7 @@ def publisher(params: Params) -> None:
         return got
 
     OutgoingChannel.take = probed_take  # type: ignore[method-assign]  # this process only
-    take_plain = send_module.take_plain
+    take_plain = plain_round.take_plain
 
     def probed_take_plain(channels: Any, parts: list[Any], max_batch: int) -> int:
         first = len(parts)
@@ -124,7 +125,7 @@ def publisher(params: Params) -> None:
                 taken.extend(part[-1])
         return n
 
-    send_module.take_plain = probed_take_plain  # plain channels' round (csp/plain_round.py)
+    vars(send_module)["take_plain"] = probed_take_plain  # the plain channels' round
     conn = bridge._conn  # a probe: this process only
     send_udp = conn.send_udp
     last_send = [0, 0]  # the send thread's last sendto: called, returned
