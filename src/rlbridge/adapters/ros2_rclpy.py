@@ -44,8 +44,8 @@ except ImportError as exc:  # pragma: no cover - exercised only where rclpy is m
 
 __all__ = [
     "Context", "DurabilityPolicy", "ExternalShutdownException", "HistoryPolicy", "InvalidHandle",
-    "InvalidTopicNameException", "MutuallyExclusiveCallbackGroup", "Node", "QoSProfile", "RCLError", "RclpyActionClient",
-    "RclpyPublisher",
+    "InvalidTopicNameException", "MutuallyExclusiveCallbackGroup", "Node", "QoSProfile",
+    "RCLError", "RclpyActionClient", "RclpyPublisher",
     "RclpyService", "RclpySubscription", "ReliabilityPolicy", "SingleThreadedExecutor",
     "expand_topic_name", "validate_full_topic_name",
 ]
