@@ -21,7 +21,17 @@ from rlbridge.bench.common import (
     report_header,
     write_section,
 )
-from rlbridge.bench.load import Plan, Run, Settings, describe, phase_row, run, totals_line
+from rlbridge.bench.load import (
+    Plan,
+    Run,
+    Settings,
+    describe,
+    loss_by_stage,
+    phase_row,
+    run,
+    totals_line,
+)
+from rlbridge.server.config import UDP_RECEIVE_BUFFER
 
 
 def soak_plan(minutes: float, interval_s: float) -> Plan:
@@ -36,17 +46,23 @@ def measure(settings: Settings, minutes: float, interval_s: float,
 
 def report(r: Run, command: Sequence[str]) -> str:
     s = r.settings
-    headers = ["t (min)", "delivered values/s", "latency p50 µs (median session)",
-               "p99 µs (median session)", "p99 µs (worst session)", "server dropped",
+    headers = ["t (min)", "written values/s", "delivered values/s",
+               "latency p50 µs (median session)", "p99 µs (median session)",
+               "p99 µs (worst session)",
+               "server receive queue MiB (max)", "hop 1: datagrams dropped by the kernel",
+               "server dropped",
                "server CPU %", "server CPU µs per value (in + out)", "server waited for a CPU %",
-               "server RSS MiB (end of interval)"]
+               "clients CPU % (all processes)", "server RSS MiB (end of interval)"]
     rows, rss = [], []
     for ph in r.phases:
         x = phase_row(ph)
         rss.append(x["rss1"])
-        rows.append([ph.name, fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
-                     fmt(x["p99_worst"]), fmt(x["dropped"]), fmt(x["cpu_pct"]),
-                     fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]), f"{x['rss1']:.1f}"])
+        rows.append([ph.name, fmt(x["offered"]), fmt(x["delivered"]), fmt(x["p50"]), fmt(x["p99"]),
+                     fmt(x["p99_worst"]), f"{x['queued_max']:.1f}", fmt(x["hop1_drops"]),
+                     fmt(x["dropped"]),
+                     fmt(x["cpu_pct"]),
+                     fmt(x["cpu_us_per_value"], 1), fmt(x["wait_pct"]),
+                     fmt(x["clients_cpu_pct"]), f"{x['rss1']:.1f}"])
     growth = (f"Server RSS from the end of the first interval to the end of the last: "
               f"{rss[0]:.1f} -> {rss[-1]:.1f} MiB ({rss[-1] - rss[0]:+.1f} MiB)." if rss else "")
     return "\n".join([
@@ -54,7 +70,7 @@ def report(r: Run, command: Sequence[str]) -> str:
         f"{s.clients} sessions x {s.channels} channels at {s.rate_hz:g} Hz (offered "
         f"{s.offered:,.0f} values/s) {describe(s)}; a row every {r.phases[0].seconds:.0f} s after "
         f"{s.warmup_s:g} s of warm-up." if r.phases else "", "",
-        markdown_table(headers, rows), "", totals_line(r), growth,
+        markdown_table(headers, rows), "", totals_line(r), growth, "", loss_by_stage(r), "",
         f"Load average before: {', '.join(f'{v:.2f}' for v in r.load_before)}; after: "
         f"{', '.join(f'{v:.2f}' for v in r.load_after)}.",
     ]) + "\n"
@@ -81,6 +97,12 @@ def main(
     bundles: Annotated[bool, typer.Option(
         help="Every channel of a session's tick in one datagram, both ways; --no-bundles: one "
              "datagram per value.")] = True,
+    client_nice: Annotated[int, typer.Option(
+        min=0, max=19, help="Niceness added to the client processes: the load generator yields "
+        "the CPU to the server it measures (0: same priority).")] = 0,
+    udp_receive_buffer: Annotated[int, typer.Option(
+        help="Bytes the server asks for its UDP receive buffer (serve --udp-receive-buffer).")]
+    = UDP_RECEIVE_BUFFER,
     out: Annotated[Path, typer.Option("--out", help="Markdown file the figures are written to.")]
     = Path("docs/load.md"),
 ) -> None:
@@ -91,7 +113,8 @@ def main(
         raise typer.BadParameter(f"--transport must be 'udp' or 'tcp', not '{transport}'")
     s = Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                  transport=transport, client=client, warmup_s=min(10.0, interval_s),
-                 bundles=bundles)
+                 bundles=bundles, udp_receive_buffer=udp_receive_buffer,
+                 client_nice=client_nice)
     command = ["python", "-m", "benchmarks.soak"]
     for name, value in ctx.params.items():
         flag = f"--{name.replace('_', '-')}"

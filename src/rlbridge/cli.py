@@ -98,6 +98,10 @@ def serve(
     max_sessions: Annotated[int, typer.Option(help="Concurrent sessions.")] = 256,
     max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
+    udp_receive_buffer: Annotated[int | None, typer.Option(
+        help="Bytes of datagrams the UDP socket may queue while the server is busy (default: "
+             "32 MiB, or what net.core.rmem_max allows without CAP_NET_ADMIN; a size given "
+             "here that the kernel caps is warned about; docs/load.md).")] = None,
     metrics_port: Annotated[int | None, typer.Option(
         help="Serve http://METRICS-HOST:PORT/metrics (Prometheus), /healthz and /status "
              "(JSON); default: off.")] = None,
@@ -128,7 +132,7 @@ def serve(
                               tls_client_ca=tls_client_ca, insecure=insecure,
                               allow=tuple(allow or ()), max_rate=max_rate,
                               max_sessions=max_sessions, max_channels=max_channels,
-                              max_packet=max_packet,
+                              max_packet=max_packet, udp_receive_buffer=udp_receive_buffer,
                               metrics_port=metrics_port, metrics_host=metrics_host)
     except ValidationError as exc:
         raise fail(config_error(exc), 2) from None

@@ -78,3 +78,24 @@ def test_no_loss_is_zero_not_minus_the_subscriptions(raw_tcp: Callable[..., Any]
     run = _run(client.stats(), sent=5, received=received)
     assert first_hop_lost(run) == 0
     assert "of which 0 never reached the server" in totals_line(run)
+
+
+def test_gaps_are_read_after_the_drain_when_the_run_has_them(
+        raw_tcp: Callable[..., Any]) -> None:
+    # A gap is counted when the value after it arrives: behind a deep queue that is after the
+    # last phase, so the run's counters from after the clients' drain are the ones that count.
+    client = raw_tcp()
+    client.hello("load-0")
+    _connect(client, TopicConnect(1, "publish", "/totals/late", F64, transport="tcp"),
+             TopicConnect(2, "subscribe", "/totals/late", F64, transport="tcp"))
+    client.send(Value(1, 0, 0, 0.0))
+    _values(client, 1)
+    at_phase_end = client.stats()
+    client.send(Value(1, 3, 0, 3.0))  # values 1 and 2 were lost before it
+    _values(client, 1)
+    run = _run(at_phase_end, sent=4, received=2)
+    assert first_hop_lost(run) == 0
+    run.final_stats = client.stats()
+    assert first_hop_lost(run) == 2
+    assert "of which 2 never reached the server (its sequence gaps, once the clients had " \
+           "drained)" in totals_line(run)

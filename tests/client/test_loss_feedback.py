@@ -1,8 +1,8 @@
 """Loss feedback and rate limits on UDP publish channels, against a live server.
 
 The lossy path is real: the server's event loop is stalled while the client floods, so the
-kernel's receive buffer of the server's UDP socket (4 MiB asked, ``server/udp.py``) overflows
-and drops datagrams; the
+kernel's receive buffer of the server's UDP socket (4 MiB asked here, ``udp_receive_buffer``;
+the default, 32 MiB, would hold a flood) overflows and drops datagrams; the
 server counts the gaps and reports them. Asserted is the mechanism (a report arrives and
 names the loss; health and link events show it; the counts match the server's own), not
 how fast.
@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
+import pytest
 from link_helpers import wait_for
 
 from rlbridge.csp.bridge import Bridge
@@ -23,6 +25,12 @@ F64 = "std_msgs/msg/Float64"
 CHUNK = 1000
 #: Values per flood: ~11 MB of datagrams, more than the server's receive buffer holds.
 FLOOD = 600 * CHUNK
+
+
+@pytest.fixture
+def server(make_server: Callable[..., ServerThread]) -> ServerThread:
+    """A server whose UDP receive buffer one flood overflows."""
+    return make_server(udp_receive_buffer=4 << 20)
 
 
 def _stall(server: ServerThread, seconds: float) -> None:

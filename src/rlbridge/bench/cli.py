@@ -211,6 +211,8 @@ Client = Annotated[str, typer.Option(help="raw: protocol-level UDP sessions, one
                                      "process; sdk: a Bridge per session.")]
 Bundles = Annotated[bool, typer.Option(help="Every channel of a session's tick in one datagram, "
                                        "both ways; --no-bundles: one datagram per value.")]
+ServerRcvbuf = Annotated[int, typer.Option(
+    help="Bytes the server asks for its UDP receive buffer (serve --udp-receive-buffer).")]
 
 
 def _check_client(client: str, transport: str) -> None:
@@ -228,6 +230,7 @@ def load(
     = 20.0,
     slow_topics: Annotated[int, typer.Option(help="Topics the slow consumer subscribes.")]
     = 100,
+    udp_receive_buffer: ServerRcvbuf = 32 << 20,
     out: Out = Path("docs/load.md"),
 ) -> None:
     """100 clients x 10 channels x 100 Hz on one server, and a consumer that stops reading."""
@@ -237,7 +240,8 @@ def load(
     _check_client(client, transport)
     s = ld.Settings(clients=clients, channels=channels, rate_hz=rate, processes=processes,
                     transport=transport, client=client, phase_s=phase_s, slow_topics=slow_topics,
-                    warmup_s=min(10.0, phase_s), bundles=bundles)
+                    warmup_s=min(10.0, phase_s), bundles=bundles,
+                    udp_receive_buffer=udp_receive_buffer)
     _run("load", lambda: ld.report(ld.run(s, ld.load_plan(s), progress), _command(ctx)), out)
 
 

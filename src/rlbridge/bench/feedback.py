@@ -127,7 +127,10 @@ def measure(link: Link, case: Case, seconds: float) -> Run:
     """One flood in fresh processes (server and publisher)."""
     with ProcessGroup(link, lifetime_s=seconds + 120) as group:
         try:
-            _server, host, port = start_server(group, heartbeat_ms=HEARTBEAT_MS)
+            # The receive buffer these figures were first measured with (the server's default
+            # is 32 MiB now, docs/load.md): a larger one only delays the flood's first loss.
+            _server, host, port = start_server(group, heartbeat_ms=HEARTBEAT_MS,
+                                               udp_receive_buffer=4 << 20)
             pub = group.start("publisher", "b", MODULE, "publisher", {
                 "host": host, "port": port, "seconds": seconds, "adapt_from": case.adapt_from})
             pub.expect("ready", 30.0)

@@ -4,7 +4,8 @@ A *clients* process hosts several SDK sessions (``Bridge``), each with ``channel
 channels published at ``rate_hz`` and the same topics subscribed back, so every value makes the
 deployed round trip: SDK -> server -> in-process bus -> server -> SDK. One ticker thread per
 process writes ``time.time()`` on every outgoing channel on an absolute schedule; when it falls
-behind it skips ticks (counted) instead of bursting, so the offered load is what it says.
+behind it writes the late ticks at once up to ``catch_up_s`` behind, and skips (counts) the
+rest instead of bursting for longer, so the offered load is what it says.
 
 Latency is measured on channel 0 of every session: a thread per session blocks on that channel
 and records ``time.time() - value`` when a value becomes readable. The other channels are
@@ -22,6 +23,7 @@ counters and latency percentiles per phase at the end.
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
 import threading
 import time
@@ -34,6 +36,8 @@ from rlbridge.bench.load_raw import RawSessions
 from rlbridge.wire import PacketCodec
 
 BULK_TOPIC = "/load/bulk"
+#: Session writes due closer together than this go out back to back (see ``tick_loop``).
+SLOT_S = 0.001
 
 
 class _SdkSession(Book):
@@ -93,6 +97,7 @@ class _SdkSession(Book):
 
 class _Sessions(Protocol):
     def write_all(self, stamp: float) -> None: ...
+    def received(self) -> int: ...
     def mark(self, phase: str) -> None: ...
     def result(self) -> Params: ...
     def close(self) -> None: ...
@@ -108,7 +113,14 @@ def tick_loop(params: Params, sessions: Sequence[_Sessions], phase: list[str],
         s.mark("warmup")
     # Sessions are staggered over the period, as independent clients would be: session j of
     # n writes at j/n of each period, so the server sees a steady stream, not a burst per tick.
-    step = 1.0 / float(params["rate_hz"]) / len(sessions)
+    # Writes due within SLOT_S of each other go out without a wait between them (the process
+    # wakes at most ~1,000 times a second, not once per session write), and the sockets are
+    # read at least once per round. A process the machine did not schedule in time writes its
+    # late ticks at once, as a preempted control loop would, up to ``catch_up_s`` behind;
+    # further behind it skips them (counted), so a starved generator does not burst for long.
+    n = len(sessions)
+    step = 1.0 / float(params["rate_hz"]) / n
+    catch_up = max(float(params.get("catch_up_s", 0.1)), step * n)
     start = time.monotonic()
     end = start + float(params["max_s"])
     k = skipped = 0
@@ -116,33 +128,58 @@ def tick_loop(params: Params, sessions: Sequence[_Sessions], phase: list[str],
         now = time.monotonic()
         if now >= end or control.poll("stop") is not None:
             break
-        if k % len(sessions) == 0:
+        if k % n == 0:
             msg = control.poll("phase")
             if msg is not None:
                 phase[0] = str(msg["name"])
                 for s in sessions:
                     s.mark(phase[0])
-        sessions[k % len(sessions)].write_all(time.time())
+        sessions[k % n].write_all(time.time())
         k += 1
         due = start + k * step
         now = time.monotonic()
-        if now > due + step * len(sessions):  # behind by a whole period: skip, do not burst
+        if now > due + catch_up:  # too far behind: skip, do not burst
             late = int((now - due) / step)
             skipped += late
             k += late
             due = start + k * step
-        wait_until(due)
+        if k % n == 0 or due - now > SLOT_S:
+            wait_until(due)
     for s in sessions:
         s.mark("drain")  # the last phase ends here; in-flight values count in the totals only
-    wait_until(time.monotonic() + float(params["drain_s"]))
+    drain(sessions, wait_until, float(params["drain_s"]))
     emit("result", sessions=[s.result() for s in sessions], writes=k, skipped=skipped)
     for s in sessions:
         s.close()
     hold(control)
 
 
+def drain(sessions: Sequence[_Sessions], wait_until: Callable[[float], None],
+          limit_s: float, quiet_s: float = 2.0) -> None:
+    """Read until nothing has arrived for ``quiet_s`` (at most ``limit_s``).
+
+    An overloaded server holds seconds of values in its receive buffer when the clients stop;
+    they are late, not lost, and the totals should say so. What is still missing after a
+    quiet ``quiet_s`` (or at the limit) is reported as in flight or lost.
+    """
+    end = time.monotonic() + limit_s
+    last, quiet_since = -1, time.monotonic()
+    while (now := time.monotonic()) < end and now - quiet_since < quiet_s:
+        wait_until(min(end, now + 0.25))
+        got = sum(s.received() for s in sessions)
+        if got != last:
+            last, quiet_since = got, time.monotonic()
+
+
+def _yield_cpu(params: Params) -> None:
+    """Lower this process's priority by ``params["nice"]`` (a load generator, not the product)."""
+    if int(params.get("nice", 0)):
+        os.nice(int(params["nice"]))
+
+
 def clients(params: Params) -> None:
     """SDK sessions ``params["ids"]`` in this process (``Bridge``, its threads, its channels)."""
+    _yield_cpu(params)
     phase = ["warmup"]
     sessions = [_SdkSession(params, i, phase) for i in params["ids"]]
     tick_loop(params, sessions, phase, lambda due: time.sleep(max(0.0, due - time.monotonic())))
@@ -217,6 +254,7 @@ def slow(params: Params) -> None:
 
 def raw_clients(params: Params) -> None:
     """Protocol-level sessions (``load_raw``): one thread drives them all."""
+    _yield_cpu(params)
     phase = ["warmup"]
     raw = RawSessions(params, phase)
     tick_loop(params, raw.sessions, phase, raw.wait_until)

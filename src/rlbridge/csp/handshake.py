@@ -10,7 +10,6 @@ way; the connection seals its codec once the ack has arrived.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import os
 import select
@@ -21,6 +20,7 @@ from typing import TYPE_CHECKING
 from rlbridge.csp.auth import refused
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.csp.tls_client import TlsFailed, plaintext_refused, start_tls
+from rlbridge.sockbuf import request_buffer
 from rlbridge.wire import (
     AuthChallenge,
     ConnectAck,
@@ -167,10 +167,10 @@ def udp_socket(host: str, port: int) -> socket.socket:
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_DGRAM)
     # Room for a burst while the receive thread waits for the GIL (the default ~200 KiB
-    # holds under 100 full datagrams); capped by net.core.rmem_max, the rest are gaps.
+    # holds under 200 small datagrams); past net.core.rmem_max only with CAP_NET_ADMIN
+    # (rlbridge.sockbuf), else capped: the rest are gaps the channels count.
     try:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
+        request_buffer(sock, "receive", UDP_RECEIVE_BUFFER)
         sock.connect((host, port))
     except BaseException:  # a name that does not resolve: the socket is ours to close
         sock.close()

@@ -141,6 +141,13 @@ class Server:
                 cfg.host, port, tcp_server is not None, udp_transport is not None,
                 adapter.name, _authentication(keys is not None, tls is not None, cfg),
                 self.address.metrics_port, cfg.metrics_host))
+            endpoint = udp_transport.get_protocol() if udp_transport is not None else None
+            if isinstance(endpoint, UdpEndpoint) and endpoint.receive_buffer is not None:
+                # An explicit size the kernel capped is warned about, with the sysctl to raise
+                # (docs/load.md); the default takes what it gets without a word.
+                grant = endpoint.receive_buffer
+                (log.warning if grant.capped and cfg.udp_receive_buffer is not None
+                 else log.debug)("%s", grant.describe())
             if started is not None:
                 started(self.address)
             await self._stop.wait()
@@ -322,6 +329,10 @@ class ServerThread:
         if not self._ready.wait(timeout):
             raise ServerError("server did not start in time")
         if self._error is not None:
+            # The thread is still on its way out: join it, so that a retry starts a new one
+            # instead of finding this one alive and taking the failed start for a running one.
+            self._thread.join(timeout)
+            self._thread = None
             raise ServerError(str(self._error)) from self._error
         return self
 

@@ -10,6 +10,12 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from rlbridge.wire.codec import DEFAULT_MAX_PACKET, MAX_DATAGRAM
 
+#: The server's UDP receive buffer by default: while the loop is busy or not scheduled, every
+#: client's datagrams wait here; 32 MiB (64 as the kernel counts) hold ~80,000 bundles of ten
+#: values, 8 s of the load target (100 clients x 100 bundles/s): a stall that long is late
+#: values, not lost ones (docs/load.md). A limit, not an allocation.
+UDP_RECEIVE_BUFFER = 32 << 20
+
 
 class ServerConfig(BaseModel):
     """Everything ``Server`` needs; defaults are safe (loopback, both transports, Nagle on)."""
@@ -36,6 +42,11 @@ class ServerConfig(BaseModel):
     udp_payload: int = Field(
         1400, ge=256, le=MAX_DATAGRAM, description="Largest UDP datagram the server sends."
     )
+    udp_receive_buffer: int | None = Field(
+        None, ge=64 << 10, le=1 << 30,
+        description="Bytes of queued datagrams the UDP socket may hold; a full buffer drops "
+        "(docs/load.md). None: 32 MiB, or what net.core.rmem_max allows without "
+        "CAP_NET_ADMIN; a size given here that the kernel caps is warned about.")
     use_uvloop: bool = True
     # -- access and limits (docs/security.md) --
     psk_file: Path | None = Field(

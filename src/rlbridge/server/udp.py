@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-import socket
 from dataclasses import dataclass
 from typing import cast
 
+from rlbridge.server.config import UDP_RECEIVE_BUFFER
 from rlbridge.server.gate import Gate
 from rlbridge.server.notices import session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
+from rlbridge.sockbuf import BufferGrant, request_buffer
 from rlbridge.wire import (
     PROTOCOL_VERSION,
     AuthProof,
@@ -36,8 +36,6 @@ from rlbridge.wire.codec import (
 
 log = logging.getLogger("rlbridge.server")
 
-#: Bytes of queued datagrams the server asks the kernel for (see ``connection_made``).
-RECEIVE_BUFFER = 4 << 20
 #: UDP handshakes (challenge sent, proof awaited) remembered at once; beyond, oldest go.
 MAX_PENDING = 256
 #: What every datagram of this protocol version starts with: magic and version.
@@ -63,6 +61,8 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         self._hello_sessions: dict[tuple[tuple[str, int], str], tuple[int, Hello]] = {}
         self._gate = Gate(registry)
         self._pending: dict[tuple[str, int], _Pending] = {}
+        #: What the kernel granted the socket's receive buffer (``udp_receive_buffer``).
+        self.receive_buffer: BufferGrant | None = None
         registry.on_forget.append(lambda s: self.forget(s.id))
         #: Set when the transport has really closed; shutdown waits for it, else the loop
         #: can end first and the socket is reaped by the garbage collector (ResourceWarning).
@@ -74,10 +74,10 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         sock = transport.get_extra_info("socket")
         if sock is not None:
             # Every client's datagrams queue here while the loop is busy; the default buffer
-            # (~200 KiB, under 100 full datagrams) drops a single client's burst. The kernel
-            # caps the request at net.core.rmem_max; drops that remain show as sequence gaps.
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+            # (~200 KiB, under 200 small datagrams) drops a single client's burst. What the
+            # kernel granted is logged after the listening line (rlbridge.sockbuf).
+            self.receive_buffer = request_buffer(
+                sock, "receive", self._registry.ctx.config.udp_receive_buffer or UDP_RECEIVE_BUFFER)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.closed.set()
