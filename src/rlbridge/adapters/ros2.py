@@ -8,6 +8,16 @@ the adapter starts in its constructor and joins in :meth:`Ros2Adapter.close`: th
 counterpart of the thesis's asynchronous spinner (section 4.1.1), which replaced ROS 1's
 ``spinOnce()`` polling loop.
 
+The thread is stopped by the adapter, not by ``Executor.shutdown()``: rclpy's shutdown sets a
+flag, triggers the executor's own guard condition and destroys it at once, without waiting. An
+executor thread that has checked the flag and is still building its wait set (it does so after
+every callback, and for longer on a loaded machine) then waits without that guard, with no
+timeout, and nothing ever wakes it: the thread outlives ``close()``. So the thread spins one
+callback at a time until :meth:`Ros2Adapter.close` sets the adapter's own flag and triggers the
+adapter's own guard condition (its own callback group, so it is in every wait set and is only
+destroyed with the node, after the join); ``Executor.shutdown()`` runs after the join, when
+there is no wait left to race with.
+
 This module is that lifetime: the node, the executor thread, and creating and destroying
 endpoints on them. What an endpoint does per value is in :mod:`.ros2_endpoints` (publishing on
 the caller's thread, batched delivery on the executor thread); which topic may carry which type,
@@ -45,6 +55,7 @@ from rlbridge.adapters.ros2_endpoints import MAX_BATCH, Ros2Publisher, Ros2Subsc
 from rlbridge.adapters.ros2_rclpy import (
     Context,
     ExternalShutdownException,
+    MutuallyExclusiveCallbackGroup,
     Node,
     SingleThreadedExecutor,
 )
@@ -86,6 +97,7 @@ class Ros2Adapter:
         self._publishers: set[Ros2Publisher] = set()
         self._subscriptions: set[Ros2Subscription] = set()
         self._closed = False
+        self._stopping = False  # set by close(): the executor thread's loop ends (module doc)
         self._context = Context()
         # args=[]: the adapter never reads the host program's command line (the server's CLI
         # flags are not ROS arguments); the ROS environment variables still apply.
@@ -103,6 +115,9 @@ class Ros2Adapter:
             self._claims = TopicClaims(self.node)
             self._services = Ros2Services(self)
             self._actions = Ros2Actions(self)
+            # Triggered by close() to wake the executor thread out of its wait (module doc).
+            self._wake = self.node.create_guard_condition(
+                lambda: None, callback_group=MutuallyExclusiveCallbackGroup())
             self._executor = SingleThreadedExecutor(context=self._context)
             self._executor.add_node(self.node)
         except BaseException:
@@ -134,8 +149,10 @@ class Ros2Adapter:
 
     def _spin(self) -> None:
         """The executor thread: run callbacks until close() (or the context) stops it."""
+        executor = self._executor
         try:
-            self._executor.spin()
+            while not self._stopping and self._context.ok():
+                executor.spin_once()
         except ExternalShutdownException:
             pass  # the context was shut down under us: nothing left to deliver
         except Exception:
@@ -225,11 +242,14 @@ class Ros2Adapter:
             sub.stop()
         for pub in publishers:
             pub.stop()
-        self._executor.shutdown(timeout_sec=JOIN_TIMEOUT_S)
+        # Flag first, then wake: a thread past the flag check waits on a triggered guard.
+        self._stopping = True
+        self._wake.trigger()
         if threading.current_thread() is not self._thread:
             self._thread.join(JOIN_TIMEOUT_S)
             if self._thread.is_alive():
                 log.warning("ros2 executor thread did not stop within %.1f s", JOIN_TIMEOUT_S)
+        self._executor.shutdown(timeout_sec=0)
         self.node.destroy_node()
         self._context.try_shutdown()
 

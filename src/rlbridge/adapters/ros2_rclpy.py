@@ -26,6 +26,7 @@ try:
 
     from rclpy._rclpy_pybind11 import RCLError
     from rclpy.action.client import ActionClient as RclpyActionClient
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.context import Context
     from rclpy.exceptions import InvalidHandle, InvalidTopicNameException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -43,8 +44,8 @@ except ImportError as exc:  # pragma: no cover - exercised only where rclpy is m
 
 __all__ = [
     "Context", "DurabilityPolicy", "ExternalShutdownException", "HistoryPolicy", "InvalidHandle",
-    "InvalidTopicNameException", "Node", "QoSProfile", "RCLError", "RclpyActionClient",
-    "RclpyPublisher",
+    "InvalidTopicNameException", "MutuallyExclusiveCallbackGroup", "Node", "QoSProfile",
+    "RCLError", "RclpyActionClient", "RclpyPublisher",
     "RclpyService", "RclpySubscription", "ReliabilityPolicy", "SingleThreadedExecutor",
     "expand_topic_name", "validate_full_topic_name",
 ]

@@ -14,7 +14,8 @@ request's header, and :class:`_DeferredService` replaces that call per service o
 the header until the client answers. (An ``async`` callback awaiting a future would do the
 same, but rclpy's executor resumes a pending coroutine on every turn of its loop: it would spin
 a core while a request waits.) ROS 2 services have no error reply: a provider that fails sends
-nothing, and the caller's own timeout tells it.
+nothing, and the caller's own timeout tells it. Closing the adapter ends every call still
+waiting, with the closed adapter's error, instead of leaving it to its timeout.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from typing import Any, Protocol
 from rlbridge.adapters.base import BindingError, ServiceHandler
 from rlbridge.adapters.inproc_services import normalize_service_type
 from rlbridge.adapters.ros2_codecs import whole_encoder
-from rlbridge.adapters.ros2_rclpy import Node, RclpyService
+from rlbridge.adapters.ros2_rclpy import InvalidHandle, Node, RCLError, RclpyService
 from rlbridge.adapters.ros2_types import MessageCatalog, pip_package
 
 log = logging.getLogger("rlbridge.adapters.ros2")
@@ -219,6 +220,8 @@ class Ros2Services:
         self._adapter = adapter
         self._clients: dict[tuple[str, str], Any] = {}
         self.providers: set[_DeferredService] = set()
+        #: What each waiting call waits on; clear() (the adapter closing) sets them all.
+        self._waiting: set[threading.Event] = set()
 
     def call(self, service: str, srv_type: str, request: dict[str, Any],
              timeout: float) -> dict[str, Any]:
@@ -226,22 +229,34 @@ class Ros2Services:
         codec = service_codec(adapter.catalog, srv_type)
         message = codec.request.encode(request)
         full = adapter.full_topic_name(service)
+        done = threading.Event()
         with adapter.lock:
             adapter.check_open()
             client = self._clients.get((full, codec.name))
             if client is None:
                 client = adapter.node.create_client(codec.cls, full)
                 self._clients[(full, codec.name)] = client
-        done = threading.Event()
+            self._waiting.add(done)
         end = time.monotonic() + timeout
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise BindingError("NO_SERVICE", f"no server for service '{full}' "
-                               f"({codec.name}) within {timeout:g} s")
-        future = client.call_async(message)
-        future.add_done_callback(lambda _f: done.set())
-        if not done.wait(max(0.0, end - time.monotonic())):
-            client.remove_pending_request(future)
-            raise BindingError("TIMEOUT", f"service '{full}' did not answer within {timeout:g} s")
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                self._check_open()
+                raise BindingError("NO_SERVICE", f"no server for service '{full}' "
+                                   f"({codec.name}) within {timeout:g} s")
+            future = client.call_async(message)
+            future.add_done_callback(lambda _f: done.set())
+            if not done.wait(max(0.0, end - time.monotonic())):
+                client.remove_pending_request(future)
+                raise BindingError("TIMEOUT",
+                                   f"service '{full}' did not answer within {timeout:g} s")
+            if not future.done():  # woken by close()
+                self._check_open()
+        except (InvalidHandle, RCLError):  # the client was destroyed with the closed adapter
+            self._check_open()
+            raise
+        finally:
+            with adapter.lock:
+                self._waiting.discard(done)
         exc = future.exception()
         if exc is not None:
             raise BindingError("SERVICE_FAILED", f"service '{full}' failed: {exc}")
@@ -268,7 +283,14 @@ class Ros2Services:
         return sorted((name, t) for name, types in node.get_service_names_and_types()
                       for t in types)
 
+    def _check_open(self) -> None:
+        with self._adapter.lock:
+            self._adapter.check_open()
+
     def clear(self) -> None:
+        """The adapter is closing (under its lock): forget everything, wake waiting calls."""
         self._clients.clear()
         self.providers.clear()
+        for done in self._waiting:
+            done.set()
 

@@ -1,0 +1,174 @@
+"""ROS 2 adapter: close() stops the executor thread, whatever that thread is doing meanwhile.
+
+The executor thread rebuilds its wait set after every callback. rclpy's ``Executor.shutdown()``
+destroys the executor's guard condition at once, so a thread caught rebuilding waited without
+it, forever, and outlived ``close()`` (CI saw ``rlbridge-ros2-rlbridge_contract`` alive tests
+later). These tests put ``close()`` exactly there, and next to delivering callbacks and a
+waiting service call, and check the thread is gone when ``close()`` returns.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+from contract import Collector
+
+from rlbridge.adapters.base import BindingError, QoS
+
+ros2 = pytest.importorskip(
+    "rlbridge.adapters.ros2",
+    reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')",
+    exc_type=ImportError,
+)
+callback_groups = pytest.importorskip("rclpy.callback_groups")
+
+pytestmark = [pytest.mark.ros2, pytest.mark.timeout(60)]
+
+TIMEOUT = 10.0
+FLOAT64 = "std_msgs/msg/Float64"
+NOT_STOPPED = "did not stop"
+
+
+@pytest.fixture
+def make(ros_env: int) -> Iterator[Callable[[str], Any]]:
+    made: list[Any] = []
+
+    def make(node_name: str) -> Any:
+        adapter = ros2.Ros2Adapter(node_name, domain_id=ros_env)
+        made.append(adapter)
+        return adapter
+
+    yield make
+    for adapter in made:
+        adapter.close()
+
+
+class _Gate(callback_groups.MutuallyExclusiveCallbackGroup):  # type: ignore[misc]
+    """Holds the executor thread inside its wait-set rebuild until released.
+
+    The executor asks every entity's callback group ``can_execute`` while it gathers the wait
+    set; a ready entity's group is asked again after the wait, so the gate guards a guard
+    condition that is never triggered: the only question it gets is the gathering one.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.armed = threading.Event()
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+    def can_execute(self, entity: Any) -> bool:
+        if self.armed.is_set():
+            self.armed.clear()
+            self.entered.set()
+            self.release.wait(3 * TIMEOUT)
+        return bool(super().can_execute(entity))
+
+
+def _wait_until_joining(thread: threading.Thread) -> None:
+    """Wait until ``thread`` blocks in ``Thread.join`` (close() waiting for the executor)."""
+    join = threading.Thread.join.__code__
+    deadline = time.monotonic() + TIMEOUT
+    while time.monotonic() < deadline:
+        frame = sys._current_frames().get(thread.ident or -1)
+        while frame is not None:
+            if frame.f_code is join:
+                return
+            frame = frame.f_back
+        if not thread.is_alive():
+            return
+        time.sleep(0.005)
+    pytest.fail("close() never got to joining the executor thread")
+
+
+def test_close_while_the_executor_rebuilds_its_wait_set(
+    make: Callable[[str], Any], caplog: pytest.LogCaptureFixture
+) -> None:
+    adapter = make("rlbridge_close_gate")
+    gate = _Gate()
+    adapter.node.create_guard_condition(lambda: None, callback_group=gate)
+    # A callback (the kick's) arms the gate: the executor rebuilds its wait set right after
+    # it, and the gate holds it there, with the kick's trigger already taken.
+    kick = adapter.node.create_guard_condition(gate.armed.set)
+    kick.trigger()
+    assert gate.entered.wait(TIMEOUT), "the executor thread never rebuilt its wait set"
+    executor_thread = next(t for t in threading.enumerate()
+                           if t.name == "rlbridge-ros2-rlbridge_close_gate")
+    closer = threading.Thread(target=adapter.close, name="test-closer")
+    with caplog.at_level(logging.WARNING, logger="rlbridge.adapters.ros2"):
+        closer.start()
+        _wait_until_joining(closer)  # close() has done all it does before waiting
+        gate.release.set()
+        closer.join(3 * TIMEOUT)
+    assert not closer.is_alive()
+    assert not executor_thread.is_alive()
+    assert NOT_STOPPED not in caplog.text
+
+
+def test_close_while_callbacks_deliver(
+    make: Callable[[str], Any], unique_topic: Callable[[str], str],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    sender = make("rlbridge_close_sender")
+    topic = unique_topic("flood")
+    pub = sender.create_publisher(topic, FLOAT64, "data", QoS(depth=100))
+    stop = threading.Event()
+
+    def flood() -> None:
+        while not stop.is_set():
+            pub.publish([1.0] * 20)
+            time.sleep(0.001)
+
+    flooder = threading.Thread(target=flood, name="test-flood")
+    flooder.start()
+    try:
+        for i in range(3):
+            name = f"rlbridge_close_flood{i}"
+            receiver = make(name)
+            sink = Collector()
+            receiver.subscribe(topic, FLOAT64, "data", QoS(depth=100), sink)
+            assert sink.wait_for_count(100, TIMEOUT), "the flood never arrived"
+            with caplog.at_level(logging.WARNING, logger="rlbridge.adapters.ros2"):
+                receiver.close()
+            assert f"rlbridge-ros2-{name}" not in [t.name for t in threading.enumerate()]
+    finally:
+        stop.set()
+        flooder.join(TIMEOUT)
+    assert NOT_STOPPED not in caplog.text
+
+
+def test_close_while_a_service_call_waits(
+    make: Callable[[str], Any], unique_topic: Callable[[str], str],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    provider = make("rlbridge_close_provider")
+    caller = make("rlbridge_close_caller")
+    service = unique_topic("silent")
+    asked = threading.Event()
+    provider.serve_service(service, "std_srvs/srv/Trigger", lambda request, reply: asked.set())
+    outcome: list[BaseException | dict[str, Any]] = []
+
+    def call() -> None:
+        try:
+            outcome.append(caller.call_service(service, "std_srvs/srv/Trigger", {}, 3 * TIMEOUT))
+        except BaseException as exc:
+            outcome.append(exc)
+
+    worker = threading.Thread(target=call, name="test-call")
+    worker.start()
+    assert asked.wait(TIMEOUT), "the request never reached the provider"
+    with caplog.at_level(logging.WARNING, logger="rlbridge.adapters.ros2"):
+        caller.close()
+    assert "rlbridge-ros2-rlbridge_close_caller" not in [t.name for t in threading.enumerate()]
+    assert NOT_STOPPED not in caplog.text
+    worker.join(TIMEOUT)  # close() ends the waiting call instead of leaving it to time out
+    assert not worker.is_alive()
+    assert len(outcome) == 1
+    assert isinstance(outcome[0], BindingError), outcome
+    assert "closed" in str(outcome[0])
