@@ -387,9 +387,14 @@ def start_cli_server(procs: CliProcesses, *extra: str) -> tuple[int, subprocess.
 
     At ``--log-level warning`` unless ``extra`` says otherwise: the default (info) logs every
     session, and nobody reads the stderr pipe of a long-lived test server until it stops.
+    With ``--timeout-ms TEST_TIMEOUT_MS`` unless ``extra`` says otherwise: a loaded CI machine
+    can starve a client for longer than the default 600 ms watchdog, and the watchdog is not
+    what these servers test (tests of the default watchdog pass ``--timeout-ms`` themselves).
     """
     if "--log-level" not in extra:
         extra = (*extra, "--log-level", "warning")
+    if "--timeout-ms" not in extra:  # the watchdog of every test server unless a test asks
+        extra = (*extra, "--timeout-ms", str(TEST_TIMEOUT_MS))
     last: AssertionError | None = None
     for _ in range(3):  # the free port may be taken between probing and binding
         port = free_port()

@@ -118,9 +118,13 @@ class LoggedProcess:
 
 def start_server(namespace: str, env: dict[str, str], node_name: str,
                  *options: str) -> tuple[LoggedProcess, int]:
+    # A 5 s watchdog unless the options set one: under load the SDK session (or its
+    # namespace's processes) can be starved past the default 600 ms, and no reach test is
+    # about the watchdog.
+    watchdog = () if "--timeout-ms" in options else ("--timeout-ms", "5000")
     server = LoggedProcess(in_namespace(namespace, [
         *rlbridge_argv(), "--log-level", "info", "serve", "--port", "0", "--adapter", "ros2",
-        "--node-name", node_name, *options]), env, watch=SERVING)
+        "--node-name", node_name, *watchdog, *options]), env, watch=SERVING)
     return server, int(server.wait_ready().group(1))
 
 

@@ -58,7 +58,7 @@ class CliServer:
         env.pop("PYTHONWARNINGS", None)
         self.proc = subprocess.Popen(
             [*command, "--log-level", "info", "serve", "--port", "0", "--adapter", "ros2",
-             "--node-name", node_name],
+             "--node-name", node_name, "--timeout-ms", "5000"],  # the watchdog: not tested
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
             text=True, env=env,
         )

@@ -65,7 +65,8 @@ class Healthy:
 
 @pytest.fixture
 def healthy(cli_server: Callable[..., tuple[int, subprocess.Popen[str]]]) -> Iterator[Healthy]:
-    port, _proc = cli_server()  # the defaults: heartbeat 200 ms, watchdog 600 ms
+    # The defaults: heartbeat 200 ms, watchdog 600 ms (the watchdog is what these tests test).
+    port, _proc = cli_server("--timeout-ms", str(TIMEOUT_MS))
     h = Healthy(port)
     assert h.flows()
     yield h

@@ -217,7 +217,8 @@ def scenarios(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Processes]:
                        ROS_DOMAIN_ID=str(101 + os.getpid() % 100))
             env.pop("ROS_STATIC_PEERS", None)
             procs.start("ros2-server", [*rlbridge_command(), "serve", "--adapter", "ros2",
-                                        "--nodelay", "--port", port], env)
+                                        "--nodelay", "--port", port, "--timeout-ms", "5000"],
+                        env)
             # The controller runs until SIGTERM; the vision node for a fixed time (its first
             # second or two go to DDS discovery, more on a loaded machine).
             procs.start("ros2-controller", [
@@ -245,7 +246,13 @@ def test_demo_command_tracks_reports_states_and_writes_the_plot(scenarios: Proce
     diag = result["diagnostics"]
     assert diag["link"] == "connected"
     assert diag["hrt_blocking_reads"] == 0
-    assert diag["cycles"] + diag["missed"] >= 800 * DEMO_SECONDS  # a 1 kHz loop
+    # A 1 kHz loop: its timer counts every grid period, run or skipped (missed), so the
+    # periods fit the run (the loop starts after the monitor's clock, never before) and are
+    # far more than a 10x slower loop could count. How many of the DEMO_SECONDS the loop
+    # gets depends on the machine's load (its start-up, its connect): no tighter floor.
+    periods = diag["cycles"] + diag["missed"]
+    assert diag["cycles"] > 0, diag
+    assert 250 * DEMO_SECONDS <= periods <= 1000 * result["elapsed_s"] + 50, (periods, result)
     assert diag["setpoints_received"] > 100
     assert diag["setpoints_lost"] <= diag["setpoints_received"] // 10
     assert sum(result["angles_received"].values()) > 200  # 2 x 50 Hz, sub-sampled
