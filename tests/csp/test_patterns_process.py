@@ -50,17 +50,23 @@ def test_the_default_layout_is_the_loops_own_process() -> None:
 
 def publish_while_running(peer: Bridge, topic: str, value: float, coupling: IsolatedCoupling,
                           releases: int = 30) -> None:
-    """Publish ``value`` every 10 ms until the loop has run ``releases`` more cycles after the
-    SDK process first received it (the loop sees it within one period of that)."""
+    """Publish ``value`` every 10 ms until the SDK process received it, wait until its helper
+    put it (or what ``process`` made of it) in the loop's shared-memory slot, then until the
+    loop has run ``releases`` more cycles (it reads the slot every cycle).
+
+    The slot is watched, not assumed: the helper is a thread of this (SDK) process and a
+    loaded machine can keep it from running while the loop process runs many cycles."""
     out = peer.publish(topic, F64, transport="udp")
     incoming = coupling.channels["in"]
     assert isinstance(incoming, IncomingChannel)
     seen = incoming.statistics().written
+    before = coupling.link.get(0)
     deadline = time.monotonic() + WAIT
     while incoming.statistics().written == seen:
         assert time.monotonic() < deadline, f"{value} never reached the SDK process"
         out.write(value)
         time.sleep(0.01)
+    wait_until(lambda: coupling.link.get(0) != before, f"{value} to reach the loop's slot")
     target = coupling.released + releases
     wait_until(lambda: coupling.released >= target, f"{releases} releases after {value}")
 

@@ -83,7 +83,13 @@ PUBLISHER = CONNECT + textwrap.dedent("""
     next_t = time.monotonic()
     for i in range(count):
         out.write(i)
-        next_t += 0.005
+        # One new value per datagram, on a loaded machine too: redundancy k repeats the
+        # previous k VALUES, so a send thread woken late (a burst of values in one
+        # datagram) would leave values of a lost datagram uncovered.
+        taken = time.monotonic() + 5
+        while out.statistics().read <= i and time.monotonic() < taken:
+            time.sleep(0.0005)
+        next_t = max(next_t + 0.005, time.monotonic())
         time.sleep(max(0.0, next_t - time.monotonic()))
     key = str(out.channel_id)
     deadline = time.monotonic() + 10
@@ -153,7 +159,9 @@ def test_latest_tcp_skips_values_overtaken_during_retransmissions() -> None:
 
 def test_sdk_udp_redundancy_recovers_lost_datagrams() -> None:
     """10% loss client -> server: without redundancy ~10% of set-points are gaps; with k=2
-    a value is lost only with 3 datagrams in a row (~0.1%)."""
+    a value is lost only with 3 datagrams in a row (~0.1%). The publisher sends one new
+    value per datagram (it waits for the send thread to take each), so this holds however
+    late the machine's load wakes the send thread."""
     lost = {}
     for k in (0, 2):
         out = _run_client(PUBLISHER, [str(k), str(COUNT)], Impairment(delay_ms=5.0),
