@@ -98,18 +98,24 @@ def serve() -> None:
     node.create_publisher(String, "/reach/map", latched).publish(String(data="map v1"))
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)
-    spinner = threading.Thread(target=_spin, args=(executor,), daemon=True)
+    stop = threading.Event()
+    spinner = threading.Thread(target=_spin, args=(executor, stop), daemon=True)
     spinner.start()
     print("ready", flush=True)
     sys.stdin.read()  # until the test closes our stdin
-    executor.shutdown()
+    stop.set()
+    spinner.join(5.0)
+    executor.shutdown(timeout_sec=0)
     node.destroy_node()
     rclpy.try_shutdown()
 
 
-def _spin(executor: MultiThreadedExecutor) -> None:
+def _spin(executor: MultiThreadedExecutor, stop: threading.Event) -> None:
+    """Until ``stop``, then the caller joins and shuts down: ``executor.shutdown()`` under a
+    running spin() can leave the thread waiting forever (see the adapter's close())."""
     with contextlib.suppress(ExternalShutdownException):
-        executor.spin()
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
 
 
 def call(service: str) -> None:
