@@ -27,6 +27,7 @@ Imports nothing from rlbridge. Modes:
 
 from __future__ import annotations
 
+import faulthandler
 import importlib
 import json
 import sys
@@ -119,19 +120,34 @@ def _spin(executor: MultiThreadedExecutor, stop: threading.Event) -> None:
 
 
 def call(service: str) -> None:
+    # Where it is, for a test that waits too long: each step on stderr, and every thread's
+    # stack (then exit 1) if it is still here after CALL_STACKS_S.
+    faulthandler.dump_traceback_later(CALL_STACKS_S, exit=True)
+    _step("init")
     rclpy.init(args=[])
     node = Node("reach_caller")
     client = node.create_client(SetBool, service)
+    _step("waiting for the service")
     if not client.wait_for_service(timeout_sec=20.0):
         print(json.dumps({"error": "no service"}), flush=True)
         sys.exit(1)
+    _step("calling")
     future = client.call_async(SetBool.Request(data=True))
     rclpy.spin_until_future_complete(node, future, timeout_sec=20.0)
     result = future.result()
     print(json.dumps({"success": result.success, "message": result.message}
                      if result is not None else {"error": "no answer"}), flush=True)
+    _step("shutting down")
     node.destroy_node()
     rclpy.try_shutdown()
+    _step("done")
+
+
+CALL_STACKS_S = 60.0  # the test waits 90 s
+
+
+def _step(what: str) -> None:
+    print(f"caller {time.monotonic():.3f}: {what}", file=sys.stderr, flush=True)
 
 
 def flood(topic: str, count: int) -> None:
