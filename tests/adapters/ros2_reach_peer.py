@@ -22,7 +22,8 @@ Imports nothing from rlbridge. Modes:
     "last": L}`` once message LAST arrived (else after 2 s of quiet).
 ``call SERVICE``
     Call std_srvs/SetBool ``SERVICE`` (provided by an rlbridge client) with data=true, print
-    the response as JSON, exit.
+    the response as JSON, exit. Its steps go to stderr; still running after 60 s, it prints
+    every thread's stack and exits 1.
 """
 
 from __future__ import annotations
