@@ -110,7 +110,7 @@ class Ros2Actions:
             self._check_open()
             raise BindingError("NO_SERVICE", f"no action server for '{full}' "
                                f"within {timeout:g} s")
-        self._check_open()  # woken by close()
+        self._check_open()  # closed while it waited for the server
         future = client.send_goal_async(message, feedback_callback=on_feedback)
         future.add_done_callback(lambda _f: accepted.set())
         if not accepted.wait(max(0.0, end - time.monotonic())):
