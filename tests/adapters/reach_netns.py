@@ -92,6 +92,16 @@ class LoggedProcess:
             raise AssertionError(f"{self.proc.args} did not start: {''.join(self.lines)}")
         return self.match
 
+    def wait(self, timeout: float) -> int:
+        """Its exit status; if it is still running after ``timeout`` s, stop it and fail with
+        its output (what it printed says where it hung)."""
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.stop()
+            raise AssertionError(f"{self.proc.args} still ran after {timeout:g} s; its output:\n"
+                                 f"{self.log}") from None
+
     def stop(self) -> int:
         if self.proc.poll() is None:
             if self.proc.stdin is not None:

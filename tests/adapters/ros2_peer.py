@@ -122,6 +122,17 @@ def read(msg: Any, field: str | None) -> Any:
     return to_plain(value)
 
 
+def _spin_until(executor: Any, stop: threading.Event) -> None:
+    """Spin until ``stop``; the caller joins, then shuts the executor down.
+
+    ``executor.shutdown()`` under a running ``spin()`` can destroy the guard condition while the
+    thread rebuilds its wait set; the thread then waits forever (the adapter's close() race).
+    """
+    with contextlib.suppress(ExternalShutdownException):
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+
+
 def qos(request: dict[str, Any]) -> QoSProfile:
     reliability = (
         ReliabilityPolicy.BEST_EFFORT
@@ -149,12 +160,13 @@ class Peer:
         self.endpoints: dict[int, Any] = {}
         self.bindings: dict[int, tuple[Any, str | None]] = {}
         self.next_handle = 1
+        self.stop = threading.Event()
         self.thread = threading.Thread(target=self.spin, daemon=True)
         self.thread.start()
 
     def spin(self) -> None:
-        with contextlib.suppress(ExternalShutdownException):
-            self.executor.spin()
+        """Until ``stop``; shutdown() only after the join (see ``_spin_until``)."""
+        _spin_until(self.executor, self.stop)
 
     def emit(self, obj: dict[str, Any]) -> None:
         line = json.dumps(obj)
@@ -249,8 +261,9 @@ class Peer:
                 self.emit({"id": request["id"], "ok": self.handle(request)})
             except Exception as exc:  # report to the test, keep serving
                 self.emit({"id": request["id"], "error": f"{type(exc).__name__}: {exc}"})
-        self.executor.shutdown()
+        self.stop.set()
         self.thread.join(5.0)
+        self.executor.shutdown(timeout_sec=0)
         self.node.destroy_node()
         self.context.try_shutdown()
 
@@ -305,7 +318,8 @@ def latency(rate: float, count: int, depth: int) -> None:
                              qos({"depth": depth}))
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    stop = threading.Event()
+    spinner = threading.Thread(target=_spin_until, args=(executor, stop), daemon=True)
     spinner.start()
     publisher = subprocess.Popen(
         [sys.executable, __file__, "latency-pub", "--rate", str(rate), "--count", str(count),
@@ -313,8 +327,9 @@ def latency(rate: float, count: int, depth: int) -> None:
     )
     publisher.wait(count / rate + 15.0)  # it lingers 0.2 s after its last message
     done.wait(1.0)
-    executor.shutdown()
+    stop.set()
     spinner.join(5.0)
+    executor.shutdown(timeout_sec=0)
     node.destroy_node()
     context.try_shutdown()
     us = sorted(s * 1e6 for s in samples)

@@ -22,11 +22,13 @@ Imports nothing from rlbridge. Modes:
     "last": L}`` once message LAST arrived (else after 2 s of quiet).
 ``call SERVICE``
     Call std_srvs/SetBool ``SERVICE`` (provided by an rlbridge client) with data=true, print
-    the response as JSON, exit.
+    the response as JSON, exit. Its steps go to stderr; still running after 60 s, it prints
+    every thread's stack and exits 1.
 """
 
 from __future__ import annotations
 
+import faulthandler
 import importlib
 import json
 import sys
@@ -98,34 +100,55 @@ def serve() -> None:
     node.create_publisher(String, "/reach/map", latched).publish(String(data="map v1"))
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)
-    spinner = threading.Thread(target=_spin, args=(executor,), daemon=True)
+    stop = threading.Event()
+    spinner = threading.Thread(target=_spin, args=(executor, stop), daemon=True)
     spinner.start()
     print("ready", flush=True)
     sys.stdin.read()  # until the test closes our stdin
-    executor.shutdown()
+    stop.set()
+    spinner.join(5.0)
+    executor.shutdown(timeout_sec=0)
     node.destroy_node()
     rclpy.try_shutdown()
 
 
-def _spin(executor: MultiThreadedExecutor) -> None:
+def _spin(executor: MultiThreadedExecutor, stop: threading.Event) -> None:
+    """Until ``stop``, then the caller joins and shuts down: ``executor.shutdown()`` under a
+    running spin() can leave the thread waiting forever (see the adapter's close())."""
     with contextlib.suppress(ExternalShutdownException):
-        executor.spin()
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
 
 
 def call(service: str) -> None:
+    # Where it is, for a test that waits too long: each step on stderr, and every thread's
+    # stack (then exit 1) if it is still here after CALL_STACKS_S.
+    faulthandler.dump_traceback_later(CALL_STACKS_S, exit=True)
+    _step("init")
     rclpy.init(args=[])
     node = Node("reach_caller")
     client = node.create_client(SetBool, service)
+    _step("waiting for the service")
     if not client.wait_for_service(timeout_sec=20.0):
         print(json.dumps({"error": "no service"}), flush=True)
         sys.exit(1)
+    _step("calling")
     future = client.call_async(SetBool.Request(data=True))
     rclpy.spin_until_future_complete(node, future, timeout_sec=20.0)
     result = future.result()
     print(json.dumps({"success": result.success, "message": result.message}
                      if result is not None else {"error": "no answer"}), flush=True)
+    _step("shutting down")
     node.destroy_node()
     rclpy.try_shutdown()
+    _step("done")
+
+
+CALL_STACKS_S = 60.0  # the test waits 90 s
+
+
+def _step(what: str) -> None:
+    print(f"caller {time.monotonic():.3f}: {what}", file=sys.stderr, flush=True)
 
 
 def flood(topic: str, count: int) -> None:

@@ -27,6 +27,7 @@ ros2 = pytest.importorskip(
     exc_type=ImportError,
 )
 callback_groups = pytest.importorskip("rclpy.callback_groups")
+ros2_actions = pytest.importorskip("rlbridge.adapters.ros2_actions")
 
 pytestmark = [pytest.mark.ros2, pytest.mark.timeout(60)]
 
@@ -172,3 +173,95 @@ def test_close_while_a_service_call_waits(
     assert len(outcome) == 1
     assert isinstance(outcome[0], BindingError), outcome
     assert "closed" in str(outcome[0])
+
+
+FIBONACCI = "test_msgs/action/Fibonacci"
+
+
+class _HeldGoals:
+    """What the test's action server tells: ``asked`` (a goal came), ``running`` (its execute
+    callback runs), ``finished`` (that callback returned); ``release`` lets the held one go on.
+    """
+
+    def __init__(self) -> None:
+        self.asked, self.running = threading.Event(), threading.Event()
+        self.finished, self.release = threading.Event(), threading.Event()
+
+
+def _hold_goals(provider: Any, action: str, hold_accept: bool) -> _HeldGoals:
+    """An action server on ``provider``'s node that holds a goal: its accept (then rejects
+    it), or its result (then aborts it)."""
+    rclpy_action = pytest.importorskip("rclpy.action")
+    fibonacci = __import__("test_msgs.action", fromlist=["Fibonacci"]).Fibonacci
+    held = _HeldGoals()
+
+    def on_goal(_request: Any) -> Any:
+        held.asked.set()
+        if hold_accept:
+            held.release.wait(3 * TIMEOUT)
+            return rclpy_action.GoalResponse.REJECT  # no execute task left behind
+        return rclpy_action.GoalResponse.ACCEPT
+
+    def execute(handle: Any) -> Any:
+        held.running.set()
+        held.release.wait(3 * TIMEOUT)
+        handle.abort()
+        held.finished.set()
+        return fibonacci.Result()
+
+    full = provider.full_topic_name(action)
+    rclpy_action.ActionServer(provider.node, fibonacci, full, execute, goal_callback=on_goal,
+                              callback_group=callback_groups.ReentrantCallbackGroup())
+    return held
+
+
+def test_close_while_a_goal_waits_for_its_accept(
+    make: Callable[[str], Any], unique_topic: Callable[[str], str],
+) -> None:
+    provider = make("rlbridge_close_action_server")
+    caller = make("rlbridge_close_goal_sender")
+    action = unique_topic("held_accept")
+    held = _hold_goals(provider, action, hold_accept=True)
+    outcome: list[BaseException | Any] = []
+
+    def send() -> None:
+        try:
+            outcome.append(caller.send_goal(action, FIBONACCI, {"order": 3},
+                                            lambda _f: None, lambda _s, _r: None, 3 * TIMEOUT))
+        except BaseException as exc:
+            outcome.append(exc)
+
+    worker = threading.Thread(target=send, name="test-goal")
+    worker.start()
+    try:
+        assert held.asked.wait(TIMEOUT), "the goal never reached the action server"
+        caller.close()
+        worker.join(TIMEOUT)  # close() ends the wait instead of leaving it to time out
+        assert not worker.is_alive()
+    finally:
+        held.release.set()
+    assert len(outcome) == 1
+    assert isinstance(outcome[0], BindingError), outcome
+    assert "closed" in str(outcome[0])
+
+
+def test_close_ends_a_goal_waiting_for_its_result(
+    make: Callable[[str], Any], unique_topic: Callable[[str], str],
+) -> None:
+    provider = make("rlbridge_close_action_runner")
+    caller = make("rlbridge_close_goal_waiter")
+    action = unique_topic("held_result")
+    held = _hold_goals(provider, action, hold_accept=False)
+    ended: list[tuple[int, dict[str, Any]]] = []
+    try:
+        caller.send_goal(action, FIBONACCI, {"order": 3}, lambda _f: None,
+                         lambda s, r: ended.append((s, r)), TIMEOUT)
+        assert held.running.wait(TIMEOUT), "the goal never ran"
+        assert ended == []  # accepted; the server holds the result
+        caller.close()
+        assert ended == [(ros2_actions.STATUS_CLOSED, {})]  # ended by close(), once
+    finally:
+        held.release.set()
+    # The server's execute task ends before the server's adapter closes (left unawaited, its
+    # coroutine would be an unraisable warning).
+    assert held.finished.wait(TIMEOUT)

@@ -125,7 +125,8 @@ class ServiceServer(Protocol):
 #: Called with each feedback message of a goal (a dict), on any thread.
 GoalFeedback = Callable[[dict[str, Any]], None]
 #: Called once when a goal ends: its final status (``GoalStatus``: 4 succeeded, 5 canceled,
-#: 6 aborted) and its result (a dict), on any thread.
+#: 6 aborted) and its result (a dict), on any thread; 0 (unknown) and ``{}`` when the adapter
+#: closed before the result came.
 GoalDone = Callable[[int, dict[str, Any]], None]
 
 

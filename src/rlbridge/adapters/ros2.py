@@ -238,6 +238,7 @@ class Ros2Adapter:
             self._claims.clear()
             self._services.clear()
             self._actions.clear()
+        self._actions.end_running()
         for sub in subscriptions:
             sub.stop()
         for pub in publishers:

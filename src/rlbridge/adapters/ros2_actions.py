@@ -4,6 +4,10 @@
 (discovery), sends the goal and waits until it is accepted or rejected. Feedback and the
 result come later on the executor thread, through the callbacks the server gave; one rclpy
 ``ActionClient`` per (action, type) is kept, as for service clients.
+
+Closing the adapter ends what still waits, at once: a ``send_goal`` waiting for the server or
+for the accept gets the closed adapter's ``BindingError``, and an accepted goal whose result
+has not come gets ``done(STATUS_CLOSED, {})`` (its result can no longer arrive).
 """
 
 from __future__ import annotations
@@ -13,8 +17,27 @@ import time
 from typing import Any
 
 from rlbridge.adapters.base import BindingError, GoalDone, GoalFeedback
-from rlbridge.adapters.ros2_rclpy import RclpyActionClient
+from rlbridge.adapters.ros2_rclpy import InvalidHandle, RCLError, RclpyActionClient
 from rlbridge.adapters.ros2_services import ServiceOwner, half, interface_class
+
+#: ``GoalStatus.STATUS_UNKNOWN``: the status ``done`` gets when the adapter closed first.
+STATUS_CLOSED = 0
+
+
+class _Ending:
+    """Calls a goal's ``done`` once: with its result, or with ``STATUS_CLOSED`` on close."""
+
+    def __init__(self, done: GoalDone) -> None:
+        self._done = done
+        self._lock = threading.Lock()
+        self._ended = False
+
+    def end(self, status: int, result: dict[str, Any]) -> None:
+        with self._lock:
+            if self._ended:
+                return
+            self._ended = True
+        self._done(status, result)
 
 
 class _Goal:
@@ -33,6 +56,10 @@ class Ros2Actions:
     def __init__(self, adapter: ServiceOwner) -> None:
         self._adapter = adapter
         self._clients: dict[tuple[str, str], Any] = {}
+        #: What waiting ``send_goal`` calls wait on; clear() (the adapter closing) sets them.
+        self._waiting: set[threading.Event] = set()
+        #: Accepted goals whose result has not come; clear() ends them.
+        self._running: set[_Ending] = set()
 
     def send_goal(self, action: str, action_type: str, goal: dict[str, Any],
                   feedback: GoalFeedback, done: GoalDone, timeout: float) -> _Goal:
@@ -48,27 +75,67 @@ class Ros2Actions:
             client = self._clients.get((full, name))
             if client is None:
                 client = self._clients[(full, name)] = RclpyActionClient(adapter.node, cls, full)
-        end = time.monotonic() + timeout
-        if not client.wait_for_server(timeout_sec=timeout):
-            raise BindingError("NO_SERVICE", f"no action server for '{full}' ({name}) "
-                               f"within {timeout:g} s")
         accepted = threading.Event()
-        future = client.send_goal_async(
-            message, feedback_callback=lambda m: feedback(on_feedback(m.feedback)))
-        future.add_done_callback(lambda _f: accepted.set())
-        if not accepted.wait(max(0.0, end - time.monotonic())):
-            raise BindingError("TIMEOUT", f"action server '{full}' did not accept or reject "
-                               f"the goal within {timeout:g} s")
-        handle = future.result()
-        if handle is None or not handle.accepted:
-            raise BindingError("GOAL_REJECTED", f"action server '{full}' rejected the goal")
+        ending = _Ending(done)
+        with adapter.lock:
+            adapter.check_open()
+            self._waiting.add(accepted)
+        end = time.monotonic() + timeout
+        try:
+            handle = self._accepted(client, message, accepted, end, full, timeout,
+                                    lambda m: feedback(on_feedback(m.feedback)))
+            with adapter.lock:
+                adapter.check_open()
+                self._running.add(ending)
+        except (InvalidHandle, RCLError):  # the client was destroyed with the closed adapter
+            self._check_open()
+            raise
+        finally:
+            with adapter.lock:
+                self._waiting.discard(accepted)
 
         def finished(f: Any) -> None:
+            with adapter.lock:
+                self._running.discard(ending)
             answer = f.result()
-            done(int(answer.status), on_result(answer.result))
+            ending.end(int(answer.status), on_result(answer.result))
 
         handle.get_result_async().add_done_callback(finished)
         return _Goal(handle)
 
+    def _accepted(self, client: Any, message: Any, accepted: threading.Event, end: float,
+                  full: str, timeout: float, on_feedback: Any) -> Any:
+        """Wait for the server and the accept (or the adapter closing); the goal's handle."""
+        if not client.wait_for_server(timeout_sec=timeout):
+            self._check_open()
+            raise BindingError("NO_SERVICE", f"no action server for '{full}' "
+                               f"within {timeout:g} s")
+        self._check_open()  # closed while it waited for the server
+        future = client.send_goal_async(message, feedback_callback=on_feedback)
+        future.add_done_callback(lambda _f: accepted.set())
+        if not accepted.wait(max(0.0, end - time.monotonic())):
+            raise BindingError("TIMEOUT", f"action server '{full}' did not accept or reject "
+                               f"the goal within {timeout:g} s")
+        if not future.done():  # woken by close()
+            self._check_open()
+        handle = future.result()
+        if handle is None or not handle.accepted:
+            raise BindingError("GOAL_REJECTED", f"action server '{full}' rejected the goal")
+        return handle
+
+    def _check_open(self) -> None:
+        with self._adapter.lock:
+            self._adapter.check_open()
+
     def clear(self) -> None:
+        """The adapter is closing (under its lock): forget clients, wake waiting goals."""
         self._clients.clear()
+        for accepted in self._waiting:
+            accepted.set()
+
+    def end_running(self) -> None:
+        """The adapter has closed (not under its lock): end goals whose result never came."""
+        with self._adapter.lock:
+            running, self._running = list(self._running), set()
+        for ending in running:
+            ending.end(STATUS_CLOSED, {})

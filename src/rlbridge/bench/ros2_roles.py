@@ -50,13 +50,23 @@ def _ros_node(name: str) -> Iterator[Any]:
     node = Node(name, context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, name="bench-ros-spin", daemon=True)
+    # Stopped by flag, then shut down after the join: ``executor.shutdown()`` under a running
+    # spin() can destroy the wait's guard condition while the thread rebuilds its wait set,
+    # and that thread then waits forever (the adapter's close() had the same race).
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set() and context.ok():
+            executor.spin_once(timeout_sec=0.05)
+
+    spinner = threading.Thread(target=spin, name="bench-ros-spin", daemon=True)
     spinner.start()
     try:
         yield node
     finally:
-        executor.shutdown(2.0)
+        stop.set()
         spinner.join(2.0)
+        executor.shutdown(timeout_sec=0)
         node.destroy_node()
         context.try_shutdown()
 
