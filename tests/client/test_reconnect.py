@@ -74,8 +74,7 @@ class Serve:
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self) -> Serve:
-        watchdog = () if "--timeout-ms" in self.extra else ("--timeout-ms", "5000")
-        self.proc = self.cli.popen("serve", "--port", str(self.port), *watchdog, *self.extra)
+        self.proc = self.cli.popen("serve", "--port", str(self.port), *self.extra)
         deadline = time.monotonic() + WAIT
         while True:  # ready when a session can be opened (the loop serves, not just listens)
             try:
