@@ -130,6 +130,17 @@ def lost(*bs: Bridge) -> Callable[[], bool]:
     return lambda: all(b.link_state is LinkState.LOST for b in bs)
 
 
+def lost_and_told(b: Bridge) -> Callable[[], bool]:
+    """The link is lost and the SDK has finished telling so: its events, callbacks and
+    fail-safes (the connection reports ``lost`` a moment before that fan-out ends)."""
+    def check() -> bool:
+        if b.link_state is not LinkState.LOST:
+            return False
+        with b._events._lock:  # emit holds it while it fans the change out
+            return b._events.lost
+    return check
+
+
 @pytest.mark.parametrize("how", ["kill", "terminate"])
 def test_server_restart_mid_stream_resumes_both_ways_on_tcp_and_udp(
         serve: Serve, bridges: Callable[..., Bridge], how: str) -> None:
@@ -173,7 +184,7 @@ def test_values_written_during_the_outage_follow_their_channel_policy(
     assert every.read(timeout=WAIT) == -1
 
     serve.kill()
-    wait_for(lost(b), "the link lost")
+    wait_for(lost_and_told(b), "the link lost")
     for i in range(20):
         keep.write(i)
         latest.write(i)
@@ -332,7 +343,7 @@ def test_link_events_callback_and_property_report_loss_and_return(
     assert events.read_many() == []
 
     serve.kill()
-    wait_for(lost(b), "the link lost")
+    wait_for(lost_and_told(b), "the link lost")
     down = events.read_many()
     assert [e.state for e in down][-1] is LinkState.LOST
     assert "server closed the TCP connection" in down[-1].reason or \
@@ -369,7 +380,7 @@ def test_fail_safes_hold_safe_value_and_raise_while_the_link_is_lost(
     assert strict.read(timeout=WAIT) == 3.0
 
     serve.kill()
-    wait_for(lost(sub), "the link lost")
+    wait_for(lost_and_told(sub), "the link lost")
     age = hold.age_ns
     assert hold.read() == 3.0
     wait_for(lambda: hold.age_ns > age, "the held value to age")
