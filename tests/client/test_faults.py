@@ -24,6 +24,7 @@ import pytest
 from link_helpers import WAIT, roundtrip, wait_for
 
 from rlbridge.csp.bridge import Bridge
+from rlbridge.csp.link_events import LinkEvent
 from rlbridge.csp.reconnect import Backoff, ClientState
 from rlbridge.server import ServerConfig
 from rlbridge.wire.link import LinkState
@@ -178,8 +179,13 @@ def test_cut_link_is_noticed_by_both_sides_and_the_client_resumes_when_it_return
 
         cut_at = time.monotonic_ns()
         nft.cut(port, healthy.bridge.local_ports)  # every client of the port but the healthy one
-        wait_for(lambda: victim.link_state is LinkState.LOST, "the client to notice")
-        lost = next(e for e in events.read_many() if e.state is LinkState.LOST)
+        seen: list[LinkEvent] = []
+
+        def told() -> bool:  # link_state says lost a moment before the event is written
+            seen.extend(events.read_many())
+            return any(e.state is LinkState.LOST for e in seen)
+        wait_for(lambda: victim.link_state is LinkState.LOST and told(), "the client to notice")
+        lost = next(e for e in seen if e.state is LinkState.LOST)
         client_ms = (lost.at_ns - cut_at) / 1e6
         # The victim's TCP connection is half-open on the server now: no FIN, no RST came.
         wait_for(lambda: healthy.timed_out() > timed_out, "the server's watchdog")
