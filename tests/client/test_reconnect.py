@@ -130,15 +130,12 @@ def lost(*bs: Bridge) -> Callable[[], bool]:
     return lambda: all(b.link_state is LinkState.LOST for b in bs)
 
 
-def lost_and_told(b: Bridge) -> Callable[[], bool]:
-    """The link is lost and the SDK has finished telling so: its events, callbacks and
-    fail-safes (the connection reports ``lost`` a moment before that fan-out ends)."""
-    def check() -> bool:
-        if b.link_state is not LinkState.LOST:
-            return False
-        with b._events._lock:  # emit holds it while it fans the change out
-            return b._events.lost
-    return check
+def session_over(b: Bridge) -> Callable[[], bool]:
+    """The ended session's receive thread has exited: nothing of that session is handled
+    any more, so whatever the link says now stays until the next session."""
+    thread = b._conn._thread
+    assert thread is not None
+    return lambda: not thread.is_alive()
 
 
 @pytest.mark.parametrize("how", ["kill", "terminate"])
@@ -184,7 +181,7 @@ def test_values_written_during_the_outage_follow_their_channel_policy(
     assert every.read(timeout=WAIT) == -1
 
     serve.kill()
-    wait_for(lost_and_told(b), "the link lost")
+    wait_for(lost(b), "the link lost")
     for i in range(20):
         keep.write(i)
         latest.write(i)
@@ -343,7 +340,7 @@ def test_link_events_callback_and_property_report_loss_and_return(
     assert events.read_many() == []
 
     serve.kill()
-    wait_for(lost_and_told(b), "the link lost")
+    wait_for(lost(b), "the link lost")
     down = events.read_many()
     assert [e.state for e in down][-1] is LinkState.LOST
     assert "server closed the TCP connection" in down[-1].reason or \
@@ -366,8 +363,10 @@ def test_link_events_callback_and_property_report_loss_and_return(
         events.read()  # the bridge is gone: its event channel says so
 
 
+@pytest.mark.parametrize("how", ["kill", "terminate"])
 def test_fail_safes_hold_safe_value_and_raise_while_the_link_is_lost(
-        serve: Serve, bridges: Callable[..., Bridge]) -> None:
+        serve: Serve, bridges: Callable[..., Bridge], how: str) -> None:
+    """A kill (no goodbye) and a clean shutdown (SIGTERM: the server's goodbye) alike."""
     sub, pub = bridges(name="sub"), bridges(name="pub")
     hold = sub.subscribe("/fs/hold", F64, transport="udp", initial=0.0)
     safe = sub.subscribe("/fs/safe", F64, transport="udp", initial=0.0,
@@ -379,8 +378,16 @@ def test_fail_safes_hold_safe_value_and_raise_while_the_link_is_lost(
     wait_for(lambda: hold.read() == 3.0 and safe.read() == 3.0, "the first values")
     assert strict.read(timeout=WAIT) == 3.0
 
-    serve.kill()
-    wait_for(lost_and_told(sub), "the link lost")
+    events = sub.link_events()
+    getattr(serve, how)()
+    wait_for(lost(sub), "the link lost")
+    assert safe.read() == -1.0  # the same source: lost means the fail-safes have engaged
+    # The goodbye's session has ended: nothing it still reads may report the link back up.
+    wait_for(session_over(sub), "the ended session's receive thread to exit")
+    assert sub.link_state is LinkState.LOST
+    states = [e.state for e in events.read_many()]
+    assert LinkState.LOST in states
+    assert set(states[states.index(LinkState.LOST):]) == {LinkState.LOST}  # never back up
     age = hold.age_ns
     assert hold.read() == 3.0
     wait_for(lambda: hold.age_ns > age, "the held value to age")

@@ -354,8 +354,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         self._io_priority.reapply()
         self._sender.resume()
         ack = self._conn.ack
-        self._events.emit(self._conn.link_state,
-                          f"reconnected: session {ack.session if ack else '?'}")
+        self._conn.link_restored(f"reconnected: session {ack.session if ack else '?'}")
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self) -> None:

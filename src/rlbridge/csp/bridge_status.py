@@ -28,9 +28,11 @@ class BridgeStatus:
     def link_state(self) -> LinkState:
         """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks.
 
-        ``lost`` from the end of a session until its channels are bound again.
+        ``lost`` from the end of a session until its channels are bound again. The same
+        source as the fail-safes and the link events: once this says ``lost``, they have
+        engaged and the event is in every ``link_events()`` channel.
         """
-        return LinkState.LOST if self._events.lost else self._conn.link_state
+        return self._events.last.state
 
     @property
     def state(self) -> ClientState:

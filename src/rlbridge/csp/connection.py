@@ -124,8 +124,15 @@ class Connection:
         self.services: ServiceCalls = ServiceCalls(self)
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = socket.socketpair()
-        #: The link state last reported through ``on_link_change``.
+        #: The link state of the current session (what ``on_link_change`` was last told,
+        #: unless the session is still being bound again: see :meth:`link_restored`).
         self.reported_link = LinkState.CONNECTED
+        #: Orders every report of the link: a session's end and the receive thread's
+        #: watchdog never cross, so the last report is always the true one.
+        self._link_lock = threading.RLock()
+        #: False from a reconnect's handshake until :meth:`link_restored`: the link stays
+        #: ``lost`` for control code until its channels are bound again.
+        self._link_told = True
         self._leftover: list[Packet | Malformed] = []
 
     # -- opening ---------------------------------------------------------------------------
@@ -203,6 +210,7 @@ class Connection:
             self.link = LinkMonitor(time.monotonic_ns(), ack.heartbeat_ms * 1_000_000,
                                     ack.timeout_ms * 1_000_000)
             self.reported_link = LinkState.CONNECTED
+            self._link_told = self._generation == 1
             self._session_ended = False
             self.state = ClientState.CONNECTED
             receiver = Receiver(self, self._generation, self._leftover, self._wake_r)
@@ -325,11 +333,27 @@ class Connection:
             return LinkState.LOST
         return self.reported_link
 
-    def set_link(self, state: LinkState, reason: str) -> None:
-        """Report a new link state (receive thread, or a session's end)."""
-        self.reported_link = state
-        if self.on_link_change is not None:
-            self.on_link_change(state, reason)
+    def set_link(self, state: LinkState, reason: str, generation: int) -> None:
+        """The receive thread of session ``generation`` saw the link change (watchdog).
+
+        Ignored once that session has ended: its last packets (a goodbye, say) must not
+        report ``connected`` after the end of the session reported ``lost``.
+        """
+        with self._link_lock:
+            if generation != self._generation or not self.up:
+                return
+            self.reported_link = state
+            if self._link_told and self.on_link_change is not None:
+                self.on_link_change(state, reason)
+
+    def link_restored(self, reason: str) -> None:
+        """The owner has bound the new session's channels again: tell its link state."""
+        with self._link_lock:
+            if not self.up or self._link_told:
+                return
+            self._link_told = True
+            if self.on_link_change is not None:
+                self.on_link_change(self.reported_link, reason)
 
     # -- closing ---------------------------------------------------------------------------
     def end_session(self, reason: str, generation: int, *, final: bool = False) -> None:
@@ -357,7 +381,10 @@ class Connection:
             self._state_changed.notify_all()
         log.info("session ended (%s): %s", "closed" if final else "will reconnect", reason)
         if was_up:
-            self.set_link(LinkState.LOST, reason)
+            with self._link_lock:  # after the state change: set_link now ignores the session
+                self.reported_link = LinkState.LOST
+                if self.on_link_change is not None:
+                    self.on_link_change(LinkState.LOST, reason)
         if self.on_session_end is not None:
             self.on_session_end(reason, final)
         self.requests.session_ended()

@@ -176,7 +176,7 @@ class Receiver:
         if state is not conn.reported_link:
             silent_ms = link.stats(now).silence_ns // 1_000_000
             conn.set_link(state, "heard from the server" if state is LinkState.CONNECTED
-                          else f"nothing from the server for {silent_ms} ms")
+                          else f"nothing from the server for {silent_ms} ms", generation)
         if link.heartbeat_due(now):
             hb = link.make_heartbeat(now, time.time_ns())
             # Not on a TCP connection that carried data either way since the last heartbeat
