@@ -67,7 +67,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         conn.keep_alive = self._supervisor is not None
         conn.on_values = self._on_values
         conn.on_ros_loss = self._on_ros_loss
-        conn.on_link_change = self._events.emit
+        conn.link_report.on_change = self._events.emit
         conn.on_session_end = self._on_session_end
         conn.on_credit = self._feedback.on_credit
         conn.on_loss = self._feedback.on_loss
@@ -354,7 +354,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         self._io_priority.reapply()
         self._sender.resume()
         ack = self._conn.ack
-        self._conn.link_restored(f"reconnected: session {ack.session if ack else '?'}")
+        self._conn.link_report.restored(f"reconnected: session {ack.session if ack else '?'}")
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self) -> None:
