@@ -23,6 +23,8 @@ from link_helpers import WAIT, wait_for
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
+from rlbridge.csp.errors import RealTimeWarning
+from rlbridge.csp.process import Code
 from rlbridge.csp.sender import SendLoop
 from rlbridge.server import ServerThread
 from rlbridge.wire import Batch, Bundle, Value
@@ -199,6 +201,26 @@ def test_a_channel_with_a_policy_or_tcp_makes_every_send_ring_the_thread(
     assert sender.inline_rounds == 0
     assert sender.inline_fallbacks >= 1
     wait_for(lambda: sender.rounds > rounds, "the send thread's round")
+
+
+def test_a_hard_real_time_process_never_sends_inline(pair: tuple[Bridge, Bridge]) -> None:
+    """The HRT rule holds where the SDK can see it: a process marked ``hrt`` gets the send
+    thread (and one warning), not a system call for the network in its own thread."""
+    pub, sub = pair
+    inbox = sub.subscribe("/inline/hrt", F64, transport="udp", blocking=True)
+    out = pub.publish("/inline/hrt", F64, transport="udp", through_buffer=True)
+
+    def tick() -> None:
+        out.write(5.0)
+        pub.send(inline=True)
+
+    with pytest.warns(RealTimeWarning, match="send\\(inline=True\\)"):
+        Code(tick, name="loop", hrt=True).run()
+    assert inbox.read(timeout=WAIT) == 5.0
+    assert pub._sender.inline_rounds == 0
+    tick()  # the same call outside an HRT process goes inline
+    assert inbox.read(timeout=WAIT) == 5.0
+    assert pub._sender.inline_rounds == 1
 
 
 @pytest.mark.parametrize("sealed", [False, True])

@@ -8,7 +8,9 @@ send their one datagram with a ``sendto`` that never waits (``MSG_DONTWAIT``).
 
 When. Only when every outgoing channel is plain (UDP, no policy), no incoming channel needs
 credit, the session bundles without a seal (:attr:`DatagramPacker.one_call`) and the link is
-up; otherwise the caller rings the send thread exactly as ``send()`` does.
+up; otherwise the caller rings the send thread exactly as ``send()`` does. Never from a
+process marked hard-real-time (:func:`~rlbridge.csp.process.current_process`): the rule that
+HRT code makes no system call for the network holds there, with one ``RealTimeWarning``.
 
 Safety. A round, wherever it runs, holds ``_round``: the send thread waits for it, the caller
 only *tries* it. So two rounds never overlap, the channels' rings keep one reader at a time,
@@ -24,10 +26,13 @@ from __future__ import annotations
 import logging
 import socket
 import threading
+import warnings
 
 from rlbridge.csp.connection import Connection, ConnectionClosed
+from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.csp.plain_round import take_plain
+from rlbridge.csp.process import current_process
 from rlbridge.csp.send_sources import CreditSource, OutgoingSource
 from rlbridge.wire.bundle import DatagramPacker, Part
 
@@ -62,6 +67,7 @@ class InlineRounds:
         self.inline_rounds = 0
         self.inline_fallbacks = 0
         self.inline_handoffs = 0
+        self._hrt_warned = False
 
     def _packer_for(self, conn: Connection) -> DatagramPacker | None:
         raise NotImplementedError
@@ -69,7 +75,8 @@ class InlineRounds:
     def send_inline(self) -> bool:
         """Caller's thread: run the round here if that is safe; False: it could not, ring
         the send thread (``flush``). Never waits for anything (module docstring)."""
-        if self._others or self._credits or self._paused or self._stopping or self._handoff:
+        if (self._others or self._credits or self._paused or self._stopping or self._handoff
+                or self._in_hrt()):
             self.inline_fallbacks += 1
             return False
         lock = self._round
@@ -83,6 +90,19 @@ class InlineRounds:
         if not done:
             self.inline_fallbacks += 1
         return done
+
+    def _in_hrt(self) -> bool:
+        """The caller is a hard-real-time process: no inline round (warned once)."""
+        info = current_process()
+        if info is None or not info.hrt:
+            return False
+        if not self._hrt_warned:
+            self._hrt_warned = True
+            warnings.warn(RealTimeWarning(
+                f"hard-real-time process {info.name!r} called send(inline=True): sent by the "
+                "send thread instead (HRT code makes no system call for the network)"),
+                stacklevel=4)  # _in_hrt <- send_inline <- Bridge.send <- caller
+        return True
 
     def _inline_round(self) -> bool:
         """``send_inline`` holding ``_round``: take the plain channels, send one datagram."""
