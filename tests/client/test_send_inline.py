@@ -58,6 +58,13 @@ def read_until(inbox: IncomingChannel, last: float) -> list[float]:
     return got
 
 
+def thread_done(sender: SendLoop, rounds: int) -> None:
+    """Wait until the send thread has run ``rounds`` rounds and left the last one (it holds
+    the round lock until then, and an inline ``send`` in that moment rings it instead)."""
+    wait_for(lambda: sender.rounds >= rounds and not sender._round.locked(),
+             "the send thread's round to end")
+
+
 class Recorder:
     """Every value datagram the session hands its UDP socket, decoded, in the order sent.
 
@@ -183,24 +190,48 @@ def test_two_inline_callers_and_paced_rounds_never_overlap(server: ServerThread)
     {"redundancy": 1},
     {"max_age_ms": 1000},
 ])
-def test_a_channel_with_a_policy_or_tcp_makes_every_send_ring_the_thread(
+def test_a_channel_with_a_policy_or_tcp_goes_through_the_thread(
         pair: tuple[Bridge, Bridge], options: dict[str, Any]) -> None:
+    """The plain channel goes inline; the other one is the send thread's, which is rung only
+    when that channel has something to send."""
     pub, sub = pair
     transport = options.get("transport", "udp")
     inbox = sub.subscribe("/inline/policy", F64, transport=transport, blocking=True,
                           buffer_size=64)
+    plain_inbox = sub.subscribe("/inline/plain", F64, transport="udp", blocking=True)
     plain = pub.publish("/inline/plain", F64, transport="udp", through_buffer=True)
     other = pub.publish("/inline/policy", F64, through_buffer=True,
                         **{"transport": "udp", **options})
     sender = pub._sender
-    rounds = sender.rounds
+    arrived(plain, plain_inbox, pub)
+    rounds, fallbacks = sender.rounds, sender.inline_fallbacks
+    assert fallbacks == 0  # nothing waited in the other channel: the thread slept
+    assert rounds == 0
     other.write(7.0)
     plain.write(1.0)
     pub.send(inline=True)
+    assert plain_inbox.read(timeout=WAIT) == 1.0
     assert inbox.read(timeout=WAIT) == 7.0
-    assert sender.inline_rounds == 0
-    assert sender.inline_fallbacks >= 1
+    assert sender.inline_fallbacks == fallbacks + 1
     wait_for(lambda: sender.rounds > rounds, "the send thread's round")
+
+
+def test_flow_controlled_incoming_channels_do_not_stop_inline_rounds(
+        pair: tuple[Bridge, Bridge]) -> None:
+    """Credit is granted by the send thread when a reader consumed enough (its read rings
+    the thread): an inline round neither needs it nor keeps it from happening."""
+    pub, sub = pair
+    status = pub.subscribe("/inline/status", "std_msgs/msg/String", transport="tcp",
+                           blocking=True, buffer_size=4)  # flow control on by default
+    writer = sub.publish("/inline/status", "std_msgs/msg/String", transport="tcp")
+    inbox = sub.subscribe("/inline/withflow", F64, transport="udp", blocking=True)
+    out = pub.publish("/inline/withflow", F64, transport="udp", through_buffer=True)
+    arrived(out, inbox, pub)
+    assert pub._sender.inline_rounds >= 1
+    assert pub._sender.inline_fallbacks == 0
+    for i in range(12):  # three times the buffer: only credit lets them all through
+        writer.write(f"s{i}")
+        assert status.read(timeout=WAIT) == f"s{i}"
 
 
 def test_a_hard_real_time_process_never_sends_inline(pair: tuple[Bridge, Bridge]) -> None:
@@ -218,6 +249,7 @@ def test_a_hard_real_time_process_never_sends_inline(pair: tuple[Bridge, Bridge]
         Code(tick, name="loop", hrt=True).run()
     assert inbox.read(timeout=WAIT) == 5.0
     assert pub._sender.inline_rounds == 0
+    thread_done(pub._sender, 1)
     tick()  # the same call outside an HRT process goes inline
     assert inbox.read(timeout=WAIT) == 5.0
     assert pub._sender.inline_rounds == 1
@@ -260,7 +292,7 @@ def test_a_round_larger_than_a_datagram_is_handed_to_the_thread_in_order(
     assert got == big
     assert sender.inline_handoffs == 1
     assert sender.inline_rounds == 0
-    wait_for(lambda: sender.rounds >= 1, "the send thread's round")
+    thread_done(sender, 1)
     out.write("small")  # the next round fits: inline again
     pub.send(inline=True)
     assert inbox.read(timeout=WAIT) == "small"

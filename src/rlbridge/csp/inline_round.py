@@ -6,9 +6,12 @@ tens of microseconds on a VM. A caller that may make a network system call (SRT 
 HRT loop: docs/concepts.md, "Sending") can do the round itself: take the plain channels and
 send their one datagram with a ``sendto`` that never waits (``MSG_DONTWAIT``).
 
-When. Only when every outgoing channel is plain (UDP, no policy), no incoming channel needs
-credit, the session bundles without a seal (:attr:`DatagramPacker.one_call`) and the link is
-up; otherwise the caller rings the send thread exactly as ``send()`` does. Never from a
+When. The plain channels (UDP, no policy) go inline when the session bundles without a seal
+(:attr:`DatagramPacker.one_call`) and the link is up; otherwise the caller rings the send
+thread exactly as ``send()`` does. Channels with a policy or on TCP stay the send thread's:
+when one of them has something to send, the caller rings the thread for it after its own
+datagram (so such a round leaves as two datagrams, not one). Credit for flow-controlled
+incoming channels is the thread's business either way (their reader rings it). Never from a
 process marked hard-real-time (:func:`~rlbridge.csp.process.current_process`): the rule that
 HRT code makes no system call for the network holds there, with one ``RealTimeWarning``.
 
@@ -33,7 +36,7 @@ from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.csp.plain_round import take_plain
 from rlbridge.csp.process import current_process
-from rlbridge.csp.send_sources import CreditSource, OutgoingSource
+from rlbridge.csp.send_sources import OutgoingSource
 from rlbridge.wire.bundle import DatagramPacker, Part
 
 log = logging.getLogger("rlbridge.client")
@@ -47,7 +50,6 @@ class InlineRounds:
     _conn: Connection
     _others: tuple[OutgoingSource, ...]
     _plain: tuple[OutgoingChannel, ...]
-    _credits: tuple[CreditSource, ...]
     _parts: list[Part]
     _max_batch: int
     _paused: bool
@@ -75,8 +77,7 @@ class InlineRounds:
     def send_inline(self) -> bool:
         """Caller's thread: run the round here if that is safe; False: it could not, ring
         the send thread (``flush``). Never waits for anything (module docstring)."""
-        if (self._others or self._credits or self._paused or self._stopping or self._handoff
-                or self._in_hrt()):
+        if self._paused or self._stopping or self._handoff or self._in_hrt():
             self.inline_fallbacks += 1
             return False
         lock = self._round
@@ -109,32 +110,37 @@ class InlineRounds:
         packer = self._packer_for(self._conn)
         # Checked again under the lock: a source added, a round handed over meanwhile.
         if (packer is None or not packer.one_call or packer.pending or self._handoff
-                or self._others or self._paused):
+                or self._paused):
             return False
         parts = self._parts
         if parts:  # left by a round that failed before it sent them (as in _send_pending)
             parts.clear()
         taken = take_plain(self._plain, parts, self._max_batch)
         if not parts:
-            return True
+            return not self._others_waiting()
         self.values_sent += taken
         try:
             if packer.send_parts(parts, self._send_nowait):
                 self.packets_sent += len(parts)
                 self.inline_rounds += 1
                 parts.clear()
-                return True
+                return not self._others_waiting()
         except BlockingIOError:  # the socket buffer is full: the send thread may wait, not us
             pass
         except (OSError, ConnectionClosed) as exc:  # as the thread: this round is lost, counted
             parts.clear()
             self.send_errors += 1
             log.warning("send failed: %s", exc)
-            return True
+            return not self._others_waiting()
         self._handoff = (packer, parts[:])  # more than a datagram, or EAGAIN: the thread's
         parts.clear()
         self.inline_handoffs += 1
         return False
+
+    def _others_waiting(self) -> bool:
+        """A channel with a policy, or on TCP, has something for a round: the thread's."""
+        others = self._others
+        return bool(others) and any(s.pending() or s.holding or s.deferred for s in others)
 
     def _send_nowait(self, data: bytes) -> None:
         self._conn.send_udp(data, _DONTWAIT)
