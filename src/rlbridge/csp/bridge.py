@@ -262,16 +262,17 @@ class Bridge(BridgeStatus, ServiceMethods):
         self._sender.add(channel)
         return channel
 
-    def send(self, wait: bool = False) -> None:
+    def send(self, wait: bool = False, *, inline: bool = False) -> None:
         """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``.
 
-        ``wait=True`` returns once the send thread has handed them to the sockets, and no
-        value waits for credit or a rate limit any more (at most 5 s): what each form costs
-        and promises is in docs/concepts.md.
+        ``wait=True`` returns once the send thread has handed them to the sockets, and no value
+        waits for credit or a rate limit any more (at most 5 s). ``inline=True`` (SRT code only):
+        this thread sends a plain UDP round itself when it can. Costs, promises: docs/concepts.md.
         """
         if self._conn.closed.is_set():
             raise ConnectionClosed(f"bridge is closed: {self._conn.close_reason}")
-        self._sender.flush(wait=wait)
+        if not (inline and self._sender.send_inline()):  # inline: in the kernel already
+            self._sender.flush(wait=wait)
 
     def unsubscribe(self, channel: IncomingChannel | OutgoingChannel) -> None:
         """Unbind one channel on the server and close it here."""

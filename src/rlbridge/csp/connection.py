@@ -264,12 +264,12 @@ class Connection:
             self.send_tcp(b"")
         return plain
 
-    def send_udp(self, data: bytes) -> None:
+    def send_udp(self, data: bytes, flags: int = 0) -> None:
         udp = self.udp
         if udp is None:
             raise ConnectionClosed("this session has no UDP socket")
         try:  # noqa: SIM105 (suppress() costs two Python calls, and this runs every round)
-            udp.send(data)
+            udp.send(data, flags)  # flags: MSG_DONTWAIT for send(inline=True)
         except ConnectionRefusedError:  # ICMP unreachable from an earlier one: the watchdog
             pass
 
