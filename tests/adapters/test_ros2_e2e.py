@@ -25,14 +25,14 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 import pytest
+from ros_peers import env_for
 
-from conftest import env_for
 from localhost import rlbridge_command
 from rlbridge.csp.bridge import Bridge
 from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
 
 if TYPE_CHECKING:
-    from conftest import PeerProcess
+    from ros_peers import PeerProcess
 
 pytestmark = [pytest.mark.ros2, pytest.mark.timeout(90)]
 

@@ -27,7 +27,7 @@ from contract import Collector
 from rlbridge.adapters.base import BindingError, QoS
 
 if TYPE_CHECKING:
-    from conftest import PeerProcess
+    from ros_peers import PeerProcess
 
 ros2 = pytest.importorskip(
     "rlbridge.adapters.ros2",
