@@ -8,15 +8,16 @@ One ``ServerThread`` (tree B) for the whole run. Each run starts a subscriber an
 process with ``PYTHONPATH`` set to one tree: the publisher writes ``time.time_ns()`` at 1 kHz
 on a UDP channel (``Bridge.connect(idle=...)``), the subscriber blocks in ``read`` and takes
 ``time.time_ns()`` minus the value; the first 50 are dropped. A and B alternate, so a change in
-the machine's load hits both alike; prints every run's p50 and p90, the medians and B/A.
+the machine's load hits both alike; prints every run's p50 and p90, the medians of p50 and B/A
+(``benchmarks/ab.py``).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
@@ -84,26 +85,28 @@ def main() -> None:
     parser.add_argument("--idle", default="park")
     args = parser.parse_args()
     trees = {"A": os.path.abspath(args.a), "B": os.path.abspath(args.b)}
+    if not __package__:  # run as a file: the checkout's root makes `benchmarks` importable
+        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from benchmarks.ab import interleave
+
     server = subprocess.Popen([sys.executable, "-c", SERVER], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True,
                               env={**os.environ, "PYTHONPATH": trees["B"]})
     assert server.stdout is not None
     assert server.stdin is not None
     port = int(server.stdout.readline())
-    p50: dict[str, list[float]] = {"A": [], "B": []}
+    runs = itertools.count()
+
+    def run(tree: str) -> tuple[float, str]:
+        got = one(tree, port, f"/ab_{next(runs)}", args.values, args.idle)
+        return got["p50"], f"p90 {got['p90']:9.1f} us  load {os.getloadavg()[0]:.1f}"
+
     try:
-        for rep in range(args.repeats):
-            for side in ("AB" if rep % 2 == 0 else "BA"):
-                got = one(trees[side], port, f"/ab_{rep}_{side}", args.values, args.idle)
-                p50[side].append(got["p50"])
-                print(f"{rep + 1} {side} p50 {got['p50']:8.1f} us  p90 {got['p90']:9.1f} us  "
-                      f"load {os.getloadavg()[0]:.1f}", flush=True)
+        print(f"idle={args.idle}, {args.repeats} runs each, {time.strftime('%Y-%m-%d %H:%M')}")
+        interleave(run, trees["A"], trees["B"], args.repeats, digits=1, unit="us p50")
     finally:
         server.stdin.close()
         server.wait(10)
-    a, b = statistics.median(p50["A"]), statistics.median(p50["B"])
-    print(f"median p50: A {a:.1f} us, B {b:.1f} us, B/A {b / a:.2f} (idle={args.idle}, "
-          f"{args.repeats} runs each, {time.strftime('%Y-%m-%d %H:%M')})")
 
 
 if __name__ == "__main__":

@@ -19,11 +19,9 @@ import argparse
 import os
 import selectors
 import socket
-import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 from rlbridge.bench.load_raw import _RawSession
@@ -116,27 +114,15 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=4.0)
     args = parser.parse_args()
 
+    if not __package__:  # run as a file: the checkout's root makes `benchmarks` importable
+        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from benchmarks.ab import interleave
+
     def run(tree: str) -> tuple[float, str]:
         us, sys_us, delivered = measure(tree, args)
         return us, f"(system {sys_us:5.1f})  delivered {delivered:.3f}"
 
     interleave(run, args.a, args.b, args.repeats, digits=1)
-
-
-def interleave(run: Callable[[str], tuple[float, str]], a: str, b: str, repeats: int,
-               digits: int) -> None:
-    """``run`` each tree ``repeats`` times, A and B alternating (ABBA...): every run as it
-    ends (µs per value and ``run``'s detail), then the medians and B/A."""
-    results: dict[str, list[float]] = {"A": [], "B": []}
-    for i in range(repeats):
-        for name in ("A", "B") if i % 2 == 0 else ("B", "A"):
-            us, detail = run(a if name == "A" else b)
-            results[name].append(us)
-            print(f"{name} {us:6.{digits}f} µs/value {detail}", flush=True)
-    med = {k: statistics.median(v) for k, v in results.items()}
-    for k, v in results.items():
-        print(f"{k} median {med[k]:.{digits}f} µs/value  runs {[round(x, digits) for x in v]}")
-    print(f"B/A {med['B'] / med['A']:.2f}  load average {os.getloadavg()}")
 
 
 if __name__ == "__main__":

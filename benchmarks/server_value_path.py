@@ -140,7 +140,7 @@ def main() -> None:
         parser.error("--a and --b are required")
     if not __package__:  # run as a file: the checkout's root makes `benchmarks` importable
         sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    from benchmarks.server_path_ab import interleave
+    from benchmarks.ab import interleave
 
     def run(tree: str) -> tuple[float, str]:
         us, out, datagrams = measure(tree, args)

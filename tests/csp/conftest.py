@@ -1,8 +1,14 @@
-"""Fixtures of the coupling-pattern tests: one live server per module, two bridges."""
+"""Fixtures of the CSP tests: for the coupling patterns one live server per module and two
+bridges; for the thread tests ``frequent_switches``.
+
+Helpers that tests import live in ``pattern_support.py``, never here (tests never import
+``conftest``: tests/architecture/test_test_imports.py).
+"""
 
 from __future__ import annotations
 
 import itertools
+import sys
 from collections.abc import Iterator
 
 import pytest
@@ -36,3 +42,14 @@ def peer(port: int) -> Iterator[Bridge]:
     """The middleware side: publishes set-points, subscribes to outputs."""
     with Bridge.connect("127.0.0.1", port, nodelay=True, name="test-peer") as bridge:
         yield bridge
+
+
+@pytest.fixture
+def frequent_switches() -> Iterator[None]:
+    """Ask for a GIL hand-off every microsecond so that operations really interleave."""
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(old)

@@ -1,4 +1,5 @@
-"""Bounded waits and readers shared by the coupling-pattern tests (both layouts)."""
+"""Bounded waits and readers shared by the CSP tests (the coupling patterns, both layouts;
+the channel and doorbell tests wait with :func:`wait_until`)."""
 
 from __future__ import annotations
 

@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import contextlib
-import sys
 import threading
-import time
 import tracemalloc
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from itertools import pairwise
 from typing import Any, overload
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pattern_support import wait_until
 
 from rlbridge.csp.channel import Channel, Doorbell
 from rlbridge.csp.errors import (
@@ -27,15 +26,6 @@ from rlbridge.csp.errors import (
 from rlbridge.csp.process import Code
 
 JOIN = 10.0  # generous bound for joins and waits; only reached when a test fails
-
-
-def wait_until(predicate: Callable[[], bool], what: str) -> None:
-    """Wait for a state that has no event to wait on (a thread being blocked in a call)."""
-    deadline = time.monotonic() + JOIN
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting until {what}")
-        time.sleep(0.001)
 
 
 class Background:
@@ -451,16 +441,6 @@ def _feed(chan: Channel[int], values: list[int]) -> None:
 
 
 # -- threads: no lost wake-up ----------------------------------------------------------------
-
-
-@pytest.fixture
-def frequent_switches() -> Iterator[None]:
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)
-    try:
-        yield
-    finally:
-        sys.setswitchinterval(old)
 
 
 @pytest.mark.usefixtures("frequent_switches")

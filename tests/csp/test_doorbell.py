@@ -3,24 +3,15 @@
 from __future__ import annotations
 
 import threading
-import time
-from collections.abc import Callable
 
 import pytest
+from pattern_support import wait_until
 
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.doorbell import Doorbell
 from rlbridge.csp.idle import BusySpin, SpinThenPark
 
 JOIN = 10.0  # generous bound for joins and waits; only reached when a test fails
-
-
-def wait_until(predicate: Callable[[], bool], what: str) -> None:
-    deadline = time.monotonic() + JOIN
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting until {what}")
-        time.sleep(0.001)
 
 
 class CountingBell(Doorbell):
@@ -84,9 +75,14 @@ def test_a_ring_that_finds_the_predicate_false_parks_the_waiter_again() -> None:
     assert got == [True]
 
 
-def test_a_blocked_reader_is_woken_by_a_write_with_one_ring() -> None:
+@pytest.mark.parametrize("idle", [None, SpinThenPark(spin_us=0, yield_us=0)],
+                         ids=["parked", "spun-then-parked"])
+def test_a_parked_reader_is_woken_by_a_write_with_one_ring(idle: SpinThenPark | None) -> None:
+    """A reader that parks (at once, or after its spin window) is woken by the write's ring."""
     bell = CountingBell()
     chan: Channel[int] = Channel(4, doorbell=bell)
+    if idle is not None:
+        chan.read_idle = idle
     got: list[int] = []
     t = threading.Thread(target=lambda: got.append(chan.read(timeout=JOIN)))
     t.start()
@@ -112,20 +108,6 @@ def test_a_spinning_reader_takes_the_value_without_a_ring(
     assert got == [7]
     assert bell.rings == 0  # it polled, never parked: the write had nobody to wake
     assert bell.waiting == 0
-
-
-def test_a_spinning_reader_parks_after_its_window_and_is_rung() -> None:
-    bell = CountingBell()
-    chan: Channel[int] = Channel(4, doorbell=bell)
-    chan.read_idle = SpinThenPark(spin_us=0, yield_us=0)
-    got: list[int] = []
-    t = threading.Thread(target=lambda: got.append(chan.read(timeout=JOIN)))
-    t.start()
-    wait_until(lambda: len(bell._gates) == 1, "the reader is parked")
-    chan.write(7)
-    t.join(JOIN)
-    assert got == [7]
-    assert bell.rings == 1
 
 
 def test_a_spinning_read_times_out() -> None:

@@ -7,7 +7,7 @@ import threading
 import time
 import tracemalloc
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from itertools import pairwise
 from types import FrameType
 from typing import Any
@@ -219,17 +219,6 @@ def test_capacity_one_overwrite_race() -> None:
 
 
 # -- real threads -------------------------------------------------------------------------
-
-
-@pytest.fixture
-def frequent_switches() -> Iterator[None]:
-    """Ask for a GIL hand-off every microsecond so that operations really interleave."""
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)
-    try:
-        yield
-    finally:
-        sys.setswitchinterval(old)
 
 
 def _switch_anywhere(frame: FrameType, event: str, arg: object) -> Any:

@@ -105,7 +105,8 @@ def as_tuple(packet: Value | Batch) -> tuple[Any, ...]:
 def test_a_round_in_one_call_is_byte_for_byte_the_bundle_of_its_parts(
         packets: list[Value | Batch], budget: int, tuples: bool) -> None:
     """``send_parts`` (one msgspec call) sends exactly the datagram of ``Bundle(parts)`` (of
-    the part itself when alone) when it fits ``budget``; otherwise it sends nothing."""
+    the part itself when alone) when ``add`` would make that one datagram; otherwise it sends
+    nothing (and ``add`` makes several)."""
     codec = PacketCodec()
     out: list[bytes] = []
     packer = DatagramPacker(codec, TOKEN, budget, out.append, limit=65507, flags=FLAG_BUNDLES)
@@ -113,12 +114,41 @@ def test_a_round_in_one_call_is_byte_for_byte_the_bundle_of_its_parts(
     expected = codec.encode_datagram(packets[0] if len(packets) == 1 else Bundle(packets),
                                      TOKEN, FLAG_BUNDLES)
     if packer.send_parts(round_):
-        assert out == [expected]
+        assert out == [expected] == one_by_one(packets, budget)
         assert (packer.datagrams, packer.bundles_sent) == (1, int(len(packets) > 1))
     else:
-        assert len(expected) > budget
+        assert len(one_by_one(packets, budget)) > 1
         assert (out, packer.datagrams) == ([], 0)
     assert round_ == [as_tuple(p) if tuples else p for p in packets]  # parts untouched
+
+
+def one_by_one(packets: list[Value | Batch], budget: int) -> list[bytes]:
+    """The datagrams ``add`` and ``flush`` make of one round."""
+    out: list[bytes] = []
+    packer = DatagramPacker(PacketCodec(), TOKEN, budget, out.append, limit=65507,
+                            flags=FLAG_BUNDLES)
+    for p in packets:
+        assert packer.add(p) == 0
+    packer.flush()
+    return out
+
+
+@pytest.mark.parametrize("n", [2, 15, 16, 40])
+def test_a_round_in_one_call_reserves_what_add_reserves(n: int) -> None:
+    """``add`` reserves an array16 header for a bundle; a fixarray (< 16 parts) is two bytes
+    shorter. A round that fits only by those two bytes goes as ``add`` sends it: split."""
+    packets: list[Value | Batch] = [Value(c, 1, 2, float(c)) for c in range(n)]
+    size = len(PacketCodec().encode_datagram(Bundle(packets), TOKEN, FLAG_BUNDLES))
+    spare = 2 if n < 16 else 0
+    for budget in range(size - 1, size + spare + 2):
+        out: list[bytes] = []
+        packer = DatagramPacker(PacketCodec(), TOKEN, budget, out.append, flags=FLAG_BUNDLES)
+        sent = packer.send_parts([as_tuple(p) for p in packets])
+        assert sent == (budget >= size + spare)
+        expected = one_by_one(packets, budget)
+        assert len(expected) == (1 if sent else 2)
+        if sent:
+            assert out == expected
 
 
 def test_a_round_in_one_call_needs_a_plain_codec_that_bundles() -> None:

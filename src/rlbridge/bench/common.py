@@ -44,6 +44,7 @@ from rlbridge.bench.workers import (
     ProcessGroup,
     Worker,
     cpu_seconds,
+    rlbridge_flow,
     run_flow,
     start_server,
 )
@@ -52,6 +53,7 @@ __all__ = [
     "CLK_TCK", "ROLES", "STARTUP_S", "WORKER_MODULES", "BenchError", "Control", "Flow", "Link",
     "LoopbackLink", "Params", "ProcessGroup", "Role", "Side", "Skipped", "Tally", "Worker",
     "cpu_model", "cpu_seconds", "emit", "flood", "fmt", "hold", "machine_info", "markdown_table",
-    "median", "paced", "percentile", "progress", "ratio", "report_header", "run_flow",
+    "median", "paced", "percentile", "progress", "ratio", "report_header", "rlbridge_flow",
+    "run_flow",
     "select_cases", "server_role", "start_server", "wait_for_go", "worker_main", "write_section",
 ]

@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 
 from rlbridge.bench import baselines
 from rlbridge.bench.common import (
-    STARTUP_S,
     BenchError,
     Control,
     Link,
@@ -48,9 +47,9 @@ from rlbridge.bench.common import (
     percentile,
     ratio,
     report_header,
+    rlbridge_flow,
     run_flow,
     select_cases,
-    start_server,
     wait_for_go,
 )
 
@@ -74,8 +73,10 @@ class Case:
     inline: bool = False
 
 
+#: The floor every row is compared with (``latency --stages`` runs it too).
+RAW_UDP = Case("udp", "raw UDP socket, 1 hop", "udp")
 CASES = (
-    Case("udp", "raw UDP socket, 1 hop", "udp"),
+    RAW_UDP,
     Case("zmq", "ZeroMQ PUB/SUB tcp, 1 hop", "zmq"),
     Case("rlb-udp", "rlbridge UDP", "rlbridge", "udp"),
     Case("rlb-udp-inline", "rlbridge UDP, send(inline=True)", "rlbridge", "udp", inline=True),
@@ -214,21 +215,16 @@ def _summary(received: Params, sent: int) -> Measurement:
 
 
 def _rlbridge_once(group: ProcessGroup, case: Case, stream: Params) -> Measurement:
-    server, host, port = start_server(group, nodelay=case.nodelay)
-    common: Params = {"host": host, "port": port, "transport": case.transport,
-                      "nodelay": case.nodelay, "inline": case.inline, **stream}
+    params: Params = {"transport": case.transport, "nodelay": case.nodelay,
+                      "inline": case.inline, **stream}
     if stream.get("idle_rows"):
-        common["idle"] = case.idle
-    sub = group.start("subscriber", "b", MODULE, "subscriber", common)
-    pub = group.start("publisher", "b", MODULE, "publisher", common)
-    for worker in (sub, pub):  # started together; the publisher waits for "go" anyway
-        worker.expect("ready", STARTUP_S)
-    flow = run_flow(pub, sub, [pub, server, sub], _timeout(stream))
+        params["idle"] = case.idle
+    flow = rlbridge_flow(group, MODULE, params, _timeout(stream), nodelay=case.nodelay)
     m = _summary(flow.received, int(flow.sent["sent"]))
     span = float(flow.sent["t_end"]) - float(flow.sent["t_start"])
     if span > 0 and stream.get("idle_rows"):
         m.cpu_pub, m.cpu_server, m.cpu_sub = (
-            100 * flow.cpu_s[w.name] / span for w in (pub, server, sub))
+            100 * flow.cpu_s[name] / span for name in ("publisher", "server", "subscriber"))
     m.loop_late_p99 = float(flow.sent.get("late_p99_us", math.nan))
     return m
 

@@ -25,9 +25,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from rlbridge.bench import baselines
+from rlbridge.bench import latency
 from rlbridge.bench.common import (
-    STARTUP_S,
     BenchError,
     Control,
     Link,
@@ -43,8 +42,7 @@ from rlbridge.bench.common import (
     paced,
     percentile,
     report_header,
-    run_flow,
-    start_server,
+    rlbridge_flow,
     wait_for_go,
 )
 from rlbridge.bench.latency import MSG_TYPE, TOPIC, WARMUP, idle_param
@@ -228,13 +226,7 @@ def measure(link: Link, idle: str, rate_hz: float, count: int) -> StageRun:
     timeout = count / rate_hz + 30.0
     with ProcessGroup(link, lifetime_s=timeout + 120) as group:
         try:
-            server, host, port = start_server(group)
-            common: Params = {"host": host, "port": port, **stream}
-            sub = group.start("subscriber", "b", MODULE, "subscriber", common)
-            pub = group.start("publisher", "b", MODULE, "publisher", common)
-            for worker in (sub, pub):
-                worker.expect("ready", STARTUP_S)
-            flow = run_flow(pub, sub, [pub, server, sub], timeout)
+            flow = rlbridge_flow(group, MODULE, stream, timeout)
         except BenchError as exc:
             raise BenchError(f"{exc}{group.diagnostics()}") from None
     return _stage_p50s(flow.sent["records"], flow.received["records"], flow.received["reads"])
@@ -242,12 +234,7 @@ def measure(link: Link, idle: str, rate_hz: float, count: int) -> StageRun:
 
 def raw_udp_p50(link: Link, rate_hz: float, count: int) -> float:
     """The raw UDP pair's p50 (us) of a run in the same series: the unit of the targets."""
-    stream: Params = {"rate_hz": rate_hz, "count": count, "idle_s": 0.5, "mode": "paced"}
-    with ProcessGroup(link, lifetime_s=count / rate_hz + 150) as group:
-        tx, rx = baselines.spawn_pair(group, "udp", stream)
-        flow = run_flow(tx, rx, [tx, rx], count / rate_hz + 30.0)
-    kept = sorted(s / 1000.0 for s in flow.received["samples"][WARMUP:])
-    return percentile(kept, 50)
+    return latency.measure(link, latency.RAW_UDP, rate_hz=rate_hz, count=count).p50
 
 
 @dataclass

@@ -251,3 +251,17 @@ def run_flow(sender: Worker, receiver: Worker, measured: Sequence[Worker], timeo
     received = receiver.expect("result", timeout)
     cpu = {w.name: w.cpu_since_mark() for w in measured}
     return Flow(sent, received, cpu)
+
+
+def rlbridge_flow(group: ProcessGroup, module: str, params: Params, timeout: float,
+                  **server_config: Any) -> Flow:
+    """One stream through a server: the ``publisher`` and ``subscriber`` roles of ``module``
+    (``bench latency``'s, or the probed ones of ``latency --stages``) on side ``"b"``, the
+    server on side ``"a"``; CPU of the processes ``publisher``, ``server`` and ``subscriber``."""
+    server, host, port = start_server(group, **server_config)
+    common: Params = {"host": host, "port": port, **params}
+    sub = group.start("subscriber", "b", module, "subscriber", common)
+    pub = group.start("publisher", "b", module, "publisher", common)
+    for worker in (sub, pub):  # started together; the publisher waits for "go" anyway
+        worker.expect("ready", STARTUP_S)
+    return run_flow(pub, sub, [pub, server, sub], timeout)

@@ -26,8 +26,8 @@ from typing import Protocol
 import msgspec
 
 from rlbridge.tcpstate import congested
-from rlbridge.wire import PROTOCOL_VERSION, Batch, Bundle, Packet, PacketCodec, Value
-from rlbridge.wire.bundle import BUNDLE_OVERHEAD, MAX_PARTS, DatagramPacker
+from rlbridge.wire import PROTOCOL_VERSION, Batch, Packet, PacketCodec, Value
+from rlbridge.wire.bundle import DatagramPacker
 from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC
 
 #: PacketCodec's encoder settings (msgspec defaults); tests/server check the bytes match.
@@ -125,9 +125,10 @@ class UdpSink:
 
     Without keys, the common corked value (one number: it cannot be too large) is not even
     encoded when it is sent: the iteration's values are kept as they are and encoded as one
-    ``Bundle`` at the flush, one msgspec call for all of them; the bytes are those the packer
-    would have made. Only if that bundle would not fit one datagram do they go through the
-    packer one by one, as any other value does.
+    ``Bundle`` at the flush, one msgspec call for all of them (the packer's ``send_parts``, as
+    the SDK's send round does); the bytes are those the packer would have made. Only if that
+    bundle would not fit one datagram do they go through the packer one by one, as any other
+    value does.
     """
 
     def __init__(
@@ -153,12 +154,11 @@ class UdpSink:
         #: A flush is scheduled for the end of this loop iteration.
         self._corked = False
         #: Corked scalar values not yet encoded (they come before anything in the packer).
-        self._values: list[Value | Batch] = []  # Values only; typed as Bundle takes them
+        self._values: list[Value] = []
         #: Numbers may wait unencoded: corked values, a plain codec (``bundles`` sets it).
         self._defer = False
         #: A value went to the packer this iteration: later numbers follow it there (order).
         self._packed = False
-        self._budget = max_payload
         self._dropped = 0
         self.bytes_out = 0
 
@@ -235,19 +235,9 @@ class UdpSink:
             self._values = []
             self._dropped += len(values) + self._packer.discard()
             return
-        if len(values) > 1:
-            # One encode for all: ``92 20`` + the parts' array header + the parts, the bytes
-            # the packer joins; sent whole if the packer would not have split it.
-            body = _ENCODE(Bundle(values))
-            parts = len(body) - (3 if len(values) < 16 else 5)
-            if (DATAGRAM_HEADER.size + BUNDLE_OVERHEAD + parts <= self._budget
-                    and len(values) <= MAX_PARTS):
-                assert self._header is not None  # only a plain codec's values wait here
-                self._values = []
-                self._packer.datagrams += 1
-                self._packer.bundles_sent += 1
-                self._sendto(self._header + body)
-                return
+        if values and self._packer.send_parts(values):  # one encode for all, if one datagram
+            self._values = []
+            return
         self._spill()
         self._packer.flush()
 
