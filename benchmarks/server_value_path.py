@@ -125,22 +125,21 @@ def measure(tree: str, args: argparse.Namespace) -> tuple[float, int, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--a", help="src/ directory of the baseline")
-    parser.add_argument("--b", help="src/ directory of the candidate")
-    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--channels", type=int, default=10)
     parser.add_argument("--bundles", type=int, default=20000)
     parser.add_argument("--single", action="store_true", help="one Value per datagram")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    if not __package__:  # run as a file: the checkout's root makes `benchmarks` importable
+        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from benchmarks.ab import interleave, tree_arguments
+
+    tree_arguments(parser, repeats=5)
     args = parser.parse_args()
     if args.child:
         child(args)
         return
     if not args.a or not args.b:
         parser.error("--a and --b are required")
-    if not __package__:  # run as a file: the checkout's root makes `benchmarks` importable
-        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    from benchmarks.ab import interleave
 
     def run(tree: str) -> tuple[float, str]:
         us, out, datagrams = measure(tree, args)

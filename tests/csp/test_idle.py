@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import threading
+import time
+from collections.abc import Callable
+from typing import TypeVar
+
 import pytest
+from pattern_support import wait_until
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.idle import BusySpin, Park, SpinThenPark, idle_pair, idle_strategy
 from rlbridge.server import ServerThread
+
+T = TypeVar("T")
 
 
 class Counting:
@@ -92,3 +100,79 @@ def test_bridge_blocking_reads_wait_by_the_receive_strategy(server: ServerThread
         inbox = b.subscribe("/idle_rd", "std_msgs/msg/Int64", transport="udp", blocking=True,
                             buffer_size=64)
         assert inbox.read_idle.name == "busy"
+
+
+class Recording:
+    """A receive-thread strategy that parks, counting the waits the thread asks it for."""
+
+    name = "recording"
+
+    def __init__(self) -> None:
+        self.waits = 0
+
+    def idle(self, poll: Callable[[], T], block: Callable[[float | None], T],
+             timeout: float | None) -> T:
+        self.waits += 1
+        return block(timeout)
+
+
+def _heartbeats_heard(b: Bridge) -> int:
+    """Server heartbeats the receive thread has handled: each one is a wake-up of it."""
+    link = b._conn.link
+    assert link is not None
+    return link.stats(time.monotonic_ns()).heartbeats_received
+
+
+def _after_heartbeats(b: Bridge, n: int) -> None:
+    """Wait until the receive thread has woken for ``n`` more heartbeats (100 ms apart)."""
+    target = _heartbeats_heard(b) + n
+    wait_until(lambda: _heartbeats_heard(b) >= target, f"{n} heartbeats are handled")
+
+
+def test_a_spinning_receive_strategy_applies_only_while_something_comes_in(
+        server: ServerThread) -> None:
+    """A publish-only session has only heartbeats and answers to receive: its receive thread
+    parks whatever its strategy; a subscription or a provided service brings the strategy in,
+    and unsubscribing parks the thread again."""
+    recording = Recording()
+    with Bridge.connect("127.0.0.1", server.port, idle=("park", recording), name="rx") as b:
+        out = b.publish("/idle_rx_out", "std_msgs/msg/Int64", transport="udp")
+        out.write(1)
+        _after_heartbeats(b, 3)
+        assert recording.waits == 0  # woke for every heartbeat, never asked the strategy
+
+        inbox = b.subscribe("/idle_rx_in", "std_msgs/msg/Int64", transport="udp")
+        wait_until(lambda: recording.waits > 0, "the receive thread waits by its strategy")
+        b.unsubscribe(inbox)
+        _after_heartbeats(b, 2)  # the wait decided before the close is over
+        parked = recording.waits
+        _after_heartbeats(b, 3)
+        assert recording.waits == parked
+
+        requests = b.serve_service("/idle_rx_srv", "std_srvs/srv/Trigger")
+        wait_until(lambda: recording.waits > parked, "a provided service brings it back")
+        requests.close()
+
+
+def test_a_service_call_in_flight_brings_the_spinning_strategy_in(server: ServerThread) -> None:
+    """A publish-only client that calls a service waits for the answer: while the call is in
+    flight its receive thread waits by its strategy, and parks again once the call is over."""
+    recording = Recording()
+    with (Bridge.connect("127.0.0.1", server.port, name="provider") as provider,
+          Bridge.connect("127.0.0.1", server.port, idle=("park", recording), name="caller") as b):
+        requests = provider.serve_service("/idle_rx_call", "std_srvs/srv/Trigger")
+        answers: list[dict[str, object]] = []
+        caller = threading.Thread(target=lambda: answers.append(
+            b.call("/idle_rx_call", "std_srvs/srv/Trigger", timeout=20.0)))
+        _after_heartbeats(b, 2)
+        assert recording.waits == 0
+        caller.start()
+        request = requests.read(timeout=20.0)
+        wait_until(lambda: recording.waits > 0, "the receive thread waits by its strategy")
+        request.reply({"success": True, "message": "ok"})
+        caller.join(20.0)
+        assert answers == [{"success": True, "message": "ok"}]
+        _after_heartbeats(b, 2)
+        parked = recording.waits
+        _after_heartbeats(b, 3)
+        assert recording.waits == parked

@@ -111,9 +111,9 @@ class Bridge(BridgeStatus, ServiceMethods):
         ``$RLBRIDGE_PSK``; TLS is ``tls=True``, ``ca=``, ``fingerprint=`` (pin) or an
         ``ssl.SSLContext``; ``client_cert=(cert, key)`` for mutual TLS.
         ``bundles=False``: a datagram per UDP channel, not a bundle per round (protocol.md 6.16).
-        ``idle``: how the send and receive threads (and reads) wait (:mod:`rlbridge.csp.idle`):
-        ``"park"`` (in the kernel), ``"spin"`` (poll 20 us, yield 200 us, park), ``"busy"`` (poll
-        and yield), an ``IdleStrategy`` or a ``(send, receive)`` pair; costs: docs/concepts.md.
+        ``idle``: how the send and receive threads (and reads) wait: ``"park"``, ``"spin"``
+        (poll 20 us, yield 200 us, park), ``"busy"``, an ``IdleStrategy`` or a ``(send, receive)``
+        pair; the receive thread spins only while something comes in: docs/concepts.md.
         """
         send_idle, receive_idle = idle_pair(idle)
         if switch_interval is not None and sys.getswitchinterval() > switch_interval:

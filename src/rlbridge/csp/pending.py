@@ -49,6 +49,9 @@ class Requests:
         self._pending: dict[int, _Pending] = {}
         #: Every binding the server acknowledged, by channel: what a new session binds again.
         self._bindings: dict[int, TopicConnect | ServiceOffer | GoalSend] = {}
+        #: Of those, the ones that bring values or requests in (subscriptions, service
+        #: offers): a spinning receive thread spins only while there is one (receiver.py).
+        self.incoming = 0
         self._stats_waiters: list[_Pending] = []
         self._lock = threading.Lock()
 
@@ -93,6 +96,7 @@ class Requests:
         if isinstance(answer, TopicAck):
             with self._lock:
                 self._bindings[req.channel] = req
+                self._count_incoming()
             return answer
         if isinstance(answer, TopicError):
             raise error_from_code(answer.code, answer.reason, channel=answer.channel)
@@ -143,3 +147,8 @@ class Requests:
         """See :meth:`rlbridge.csp.connection.Connection.forget_topic`."""
         with self._lock:
             self._bindings.pop(channel, None)
+            self._count_incoming()
+
+    def _count_incoming(self) -> None:
+        self.incoming = sum(not isinstance(b, TopicConnect) or b.direction == "subscribe"
+                            for b in self._bindings.values())

@@ -10,7 +10,10 @@ taken from the session's :class:`~rlbridge.wire.link.LinkMonitor`. It ends when 
 does: the connection's generation moves on, the session is no longer up, or the wake-up
 socket is readable (``close``). How it waits is the connection's idle strategy
 (:mod:`rlbridge.csp.idle`): ``poll`` with the timeout (park), or zero-timeout ``poll``
-calls first (spin). ``Credit`` and ``LossReport`` packets go to the connection's handlers.
+calls first (spin); a spinning strategy applies only while the session has something coming
+in (:func:`listening`), else the thread parks, as a publish-only client's has only heartbeats
+and answers to read (docs/concepts.md, idle strategies). ``Credit`` and ``LossReport``
+packets go to the connection's handlers.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import socket
 import time
 from typing import TYPE_CHECKING
 
+from rlbridge.csp.idle import Park
 from rlbridge.wire import (
     Batch,
     Bundle,
@@ -54,6 +58,14 @@ log = logging.getLogger("rlbridge.client")
 RUN_DATAGRAMS = 32
 #: Datagrams read in one go before the receive thread serves its other duties.
 MAX_DRAIN = 256
+
+
+def listening(conn: SessionOwner) -> bool:
+    """The session has something coming in at a rate: a subscription, a provided service, or
+    a service call or goal waiting for its answer. Without one (a publish-only client) the
+    receive thread parks whatever its idle strategy: it would spin for heartbeats and answers.
+    """
+    return conn.requests.incoming > 0 or conn.services.waiting
 
 
 class Receiver:
@@ -93,6 +105,7 @@ class Receiver:
         udp_fd = conn.udp.fileno() if conn.udp is not None else -1
         wait = poller.poll
         idle = conn.idle
+        spins = not isinstance(idle, Park)
 
         def poll() -> list[tuple[int, int]]:
             return wait(0)
@@ -106,7 +119,10 @@ class Receiver:
             now = time.monotonic_ns()
             timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
             while generation == conn.generation and conn.up:
-                readable = idle.idle(poll, block, timeout)
+                if spins and not listening(conn):
+                    readable = block(timeout)  # nothing comes in at a rate: park (module doc)
+                else:
+                    readable = idle.idle(poll, block, timeout)
                 tcp, udp = conn.tcp, conn.udp
                 for fd, _events in readable:
                     if fd == tcp_fd and tcp is not None:

@@ -117,6 +117,11 @@ class ServiceCalls:
         self.goals: dict[int, Goal] = {}
         self.lock = threading.Lock()
 
+    @property
+    def waiting(self) -> bool:
+        """A call or a goal waits for its answer (a spinning receive thread spins for it)."""
+        return bool(self._calls or self.goals)
+
     def call(self, service: str, srv_type: str, request: dict[str, Any],
              timeout: float) -> dict[str, Any]:
         """See :meth:`rlbridge.csp.bridge_services.ServiceMethods.call`."""

@@ -51,6 +51,9 @@ ValuesHandler = Callable[[int, int, list[int], list[object]], None]
 class Answers(Protocol):
     """Where the receive thread hands the answers to control requests."""
 
+    #: Bindings that bring values or requests in (subscriptions, service offers).
+    incoming: int
+
     def answer(self, packet: TopicAck | TopicError) -> None: ...
 
     def answer_stats(self, packet: Stats) -> None: ...
@@ -64,6 +67,11 @@ class ServiceAnswers(Protocol):
     def on_request(self, packet: ServiceRequest) -> None: ...
 
     def on_goal_result(self, packet: GoalResult) -> None: ...
+
+    @property
+    def waiting(self) -> bool:
+        """A service call or a goal waits for its answer."""
+        ...
 
 
 class SessionOwner(Protocol):
