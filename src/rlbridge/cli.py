@@ -70,7 +70,9 @@ def serve(
     adapter: Annotated[str, typer.Option(help="Middleware: inproc (default) or ros2.")]
     = "inproc",
     heartbeat_ms: Annotated[int, typer.Option(help="Heartbeat period.")] = 200,
-    timeout_ms: Annotated[int, typer.Option(help="Watchdog: a silent client is dropped after.")]
+    timeout_ms: Annotated[int, typer.Option(help=(
+        "Watchdog: a silent client is dropped after. On a heavily loaded machine (CI) raise "
+        "it, e.g. 2000: stalls of 0.5-0.8 s were measured (docs/reliability.md)."))]
     = 600,
     node_name: Annotated[str, typer.Option(help="ROS 2 node name (adapter ros2).")]
     = "rlbridge",
