@@ -9,14 +9,9 @@ from __future__ import annotations
 
 from typing import Any
 
-import msgspec
 import pytest
 
-from rlbridge.csp.bridge_channels import OutgoingChannel
-from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.value_check import WrongValueType
-from rlbridge.server.admission import value_converter, value_schema
-from rlbridge.wire import TopicAck
+from write_agreement import assert_write_check_agrees
 
 pytest.importorskip("rclpy", reason="rclpy is not installed (pip install 'rlbridge-sdk[ros2]')")
 
@@ -43,21 +38,5 @@ def test_write_check_agrees_with_the_ros2_server(msg_type: str, field: str | Non
     from rlbridge.adapters.ros2_types import MessageCatalog
 
     spec = MessageCatalog().resolve(msg_type, field)
-    server_check = value_converter(spec)
-    channel = OutgoingChannel(1, "/agree", msg_type, field, transport="tcp", immediate=False,
-                              buffer_size=64, doorbell=Doorbell())
-    channel.bound(TopicAck(1, spec.msg_type, spec.default, value_schema(spec)))
-    for value in values:
-        try:
-            server_check([value])
-        except msgspec.ValidationError:
-            server_ok = False
-        else:
-            server_ok = True
-        try:
-            channel.write(value)
-        except WrongValueType:
-            client_ok = False
-        else:
-            client_ok = True
-        assert client_ok == server_ok, f"{value!r}: client {client_ok}, server {server_ok}"
+    assert spec.msg_type == msg_type
+    assert_write_check_agrees(spec, field, values)

@@ -6,16 +6,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import msgspec
 import pytest
 
 from rlbridge import Bridge
 from rlbridge.adapters.inproc import InProcessBus
-from rlbridge.csp.bridge_channels import OutgoingChannel
-from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.value_check import WrongValueType, compile_check
-from rlbridge.server.admission import value_converter, value_schema
+from rlbridge.server.admission import value_converter
 from rlbridge.wire import TopicAck
+from write_agreement import assert_write_check_agrees
 
 F64 = "std_msgs/msg/Float64"
 TWIST = "geometry_msgs/msg/Twist"
@@ -109,24 +107,9 @@ AGREEMENT = [
 def test_write_check_agrees_with_the_server(msg_type: str, field: str | None,
                                             values: list[Any]) -> None:
     spec = InProcessBus().resolve(msg_type, field)
+    assert spec.msg_type == msg_type
     server_check = value_converter(spec)
-    channel = OutgoingChannel(1, "/agree", msg_type, field, transport="tcp", immediate=False,
-                              buffer_size=64, doorbell=Doorbell())
-    channel.bound(TopicAck(1, msg_type, spec.default, value_schema(spec)))
-    for value in values:
-        try:
-            server_check([value])
-        except msgspec.ValidationError:
-            server_ok = False
-        else:
-            server_ok = True
-        try:
-            channel.write(value)
-        except WrongValueType:
-            client_ok = False
-        else:
-            client_ok = True
-        assert client_ok == server_ok, f"{value!r}: client {client_ok}, server {server_ok}"
+    channel = assert_write_check_agrees(spec, field, values)
     # What the client sends after converting passes the server unchanged in meaning.
     _stamps, sent = channel._ring.drain_stamped()
     assert server_check(list(sent)) == [server_check([v])[0] for v in sent]
