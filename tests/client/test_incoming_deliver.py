@@ -1,10 +1,11 @@
 """``IncomingChannel.deliver``'s inlined in-order path against the general path.
 
-``deliver`` inlines the common case (a run that continues the sequence, one value or many, no
-``max_age_ms``, not ``latest``): the sequence tracker's bookkeeping and the ring write. Any program of runs (in order, after a gap, duplicated, overlapping, longer
-than the ring) interleaved with reads must end in the same state as a model built from the
-general path's parts: ``SequenceTracker.accept_run`` for what is new, a bounded deque for the
-ring, ``InterarrivalJitter`` for the jitter. Every counter is compared, not only the values.
+``deliver`` inlines the common case (a run that continues the sequence, one value or many,
+no ``max_age_ms``, not ``latest``): the sequence tracker's bookkeeping and the ring write.
+Any program of runs (in order, after a gap, duplicated, overlapping, longer than the ring)
+interleaved with reads must end in the same state as a model built from the general path's
+parts: ``SequenceTracker.accept_run`` for what is new, a bounded deque for the ring,
+``InterarrivalJitter`` for the jitter. Every counter is compared, not only the values.
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from rlbridge.csp.idle import PARK
 from rlbridge.wire import (
     Batch,
     Bundle,
@@ -112,8 +113,9 @@ class Receiver:
                 conn.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
             now = time.monotonic_ns()
             timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
+            park = idle is PARK  # the default: straight into poll, without two calls
             while generation == conn.generation and conn.up:
-                readable = idle.idle(poll, block, timeout)
+                readable = wait(timeout * 1000.0) if park else idle.idle(poll, block, timeout)
                 tcp, udp = conn.tcp, conn.udp
                 for fd, _events in readable:
                     if fd == tcp_fd and tcp is not None:
@@ -127,9 +129,7 @@ class Receiver:
                         self._receive_datagrams(udp, token, queued)
                     else:
                         return
-                self._tick(link, generation)
-                now = time.monotonic_ns()
-                timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
+                timeout = self._tick(link, generation)
                 # Last before blocking again: the reader this wakes needs the GIL, and finds
                 # it free when this thread is back in poll by then (measured: handing values
                 # on before more Python or a system call costs the reader a second wake-up,
@@ -207,8 +207,9 @@ class Receiver:
             else:
                 self._gather(part.channel, part.first_seq, part.stamps, part.values)
 
-    def _tick(self, link: LinkMonitor, generation: int) -> None:
-        """Watchdog and heartbeats, after every wake-up of the loop."""
+    def _tick(self, link: LinkMonitor, generation: int) -> float:
+        """Watchdog and heartbeats, after every wake-up of the loop; returns the seconds
+        until the link's next deadline (how long the next ``poll`` may wait)."""
         conn = self._conn
         now = time.monotonic_ns()
         state = link.state(now)
@@ -216,7 +217,7 @@ class Receiver:
             # The server's watchdog has the same timeout: it has dropped this session too.
             conn.end_session(f"watchdog: nothing from the server within "
                              f"{link.timeout_ns // 1_000_000} ms", generation)
-            return
+            return 0.0
         if state is not conn.reported_link:
             silent_ms = link.stats(now).silence_ns // 1_000_000
             conn.set_link(state, "heard from the server" if state is LinkState.CONNECTED
@@ -232,6 +233,7 @@ class Receiver:
             if conn.udp is not None:
                 conn.send_udp_packet(hb)
             self._tcp_bytes_at_heartbeat = (conn.tcp_bytes_out, self._tcp_bytes_in)
+        return (link.next_deadline(now) - now) / 1e9  # never before now
 
     def _stream(self, packets: list[Packet | Malformed]) -> None:
         """One TCP read's packets, in order. A ``Value`` that continues its channel's run
