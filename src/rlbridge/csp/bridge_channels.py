@@ -138,11 +138,11 @@ class IncomingChannel(Channel[Any]):
         Per value only C-level work (slices, ``zip``, one slice store into the ring); the
         measurements (jitter, one-way age) take the run's newest value, because a run's
         values share one arrival time. The common case (the run continues the sequence, no
-        ``max_age_ms``, not ``latest``) takes two Python calls besides the jitter estimate's:
-        the sequence tracker's in-order case and ``Channel.deliver_many`` are inlined here,
-        and one value is stored without ``zip`` (the receive thread runs this once per
-        channel per wake-up); ``tests/client/test_incoming_deliver.py`` checks it against the
-        general path.
+        ``max_age_ms``, not ``latest``) makes two Python calls, the jitter estimate and the
+        ring write: the sequence tracker's in-order case and ``Channel.deliver_many`` are
+        inlined here, and one value is stored without ``zip`` (the receive thread runs this
+        once per channel per wake-up); ``tests/client/test_incoming_deliver.py`` checks it
+        against the general path.
         """
         n = len(values)
         tracker = self._tracker
