@@ -97,6 +97,21 @@ def test_no_rtt_sample_without_a_valid_echo() -> None:
     assert link.stats(T0 + 20).heartbeats_received == 2
 
 
+@settings(max_examples=300, deadline=None)
+@given(heard=st.integers(0, 10 * HB), sent=st.integers(0, 10 * HB), now=st.integers(0, 12 * HB),
+       timeout=st.integers(HB + 1, 5 * HB))
+def test_next_deadline_is_the_earliest_change_not_yet_passed(heard: int, sent: int, now: int,
+                                                              timeout: int) -> None:
+    """The deadline is the earliest of the next heartbeat and the degraded and lost thresholds
+    still ahead of ``now`` (never before ``now``), whatever the order of the three."""
+    link = LinkMonitor(T0, HB, timeout)
+    link.on_receive(T0 + heard)
+    link.make_heartbeat(T0 + sent)
+    at = T0 + now
+    ahead = [t for t in (T0 + heard + 3 * HB // 2, T0 + heard + timeout) if t > at]
+    assert link.next_deadline(at) == max(at, min([T0 + sent + HB, *ahead]))
+
+
 def test_next_deadline_walkthrough() -> None:
     link = LinkMonitor(T0, HB)
     assert link.next_deadline(T0) == T0  # a heartbeat is due right away

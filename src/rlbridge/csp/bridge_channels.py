@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 
 from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import _MISSING, Channel, _Missing
-from rlbridge.csp.errors import SecondWriterError
+from rlbridge.csp.errors import ChannelMisuseError, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.outgoing import OutgoingChannel
 
@@ -135,45 +135,85 @@ class IncomingChannel(Channel[Any]):
     def deliver(self, first_seq: int, stamps: list[int], values: list[Any]) -> None:
         """Called by the receive thread with one packet's (or one read burst's) values.
 
-        Per value only C-level work (slices, ``zip``); the measurements (jitter, one-way
-        age) take the run's newest value, because a run's values share one arrival time.
+        Per value only C-level work (slices, ``zip``, one slice store into the ring); the
+        measurements (jitter, one-way age) take the run's newest value, because a run's
+        values share one arrival time. The common case (the run continues the sequence, no
+        ``max_age_ms``, not ``latest``) makes two Python calls, the jitter estimate and the
+        ring write: the sequence tracker's in-order case and ``Channel.deliver_many`` are
+        inlined here, and one value is stored without ``zip`` (the receive thread runs this
+        once per channel per wake-up); ``tests/client/test_incoming_deliver.py`` checks it
+        against the general path.
         """
         n = len(values)
-        start = self._tracker.accept_run(first_seq, n)
-        if start >= n or self._closed:
+        tracker = self._tracker
+        highest = tracker.highest
+        if n and first_seq == highest + 1:  # SequenceTracker.accept_run's in-order case
+            tracker.highest = highest + n
+            tracker.accepted += n
+            start = 0
+        else:
+            start = tracker.accept_run(first_seq, n)
+            if start >= n:
+                return
+        if self._closed:
             return
         if start:
             stamps, values = stamps[start:], values[start:]
         try:
-            self._accept(stamps, values)
+            now = time.time_ns() + self._clock.offset_ns  # the server's clock, like the stamps
+            newest = stamps[-1]
+            self._jitter.add(newest, now)
+            age = now - newest
+            one_way = self._one_way
+            self._one_way = age if one_way < 0 else one_way + (age - one_way) // 16
+            if self._max_age_ns or self.latest:
+                kept = self._apply_policies(stamps, values, now)
+                if kept is None:
+                    return
+                stamps, values = kept
+            # Channel.deliver_many, inlined (the channel is open and buffered; a close racing
+            # this write leaves the values readable before ChannelClosed, as a write just
+            # before the close would).
+            token = self._write_token
+            try:
+                token.pop()
+            except IndexError:
+                raise ChannelMisuseError(self._name, "writer") from None
+            count = len(values)
+            try:
+                if count == 1:  # one value per wake-up (a control loop's rate): no zip, no list
+                    self._ring.push_overwrite((stamps[0], values[0]))
+                else:
+                    # Equal lengths: a Batch with unequal ones does not decode (packets.py).
+                    self._ring.push_many(list(zip(stamps, values)), overwrite=True)  # noqa: B905
+            finally:
+                token.append(None)
+            bell = self._bell
+            if bell.waiting:
+                bell.ring()
+            self._delivered += count
+            # Set after the value is in the ring: a reader pairing ``last_stamp_ns`` with a
+            # value read just before may see an older stamp (age over-, never
+            # under-estimated); read_with_age() is exact.
+            self.last_stamp_ns = stamps[-1]
         finally:
             self._arrived += n - start  # after the ring has them: see credit_limit
 
-    def _accept(self, stamps: list[int], values: list[Any]) -> None:
-        """New values: measure them, apply the policies, put the rest in the ring."""
-        now = time.time_ns() + self._clock.offset_ns  # in the server's clock, like the stamps
-        newest = stamps[-1]
-        self._jitter.add(newest, now)
-        age = now - newest
-        self._one_way = age if self._one_way < 0 else self._one_way + (age - self._one_way) // 16
+    def _apply_policies(self, stamps: list[int], values: list[Any], now: int
+                        ) -> tuple[list[int], list[Any]] | None:
+        """``max_age_ms`` and ``latest`` (docs/policies.md): what is left, ``None`` if nothing."""
         if self._max_age_ns and stamps[0] < now - self._max_age_ns:
             cutoff = now - self._max_age_ns
             fresh = [(s, v) for s, v in zip(stamps, values, strict=True) if s >= cutoff]
             self.expired += len(values) - len(fresh)
             if not fresh:
-                return
+                return None
             stamps, values = [s for s, _ in fresh], [v for _, v in fresh]
         count = len(values)
         if self.latest and count > 1:
             self._overtaken += count - 1
-            stamps, values, count = stamps[-1:], values[-1:], 1
-        # Equal lengths: a Batch with unequal ones does not decode (packets.py).
-        Channel.deliver_many(self, list(zip(stamps, values)))  # noqa: B905
-        self._delivered += count
-        # Set after the value is in the ring: a reader pairing ``last_stamp_ns`` with a value
-        # read just before may see an older stamp (age over-, never under-estimated);
-        # read_with_age() is exact.
-        self.last_stamp_ns = stamps[-1]
+            stamps, values = stamps[-1:], values[-1:]
+        return stamps, values
 
     # -- reading: the ring holds (stamp, value) pairs -----------------------------------------
     def read(self, timeout: float | None = None) -> Any:

@@ -22,6 +22,7 @@ import logging
 import select
 import socket
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from rlbridge.csp.idle import Park
@@ -95,17 +96,10 @@ class Receiver:
                 self._dispatch(packet)
         self._leftover = []
         self._flush_values()
-        # One poll object for the session, registered once: no descriptor sets built per
-        # wake-up (as select() does), and the answer is file descriptors, compared as ints.
-        poller = select.poll()
-        for sock in (conn.tcp, conn.udp, self._wake):
-            if sock is not None:
-                poller.register(sock, select.POLLIN)
+        wait, queued = self._pollers()
         tcp_fd = conn.tcp.fileno() if conn.tcp is not None else -1
         udp_fd = conn.udp.fileno() if conn.udp is not None else -1
-        wait = poller.poll
         idle = conn.idle
-        spins = not isinstance(idle, Park)
 
         def poll() -> list[tuple[int, int]]:
             return wait(0)
@@ -118,9 +112,10 @@ class Receiver:
                 conn.send_udp_packet(link.make_heartbeat(time.monotonic_ns(), time.time_ns()))
             now = time.monotonic_ns()
             timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
+            park = isinstance(idle, Park)  # the default: straight into poll, no two calls
             while generation == conn.generation and conn.up:
-                if spins and not listening(conn):
-                    readable = block(timeout)  # nothing comes in at a rate: park (module doc)
+                if park or not listening(conn):  # nothing comes in at a rate: park (module doc)
+                    readable = wait(timeout * 1000.0)
                 else:
                     readable = idle.idle(poll, block, timeout)
                 tcp, udp = conn.tcp, conn.udp
@@ -133,12 +128,10 @@ class Receiver:
                             return
                         self._stream(decoder.feed(conn.tcp_received(data)))
                     elif fd == udp_fd and udp is not None:
-                        self._receive_datagrams(udp, token)
+                        self._receive_datagrams(udp, token, queued)
                     else:
                         return
-                self._tick(link, generation)
-                now = time.monotonic_ns()
-                timeout = max(0.0, (link.next_deadline(now) - now) / 1e9)
+                timeout = self._tick(link, generation)
                 # Last before blocking again: the reader this wakes needs the GIL, and finds
                 # it free when this thread is back in poll by then (measured: handing values
                 # on before more Python or a system call costs the reader a second wake-up,
@@ -149,9 +142,34 @@ class Receiver:
         except OSError as exc:
             conn.end_session(f"connection failed: {exc}", generation)
 
-    def _receive_datagrams(self, sock: socket.socket, token: int) -> None:
+    def _pollers(self) -> tuple[Callable[..., list[tuple[int, int]]],
+                                Callable[..., list[tuple[int, int]]]]:
+        """The session's two ``poll`` calls: every socket and the wake-up, then the UDP
+        socket alone.
+
+        One poll object per session, registered once: no descriptor sets built per wake-up
+        (as select() does), and the answer is file descriptors, compared as ints. The UDP
+        one asks "is another datagram queued?" after the first of a wake-up (a zero-timeout
+        poll costs a third of a ``recv`` that fails with EAGAIN).
+        """
+        conn = self._conn
+        poller, udp_poller = select.poll(), select.poll()
+        for sock in (conn.tcp, conn.udp, self._wake):
+            if sock is not None:
+                poller.register(sock, select.POLLIN)
+        if conn.udp is not None:
+            udp_poller.register(conn.udp, select.POLLIN)
+        return poller.poll, udp_poller.poll
+
+    def _receive_datagrams(self, sock: socket.socket, token: int,
+                           queued: Callable[[int], list[tuple[int, int]]]) -> None:
         """Read the datagrams already queued (at most ``MAX_DRAIN``), without blocking.
 
+        ``poll`` said the socket is readable, so the first ``recv`` finds a datagram; whether
+        another follows is asked of ``queued`` (a zero-timeout poll of this socket) rather
+        than of a ``recv`` that fails with EAGAIN and raises: in the steady state of one
+        datagram per wake-up that is the cheaper question. Once a second datagram was there
+        the queue is read until EAGAIN (a burst).
         Values are handed on every ``RUN_DATAGRAMS`` datagrams (and by ``run`` when the
         queue is empty), so a long burst neither waits for its end nor costs a channel
         wake-up per datagram.
@@ -159,28 +177,60 @@ class Receiver:
         never empties, and heartbeats (the server's watchdog) and TCP must still be served.
         """
         conn = self._conn
+        decode = conn.codec.decode_datagram
+        recv = sock.recv
+        bundles = 0
         for count in range(1, MAX_DRAIN + 1):
-            if count % RUN_DATAGRAMS == 0:
-                self._flush_values()
             try:
-                data = sock.recv(65536, socket.MSG_DONTWAIT)
+                data = recv(65536, socket.MSG_DONTWAIT)
             except (BlockingIOError, InterruptedError):
-                return
+                break
             except ConnectionRefusedError:
-                return
+                break
             try:
-                _flags, got, packet = conn.codec.decode_datagram(data)
+                _flags, got, packet = decode(data)
             except RemoteProtocolError as exc:
                 log.debug("dropped datagram: %s", exc.reason)
                 conn.datagrams_dropped[getattr(exc, "kind", "malformed")] += 1
-                continue
-            if got == token:
-                self._dispatch(packet)
             else:
-                conn.datagrams_dropped["bad_token"] += 1
+                if got != token:
+                    conn.datagrams_dropped["bad_token"] += 1
+                elif type(packet) is Bundle:
+                    bundles += 1
+                    self._bundle(packet.parts)
+                else:
+                    self._dispatch(packet)
+            if count % RUN_DATAGRAMS == 0:
+                self._flush_values()
+            elif count == 1 and not queued(0):
+                break
+        if bundles:
+            link = conn.link
+            assert link is not None
+            link.on_receive(time.monotonic_ns())  # one arrival for the read's bundles
 
-    def _tick(self, link: LinkMonitor, generation: int) -> None:
-        """Watchdog and heartbeats, after every wake-up of the loop."""
+    def _bundle(self, parts: list[Value | Batch]) -> None:
+        """A bundle's parts, each as if it had come alone: ``_gather`` inlined for a
+        ``Value`` that starts or continues its channel's run (nearly every part), and a
+        ``Batch``'s lists given away (the packet is dropped after this)."""
+        runs = self._runs
+        for part in parts:
+            if isinstance(part, Value):
+                channel, seq = part.channel, part.seq
+                run = runs.get(channel)
+                if run is None:
+                    runs[channel] = (seq, [part.stamp_ns], [part.value])
+                elif seq == run[0] + len(run[2]):
+                    run[1].append(part.stamp_ns)
+                    run[2].append(part.value)
+                else:
+                    self._gather(channel, seq, [part.stamp_ns], [part.value])
+            else:
+                self._gather(part.channel, part.first_seq, part.stamps, part.values)
+
+    def _tick(self, link: LinkMonitor, generation: int) -> float:
+        """Watchdog and heartbeats, after every wake-up of the loop; returns the seconds
+        until the link's next deadline (how long the next ``poll`` may wait)."""
         conn = self._conn
         now = time.monotonic_ns()
         state = link.state(now)
@@ -188,7 +238,7 @@ class Receiver:
             # The server's watchdog has the same timeout: it has dropped this session too.
             conn.end_session(f"watchdog: nothing from the server within "
                              f"{link.timeout_ns // 1_000_000} ms", generation)
-            return
+            return 0.0
         if state is not conn.link_report.state:
             silent_ms = link.stats(now).silence_ns // 1_000_000
             conn.link_report.update(state, "heard from the server" if state is LinkState.CONNECTED
@@ -204,6 +254,7 @@ class Receiver:
             if conn.udp is not None:
                 conn.send_udp_packet(hb)
             self._tcp_bytes_at_heartbeat = (conn.tcp_bytes_out, self._tcp_bytes_in)
+        return (link.next_deadline(now) - now) / 1e9  # never before now
 
     def _stream(self, packets: list[Packet | Malformed]) -> None:
         """One TCP read's packets, in order. A ``Value`` that continues its channel's run
@@ -243,13 +294,7 @@ class Receiver:
                              list(packet.values))
             case Bundle():
                 link.on_receive(now)
-                gather = self._gather
-                for part in packet.parts:  # each as if it had come alone
-                    if isinstance(part, Value):
-                        gather(part.channel, part.seq, [part.stamp_ns], [part.value])
-                    else:
-                        gather(part.channel, part.first_seq, list(part.stamps),
-                               list(part.values))
+                self._bundle(packet.parts)
             case Heartbeat():
                 link.on_heartbeat(packet, now, time.time_ns())
             case TopicAck() | TopicError():
@@ -319,8 +364,10 @@ class Receiver:
         runs = self._runs
         if runs:
             self._runs = {}
-            for channel, run in runs.items():
-                self._deliver(channel, run)
+            on_values = self._conn.on_values
+            if on_values is not None:
+                for channel, (first_seq, stamps, values) in runs.items():
+                    on_values(channel, first_seq, stamps, values)
 
     def _deliver(self, channel: int, run: tuple[int, list[int], list[object]]) -> None:
         on_values = self._conn.on_values

@@ -165,8 +165,19 @@ class SpscRing(Generic[T]):
         end = head + count
         if end - self._tail > cap:
             self._claim = end  # covers every sequence up to end - 1
-        for i in range(max(0, count - cap), count):
-            slots[(head + i) % cap] = values[i]
+        if count > cap:  # only the last ``cap`` values can be stored
+            values = values[count - cap :]
+        stored = len(values)
+        # One or two slice stores (C level, no per-value bytecode); each slice on the right
+        # has exactly the length of the one it replaces, so the slot list never resizes.
+        first = (end - stored) % cap
+        stop = first + stored
+        if stop <= cap:
+            slots[first:stop] = values
+        else:
+            split = cap - first
+            slots[first:] = values[:split]
+            slots[: stop - cap] = values[split:]
         self._head = end
         return count
 

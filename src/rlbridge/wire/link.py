@@ -128,12 +128,18 @@ class LinkMonitor:
 
     def next_deadline(self, now_ns: int) -> int:
         """The earliest time at which :meth:`state` or :meth:`heartbeat_due` can change."""
-        degraded_at = self._last_rx + (self.heartbeat_ns * 3) // 2
-        lost_at = self._last_rx + self.timeout_ns
         # A threshold already crossed changes nothing any more: a lost link waits for the next
-        # heartbeat, not for ``now`` (which would make the caller's timer spin).
-        candidates = [self._next_tx, *(t for t in (degraded_at, lost_at) if t > now_ns)]
-        return max(now_ns, min(candidates))
+        # heartbeat, not for ``now`` (which would make the caller's timer spin). No list or
+        # generator: the receive thread asks this after every wake-up.
+        deadline = self._next_tx
+        last_rx = self._last_rx
+        degraded_at = last_rx + (self.heartbeat_ns * 3) // 2
+        if now_ns < degraded_at < deadline:
+            deadline = degraded_at
+        lost_at = last_rx + self.timeout_ns
+        if now_ns < lost_at < deadline:
+            deadline = lost_at
+        return deadline if deadline > now_ns else now_ns
 
     @property
     def rtt_ns(self) -> int:
