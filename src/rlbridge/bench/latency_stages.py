@@ -13,8 +13,10 @@ the publisher's write time and so unique:
   call returns (sequence check, ring write, doorbell), and the blocking ``read`` returns.
 
 The probes wrap methods of the SDK objects of the child processes only, no production code
-path carries them. Each stage's p50 is a median over the samples of a run, then over the
-runs; the stages of one sample add up to its total, their medians need not.
+path carries them; those processes run rlbridge's modules as Python files
+(``RLBRIDGE_PURE_PYTHON``: a compiled module's calls would not see the wrappers). Each
+stage's p50 is a median over the samples of a run, then over the runs; the stages of one
+sample add up to its total, their medians need not.
 """
 
 from __future__ import annotations
@@ -230,8 +232,9 @@ def measure(link: Link, idle: str, rate_hz: float, count: int) -> StageRun:
         try:
             server, host, port = start_server(group)
             common: Params = {"host": host, "port": port, **stream}
-            sub = group.start("subscriber", "b", MODULE, "subscriber", common)
-            pub = group.start("publisher", "b", MODULE, "publisher", common)
+            # The probes wrap the SDK's Python functions: its Python files, not compiled.
+            sub = group.start("subscriber", "b", MODULE, "subscriber", common, python_files=True)
+            pub = group.start("publisher", "b", MODULE, "publisher", common, python_files=True)
             for worker in (sub, pub):
                 worker.expect("ready", STARTUP_S)
             flow = run_flow(pub, sub, [pub, server, sub], timeout)

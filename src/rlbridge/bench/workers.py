@@ -171,9 +171,16 @@ class ProcessGroup:
         self.lifetime_s = lifetime_s
         self._workers: list[Worker] = []
 
-    def start(self, name: str, side: Side, module: str, role: str, params: Params) -> Worker:
-        """Start ``module.ROLES[role](params)`` on ``side``; do not wait for it."""
-        argv = [sys.executable, "-c", "from rlbridge.bench.child import worker_main; "
+    def start(self, name: str, side: Side, module: str, role: str, params: Params, *,
+              python_files: bool = False) -> Worker:
+        """Start ``module.ROLES[role](params)`` on ``side``; do not wait for it.
+
+        ``python_files``: rlbridge's compiled modules run as their ``.py`` files in the worker
+        (``RLBRIDGE_PURE_PYTHON``, rlbridge/_compiled.py), for a role that wraps their
+        functions with probes (a compiled module's calls do not see the wrappers).
+        """
+        pure = "import os; os.environ['RLBRIDGE_PURE_PYTHON'] = '1'; " if python_files else ""
+        argv = [sys.executable, "-c", pure + "from rlbridge.bench.child import worker_main; "
                 "worker_main()", module, role, json.dumps(params), str(self.lifetime_s)]
         stderr = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Worker.stop
         proc = self.link.popen(side, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
