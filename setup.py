@@ -81,6 +81,8 @@ class OptionalBuildExt(build_ext):
         self.build_temp = tempfile.mkdtemp(prefix="rlbridge-build-")  # see _extensions
 
     def run(self) -> None:
+        if not self.extensions:  # not compiling (see _extensions): nothing to record
+            return
         try:
             super().run()
         except Exception as exc:  # no compiler, no Python.h, a compile or link error
