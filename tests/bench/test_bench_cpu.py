@@ -21,8 +21,8 @@ def test_cpu_bench_reports_every_row(tmp_path: Path) -> None:
         "--out", str(out)])
     assert result.exit_code == 0, result.output
     rows = {line.split("|")[1].strip(): line for line in result.output.splitlines()
-            if line.startswith(("| bundled", "| single", "| send loop"))}
-    assert set(rows) == {"bundled", "single", "send loop"}
+            if line.startswith(("| bundled", "| inline", "| single", "| send loop"))}
+    assert set(rows) == {"bundled", "inline", "single", "send loop"}
     for row in rows.values():
         assert row.split("|")[2].strip() == "150"  # 3 channels x 100 Hz x 0.5 s
     assert "<!-- bench:cpu begin -->" in out.read_text()

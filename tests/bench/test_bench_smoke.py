@@ -66,11 +66,12 @@ def test_latency_runs_every_kind_of_row(tmp_path: Path,
     out = tmp_path / "bench.md"
     result = CliRunner().invoke(bench_app, [
         "latency", "--count", "30", "--repeats", "1", "--rates", "1000",
-        "--only", "udp,zmq,rlb-udp,rlb-tcp-nodelay", "--out", str(out)])
+        "--only", "udp,zmq,rlb-udp,rlb-udp-inline,rlb-tcp-nodelay", "--out", str(out)])
     assert result.exit_code == 0, result.output
     rows = _rows(result.output)
     assert rows["ZeroMQ PUB/SUB tcp, 1 hop"][2] == "skipped: pretend it is missing"
-    for label in ("raw UDP socket, 1 hop", "rlbridge UDP", "rlbridge TCP, nodelay"):
+    for label in ("raw UDP socket, 1 hop", "rlbridge UDP", "rlbridge UDP, send(inline=True)",
+                  "rlbridge TCP, nodelay"):
         cells = rows[label]
         p50, p99 = float(cells[2].replace(",", "")), float(cells[3].replace(",", ""))
         assert 0 < p50 <= p99, cells

@@ -4,6 +4,7 @@ and interval, what clients get wrong (real server processes, real clients)."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -53,6 +54,16 @@ def serve(free_port: Callable[[], int]) -> Iterator[Callable[..., Served]]:
         if proc.poll() is None:
             proc.kill()
         proc.communicate(timeout=PROC_WAIT)
+
+
+def _notices(err: str, marker: str) -> tuple[list[str], int]:
+    """The log lines with ``marker``, and how many notices they account for: each line is
+    one, plus the "(N more ... not shown)" it says it held back (repeats still held at the
+    stop are not logged). One line per kind and interval: on a slow machine the clients may
+    span more than one interval."""
+    lines = [line for line in err.splitlines() if marker in line]
+    held = sum(int(m) for m in re.findall(r"\((\d+) more [^)]* not shown\)", err))
+    return lines, len(lines) + held
 
 
 def _stop(proc: subprocess.Popen[str]) -> tuple[int, str]:
@@ -112,8 +123,10 @@ def test_a_wrong_key_is_logged_once_with_its_reason(
     assert "requires a pre-shared key and this client gave none" in keyless.stderr
     assert "nonce" not in keyless.stderr
     _code, err = _stop(proc)
-    auth = [line for line in err.splitlines() if "authentication failed" in line]
-    assert len(auth) == 1, err  # four refusals, one line (rate-limited per kind)
+    auth, accounted = _notices(err, "authentication failed")
+    # Four refusals, one line per interval (rate-limited per kind): repeats are held back.
+    assert 1 <= len(auth) < 4, err
+    assert accounted <= 4, err
     assert "WARNING" in auth[0]
     assert "different keys" in auth[0] or "does not match" in auth[0]
 
@@ -140,8 +153,9 @@ def test_a_refused_channel_is_logged_once(
                            env=_env())
         assert result.returncode == 1
     _code, err = _stop(proc)
-    refused = [line for line in err.splitlines() if "refused" in line]
-    assert len(refused) == 1, err
+    refused, accounted = _notices(err, "refused")
+    assert 1 <= len(refused) < 3, err
+    assert accounted <= 3, err
     assert "unknown message type 'std_msgs/msg/Float65'" in refused[0]
 
 

@@ -36,6 +36,8 @@ def test_stats_table_json_and_metrics(cli: Any, cli_server: Callable[..., Any],
     table = cli.run("stats", "--port", str(port))
     assert table.returncode == 0, table.stderr
     lines = table.stdout.splitlines()
+    assert echo.poll() is None, "the echo exited early"
+    assert any("rlbridge-topic-echo" in line for line in lines), table.stdout
     assert lines[0].startswith("server: sessions ")
     assert "values_in 5" in lines[0]
     header = next(i for i, line in enumerate(lines)

@@ -123,8 +123,8 @@ def latency(
     repeats: Repeats = 3,
     rates: Annotated[str, typer.Option(help="Comma-separated stream rates in Hz.")]
     = "1000,100",
-    only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, rlb-udp, rlb-tcp-nodelay, "
-                                      "rlb-tcp-nagle.")] = "",
+    only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, rlb-udp, rlb-udp-inline, "
+                                      "rlb-tcp-nodelay, rlb-tcp-nagle.")] = "",
     out: Out = Path("docs/benchmarks.md"),
     transport: Annotated[str | None, typer.Option(
         help="tcp (Nagle), tcpn (nodelay both ends), udp or all: measure across the emulated "

@@ -12,7 +12,9 @@ round in one datagram, and the server bundles its replies), ``single`` (``bundle
 datagram per channel and value, both ways; the wire behaviour before bundles) and
 ``send loop`` (bundled, but the loop never calls ``send()``: the SDK's send loop,
 ``Bridge.connect(send_rate_hz=rate)``, wakes the send thread on its own timer; the other form
-of "send through buffer", whose values wait up to one period).
+of "send through buffer", whose values wait up to one period). ``inline`` is bundled with
+``send(inline=True)`` per tick: the loop's thread sends the round's datagram itself and the
+send thread is not woken.
 
 Figures per value (one value written, carried through the server and read back):
 
@@ -49,9 +51,11 @@ from rlbridge.bench.common import (
 
 MODULE = "rlbridge.bench.cpu"
 F64 = "std_msgs/msg/Float64"
-#: (row, bundles, the send loop's rate in multiples of ``--rate``; None: ``send()`` per tick)
-ROWS: tuple[tuple[str, bool, float | None], ...] = (
-    ("bundled", True, None), ("single", False, None), ("send loop", True, 1.0))
+#: (row, bundles, the send loop's rate in multiples of ``--rate`` (None: ``send()`` per tick),
+#: ``send(inline=True)`` per tick)
+ROWS: tuple[tuple[str, bool, float | None, bool], ...] = (
+    ("bundled", True, None, False), ("inline", True, None, True),
+    ("single", False, None, False), ("send loop", True, 1.0, False))
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,7 @@ def client_role(params: Params) -> None:
                        bundles=bool(params["bundles"]),
                        send_rate_hz=None if send_rate is None else float(send_rate))
     call_send = send_rate is None
+    inline = bool(params.get("inline"))
     topics = [f"/bench/cpu/c{i}" for i in range(n)]
     inboxes = [b.subscribe(t, F64, transport="udp", buffer_size=256) for t in topics]
     outs = [b.publish(t, F64, transport="udp", through_buffer=True) for t in topics]
@@ -110,7 +115,7 @@ def client_role(params: Params) -> None:
         for out in outs:
             out.write(value)
         if call_send:
-            b.send()
+            b.send(inline=inline)
         for inbox in inboxes:
             received += len(inbox.read_many())
         in_calls += thread_time() - t0
@@ -135,15 +140,15 @@ ROLES = {"client": client_role}
 
 def run(settings: Settings, progress: Callable[[str], None]) -> dict[str, list[Params]]:
     """Every row ``repeats`` times, interleaved; fresh server and client per run."""
-    results: dict[str, list[Params]] = {key: [] for key, _, _ in ROWS}
+    results: dict[str, list[Params]] = {key: [] for key, _, _, _ in ROWS}
     for repeat in range(settings.repeats):
-        for key, bundles, loop_rate in ROWS:
+        for key, bundles, loop_rate, inline in ROWS:
             with ProcessGroup(LoopbackLink(), lifetime_s=settings.seconds + 120) as group:
                 server, host, port = start_server(group)
                 client, _ = group.spawn("client", "b", MODULE, "client", {
                     "host": host, "port": port, "channels": settings.channels,
                     "rate_hz": settings.rate_hz, "seconds": settings.seconds,
-                    "bundles": bundles, "send_rate_hz":
+                    "bundles": bundles, "inline": inline, "send_rate_hz":
                         None if loop_rate is None else loop_rate * settings.rate_hz})
                 server.mark_cpu()
                 client.send("go")
@@ -187,7 +192,9 @@ def report(results: dict[str, list[Params]], settings: Settings, command: Sequen
         "(medians): SDK = its send and receive threads plus the loop's time inside SDK calls; "
         "client process = all of it, the loop's timer wake-ups included; server = the whole "
         "server process. `single` is `Bridge.connect(bundles=False)`: one datagram per "
-        "channel and value, both ways. `send loop` is bundled without `send()`: "
+        "channel and value, both ways. `inline` is bundled with `send(inline=True)`: the loop's "
+        "thread sends the round's datagram itself, the send thread is not woken. `send loop` "
+        "is bundled without `send()`: "
         f"`Bridge.connect(send_rate_hz={s.rate_hz:g})` sends what waits on its own timer.",
         "",
         markdown_table(["row", "values sent", "read back", "lost", "SDK us/value",
@@ -199,6 +206,9 @@ def report(results: dict[str, list[Params]], settings: Settings, command: Sequen
         "",
         f"- SDK: {b['sdk_s']:.2f} us per value; target <= 3: {_verdict(b['sdk_s'])}",
         f"- server: {b['server_s']:.2f} us per value; target <= 3: {_verdict(b['server_s'])}",
+        *([f"- SDK with `send(inline=True)`: {medians['inline']['sdk_s']:.2f} us per value; "
+           f"target <= 3: {_verdict(medians['inline']['sdk_s'])}"]
+          if "inline" in medians else []),
     ]) + "\n"
 
 

@@ -70,12 +70,15 @@ class Case:
     transport: str = "udp"
     nodelay: bool = False
     idle: str = "park"
+    #: The publisher writes a buffered channel and calls ``bridge.send(inline=True)``.
+    inline: bool = False
 
 
 CASES = (
     Case("udp", "raw UDP socket, 1 hop", "udp"),
     Case("zmq", "ZeroMQ PUB/SUB tcp, 1 hop", "zmq"),
     Case("rlb-udp", "rlbridge UDP", "rlbridge", "udp"),
+    Case("rlb-udp-inline", "rlbridge UDP, send(inline=True)", "rlbridge", "udp", inline=True),
     Case("rlb-tcp-nodelay", "rlbridge TCP, nodelay", "rlbridge", "tcp", nodelay=True),
     Case("rlb-tcp-nagle", "rlbridge TCP, Nagle", "rlbridge", "tcp", nodelay=False),
 )
@@ -88,7 +91,7 @@ def with_idle(cases: Sequence[Case], strategies: Sequence[str]) -> tuple[Case, .
     for idle in strategies:
         rows += [Case(c.key if idle == "park" else f"{c.key}-{idle}",
                       c.label if idle == "park" else f"{c.label}, idle={idle}",
-                      c.kind, c.transport, c.nodelay, idle)
+                      c.kind, c.transport, c.nodelay, idle, c.inline)
                  for c in cases if c.kind == "rlbridge"]
     return tuple(rows)
 
@@ -124,14 +127,23 @@ def publisher(params: Params) -> None:
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
                             name="bench-lat-pub", idle=idle_param(str(params.get("idle", "park"))))
-    out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"])
+    inline = bool(params.get("inline"))
+    out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
+                         through_buffer=inline)
+    write: Callable[[int], object] = out.write
+    if inline:  # the round in the loop's thread: no hand-off to the send thread
+        send = bridge.send
+
+        def write(value: int) -> None:
+            out.write(value)
+            send(inline=True)
     emit("ready")
     wait_for_go(control)
     if params.get("idle") is None:
-        sent, t0, t1 = paced(out.write, float(params["rate_hz"]), int(params["count"]))
+        sent, t0, t1 = paced(write, float(params["rate_hz"]), int(params["count"]))
         emit("sent", sent=sent, t_start=t0, t_end=t1)
     else:
-        sent, t0, t1, late = paced_late(out.write, float(params["rate_hz"]),
+        sent, t0, t1, late = paced_late(write, float(params["rate_hz"]),
                                         int(params["count"]))
         kept = sorted(late[WARMUP:])
         emit("sent", sent=sent, t_start=t0, t_end=t1,
@@ -204,7 +216,7 @@ def _summary(received: Params, sent: int) -> Measurement:
 def _rlbridge_once(group: ProcessGroup, case: Case, stream: Params) -> Measurement:
     server, host, port = start_server(group, nodelay=case.nodelay)
     common: Params = {"host": host, "port": port, "transport": case.transport,
-                      "nodelay": case.nodelay, **stream}
+                      "nodelay": case.nodelay, "inline": case.inline, **stream}
     if stream.get("idle_rows"):
         common["idle"] = case.idle
     sub = group.start("subscriber", "b", MODULE, "subscriber", common)
@@ -362,6 +374,9 @@ def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[
         "blocking read returns the value, minus the publisher's `time.time_ns()` written into "
         "it (same machine, same clock). Percentiles per run, then the median over repeats. "
         "rlbridge: publisher -> server -> subscriber (2 hops, 3 processes); baselines: 1 hop. "
+        "The publisher writes each value to an immediate channel (the write wakes the SDK's "
+        "send thread), except `send(inline=True)`: a buffered channel and "
+        "`bridge.send(inline=True)` after each write, the round sent from the loop's thread. "
         "The two legs split each rlbridge sample at the server's send stamp "
         "(`IncomingChannel.last_stamp_ns`): publisher write -> server send includes the "
         "publisher's send-thread wake-up, hop 1 and the server; server send -> read includes "

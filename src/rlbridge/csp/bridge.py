@@ -67,7 +67,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         conn.keep_alive = self._supervisor is not None
         conn.on_values = self._on_values
         conn.on_ros_loss = self._on_ros_loss
-        conn.on_link_change = self._events.emit
+        conn.link_report.on_change = self._events.emit
         conn.on_session_end = self._on_session_end
         conn.on_credit = self._feedback.on_credit
         conn.on_loss = self._feedback.on_loss
@@ -262,16 +262,17 @@ class Bridge(BridgeStatus, ServiceMethods):
         self._sender.add(channel)
         return channel
 
-    def send(self, wait: bool = False) -> None:
+    def send(self, wait: bool = False, *, inline: bool = False) -> None:
         """Flush every buffered outgoing value (thesis: ``send``); blocks only if ``wait``.
 
-        ``wait=True`` returns once the send thread has handed them to the sockets, and no
-        value waits for credit or a rate limit any more (at most 5 s): what each form costs
-        and promises is in docs/concepts.md.
+        ``wait=True`` returns once the send thread has handed them to the sockets, and no value
+        waits for credit or a rate limit any more (at most 5 s). ``inline=True`` (SRT code only):
+        this thread sends a plain UDP round itself when it can. Costs, promises: docs/concepts.md.
         """
         if self._conn.closed.is_set():
             raise ConnectionClosed(f"bridge is closed: {self._conn.close_reason}")
-        self._sender.flush(wait=wait)
+        if not (inline and self._sender.send_inline()):  # inline: in the kernel already
+            self._sender.flush(wait=wait)
 
     def unsubscribe(self, channel: IncomingChannel | OutgoingChannel) -> None:
         """Unbind one channel on the server and close it here."""
@@ -354,7 +355,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         self._io_priority.reapply()
         self._sender.resume()
         ack = self._conn.ack
-        self._conn.link_restored(f"reconnected: session {ack.session if ack else '?'}")
+        self._conn.link_report.restored(f"reconnected: session {ack.session if ack else '?'}")
 
     # -- lifetime --------------------------------------------------------------------------
     def close(self) -> None:

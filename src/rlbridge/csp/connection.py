@@ -28,12 +28,13 @@ from collections.abc import Callable
 from rlbridge.csp import handshake
 from rlbridge.csp.auth import ClientAuth
 from rlbridge.csp.idle import PARK, IdleStrategy
+from rlbridge.csp.link_report import LinkReport
 from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.services import ServiceCalls
 from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
-from rlbridge.csp.session_owner import Control, LinkHandler, ValuesHandler
+from rlbridge.csp.session_owner import Control, ValuesHandler
 from rlbridge.csp.stream_guard import StreamGuard
 from rlbridge.tls import ClientTls
 from rlbridge.wire import (
@@ -92,7 +93,6 @@ class Connection:
         self.ack: ConnectAck | None = None
         self.link: LinkMonitor | None = None
         self.on_values: ValuesHandler | None = None
-        self.on_link_change: LinkHandler | None = None
         self.on_error: Callable[[Error], None] | None = None
         #: ``(channel, limit)``: the server granted a publish channel credit (receive thread).
         self.on_credit: Callable[[int, int], None] | None = None
@@ -124,15 +124,9 @@ class Connection:
         self.services: ServiceCalls = ServiceCalls(self)
         self._thread: threading.Thread | None = None
         self._wake_r, self._wake_w = socket.socketpair()
-        #: The link state of the current session (what ``on_link_change`` was last told,
-        #: unless the session is still being bound again: see :meth:`link_restored`).
-        self.reported_link = LinkState.CONNECTED
-        #: Orders every report of the link: a session's end and the receive thread's
-        #: watchdog never cross, so the last report is always the true one.
-        self._link_lock = threading.RLock()
-        #: False from a reconnect's handshake until :meth:`link_restored`: the link stays
-        #: ``lost`` for control code until its channels are bound again.
-        self._link_told = True
+        #: The link as told to the owner (csp/link_report.py); its ``on_change`` is the
+        #: owner's handler.
+        self.link_report = LinkReport()
         self._leftover: list[Packet | Malformed] = []
 
     # -- opening ---------------------------------------------------------------------------
@@ -209,8 +203,7 @@ class Connection:
             self.ack = ack
             self.link = LinkMonitor(time.monotonic_ns(), ack.heartbeat_ms * 1_000_000,
                                     ack.timeout_ms * 1_000_000)
-            self.reported_link = LinkState.CONNECTED
-            self._link_told = self._generation == 1
+            self.link_report.session_started(self._generation, told=self._generation == 1)
             self._session_ended = False
             self.state = ClientState.CONNECTED
             receiver = Receiver(self, self._generation, self._leftover, self._wake_r)
@@ -271,12 +264,12 @@ class Connection:
             self.send_tcp(b"")
         return plain
 
-    def send_udp(self, data: bytes) -> None:
+    def send_udp(self, data: bytes, flags: int = 0) -> None:
         udp = self.udp
         if udp is None:
             raise ConnectionClosed("this session has no UDP socket")
         try:  # noqa: SIM105 (suppress() costs two Python calls, and this runs every round)
-            udp.send(data)
+            udp.send(data, flags)  # flags: MSG_DONTWAIT for send(inline=True)
         except ConnectionRefusedError:  # ICMP unreachable from an earlier one: the watchdog
             pass
 
@@ -331,29 +324,7 @@ class Connection:
     def link_state(self) -> LinkState:
         if not self.up:
             return LinkState.LOST
-        return self.reported_link
-
-    def set_link(self, state: LinkState, reason: str, generation: int) -> None:
-        """The receive thread of session ``generation`` saw the link change (watchdog).
-
-        Ignored once that session has ended: its last packets (a goodbye, say) must not
-        report ``connected`` after the end of the session reported ``lost``.
-        """
-        with self._link_lock:
-            if generation != self._generation or not self.up:
-                return
-            self.reported_link = state
-            if self._link_told and self.on_link_change is not None:
-                self.on_link_change(state, reason)
-
-    def link_restored(self, reason: str) -> None:
-        """The owner has bound the new session's channels again: tell its link state."""
-        with self._link_lock:
-            if not self.up or self._link_told:
-                return
-            self._link_told = True
-            if self.on_link_change is not None:
-                self.on_link_change(self.reported_link, reason)
+        return self.link_report.state
 
     # -- closing ---------------------------------------------------------------------------
     def end_session(self, reason: str, generation: int, *, final: bool = False) -> None:
@@ -381,10 +352,7 @@ class Connection:
             self._state_changed.notify_all()
         log.info("session ended (%s): %s", "closed" if final else "will reconnect", reason)
         if was_up:
-            with self._link_lock:  # after the state change: set_link now ignores the session
-                self.reported_link = LinkState.LOST
-                if self.on_link_change is not None:
-                    self.on_link_change(LinkState.LOST, reason)
+            self.link_report.session_ended(reason)
         if self.on_session_end is not None:
             self.on_session_end(reason, final)
         self.requests.session_ended()

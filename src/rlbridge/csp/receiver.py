@@ -173,9 +173,9 @@ class Receiver:
             conn.end_session(f"watchdog: nothing from the server within "
                              f"{link.timeout_ns // 1_000_000} ms", generation)
             return
-        if state is not conn.reported_link:
+        if state is not conn.link_report.state:
             silent_ms = link.stats(now).silence_ns // 1_000_000
-            conn.set_link(state, "heard from the server" if state is LinkState.CONNECTED
+            conn.link_report.update(state, "heard from the server" if state is LinkState.CONNECTED
                           else f"nothing from the server for {silent_ms} ms", generation)
         if link.heartbeat_due(now):
             hb = link.make_heartbeat(now, time.time_ns())

@@ -1,4 +1,4 @@
-"""The send thread: the only code that writes values to the network.
+"""The send thread: the code that writes values to the network (see *inline rounds* below).
 
 Theory of operation. Control code writes into outgoing channels, which only store the value in
 a ring buffer (no lock, no system call). This soft-real-time thread drains the rings and does
@@ -38,6 +38,9 @@ thread also grants credit for flow-controlled incoming channels whose reader con
 
 How the thread waits for work is its :mod:`~rlbridge.csp.idle` strategy (park, spin then
 park, busy spin): ``Bridge.connect(idle=...)``.
+
+**Inline rounds** (``Bridge.send(inline=True)``): a caller may run the round itself, in its
+own thread, under the same round lock (:mod:`rlbridge.csp.inline_round`).
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ import time
 from rlbridge.csp.bell import SendBell
 from rlbridge.csp.connection import Connection, ConnectionClosed
 from rlbridge.csp.idle import PARK, IdleStrategy, Park
+from rlbridge.csp.inline_round import InlineRounds
 from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.csp.plain_round import take_plain
 from rlbridge.csp.send_sources import CreditSource, OutgoingSource
@@ -65,7 +69,7 @@ DATAGRAM_BUDGET = 1400
 HOLD_POLL_S = 0.001
 
 
-class SendLoop:
+class SendLoop(InlineRounds):
     """Owns the send thread; started by the Bridge, stopped and joined by ``close``."""
 
     def __init__(self, conn: Connection, *, rate_hz: float | None, max_batch: int,
@@ -110,6 +114,9 @@ class SendLoop:
         self._holding = False
         self._packer: DatagramPacker | None = None
         self.datagrams_sent = 0
+        #: Rounds this thread ran (its wake-ups with work).
+        self.rounds = 0
+        self._init_inline()  # the round lock, the hand-over, their counters
         conn.on_error = self._on_error
 
     def _on_error(self, error: Error) -> None:
@@ -211,8 +218,10 @@ class SendLoop:
                 if next_tick < time.monotonic():  # overrun: skip, do not burst
                     next_tick = time.monotonic() + period  # type: ignore[operator]
             was_deferred = self._deferred
+            self.rounds += 1
             try:
-                self._send_pending(flush_all)
+                with self._round:
+                    self._send_pending(flush_all)
             except (OSError, ConnectionClosed) as exc:
                 # A session that ended under this round (its socket closed or already gone)
                 # must not end the thread: the reconnect supervisor resumes it on the next one.
@@ -252,6 +261,8 @@ class SendLoop:
         parts = self._parts
         if parts:  # left by a round that failed before it sent them: lost with that round
             parts.clear()
+        if self._handoff is not None:
+            self._take_handoff(packer, parts)
         gathered = True  # the packer may hold parts added one by one: flush it
         if packer is not None and packer.one_call:
             # The short way: plain channels append their values as parts, and the round's

@@ -17,6 +17,7 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
 
+from rlbridge.csp.link_report import LinkHandler, LinkReport
 from rlbridge.wire import (
     ConnectAck,
     Error,
@@ -30,7 +31,7 @@ from rlbridge.wire import (
     TopicAck,
     TopicError,
 )
-from rlbridge.wire.link import LinkMonitor, LinkState
+from rlbridge.wire.link import LinkMonitor
 
 if TYPE_CHECKING:
     from rlbridge.csp.auth import ClientAuth
@@ -45,8 +46,6 @@ __all__ = ["Answers", "Control", "LinkHandler", "ServiceAnswers", "SessionOwner"
 Control = Literal["tcp", "udp"]
 #: ``(channel, first_seq, stamps, values)``: how the receive thread hands values to channels.
 ValuesHandler = Callable[[int, int, list[int], list[object]], None]
-#: ``(state, reason)``: called from the receive thread when the link state changes.
-LinkHandler = Callable[[LinkState, str], None]
 
 
 class Answers(Protocol):
@@ -89,7 +88,8 @@ class SessionOwner(Protocol):
     tcp_lock: threading.Lock
     # -- the session's state (the receive thread reads and counts)
     datagrams_dropped: collections.Counter[str]
-    reported_link: LinkState
+    #: The link as told to the owner (the receive thread reports its watchdog there).
+    link_report: LinkReport
     #: How the receive thread waits for a readable socket.
     idle: IdleStrategy
 
@@ -144,7 +144,5 @@ class SessionOwner(Protocol):
     def tcp_received(self, data: bytes) -> bytes: ...
 
     def send_udp_packet(self, packet: Packet) -> None: ...
-
-    def set_link(self, state: LinkState, reason: str, generation: int) -> None: ...
 
     def end_session(self, reason: str, generation: int) -> None: ...

@@ -141,11 +141,14 @@ class DatagramPacker:
         self._values += 1 if isinstance(packet, Value) else len(packet.values)
         return 0
 
-    def send_parts(self, parts: list[Part]) -> bool:
+    def send_parts(self, parts: list[Part],
+                   send: Callable[[bytes], object] | None = None) -> bool:
         """Send a whole round's parts in one datagram, encoded by one msgspec call.
 
         Returns False, having sent nothing, when this packer cannot (not :attr:`one_call`) or
         the parts do not fit ``budget`` together: the caller then adds them one by one.
+        ``send`` replaces the packer's own for this datagram (a sender that must not wait);
+        what it raises leaves ``parts`` as they were and counts no datagram.
         """
         n = len(parts)
         if not (n and self._plain and self.bundles):
@@ -161,9 +164,9 @@ class DatagramPacker:
             return False
         if self._bodies:  # parts added before this round go first
             self.flush()
+        (self._send if send is None else send)(bytes(buf))
         self.datagrams += 1
         self.bundles_sent += n > 1
-        self._send(bytes(buf))
         return True
 
     def flush(self) -> None:
