@@ -47,7 +47,8 @@ MODULES: tuple[str, ...] = (
     "rlbridge.server.bindings",
     "rlbridge.server.sinks",
     "rlbridge.adapters.inproc",
-    # SDK: write -> ring -> send round -> datagram; datagram -> receive thread -> ring -> read
+    # SDK: write -> ring -> send round (send thread, or inline) -> datagram; datagram ->
+    # receive thread -> ring -> read
     "rlbridge.csp.ring",
     "rlbridge.csp.stamped_ring",
     "rlbridge.csp.channel",
@@ -55,6 +56,7 @@ MODULES: tuple[str, ...] = (
     "rlbridge.csp.outgoing",
     "rlbridge.csp.plain_round",
     "rlbridge.csp.bell",
+    "rlbridge.csp.inline_round",
     "rlbridge.csp.sender",
     "rlbridge.csp.receiver",
     # both: the codec, bundles, sequence numbers and clocks
