@@ -69,7 +69,8 @@ def _probe(**env: str) -> dict[str, object]:
 def _compiled_or_skip() -> None:
     if not STATE.startswith("compiled"):
         if REQUIRE:
-            pytest.fail(f"RLBRIDGE_TEST_REQUIRE_COMPILED=1 but the value path is {STATE}")
+            pytest.fail(f"RLBRIDGE_TEST_REQUIRE_COMPILED=1 but the value path is {STATE}; "
+                        "`pip install -v -e . 2>&1 | grep 'rlbridge build'` says why")
         pytest.skip(f"the value path is {STATE}")
 
 
