@@ -23,6 +23,9 @@ import os
 
 # Before typer is imported: plain click help (typer decides once, at import time).
 os.environ["TYPER_USE_RICH"] = "0"
+# Before rlbridge is imported: the Python files, whose source the API reference reads (a module
+# compiled by mypyc, setup.py, has none).
+os.environ["RLBRIDGE_PURE_PYTHON"] = "1"
 
 import argparse
 import sys

@@ -15,7 +15,8 @@ changes (and the pattern's cycle count, to keep it short).
 
 Needs only rlbridge and the standard library. scripts/test.sh runs it in a fresh venv per
 Python with a plain ``pip install .``; tests/docs/test_readme_sdk.py runs it in the test venv.
-Exit status 0 when both examples did what the README says, 1 with the reason otherwise.
+Exit status 0 when both examples did what the README says, 1 with the reason otherwise (or,
+with ``RLBRIDGE_TEST_REQUIRE_COMPILED=1``, when ``pip install .`` did not compile the value path).
 """
 
 from __future__ import annotations
@@ -157,7 +158,13 @@ def pattern_example(port: int) -> str:
 
 
 def main() -> int:
+    from rlbridge._compiled import STATE
+
     version = ".".join(map(str, sys.version_info[:3]))
+    if os.environ.get("RLBRIDGE_TEST_REQUIRE_COMPILED") == "1" and not STATE.startswith("compil"):
+        print(f"readme_example: FAILED on Python {version}: `pip install .` did not compile "
+              f"the value path (setup.py): {STATE}", file=sys.stderr)
+        return 1
     server = None
     try:
         server = Serve()
@@ -169,7 +176,8 @@ def main() -> int:
     finally:
         if server is not None:
             server.stop()
-    print(f"readme_example: README examples ran on Python {version}: " + "; ".join(done))
+    print(f"readme_example: README examples ran on Python {version} (value path: {STATE}): "
+          + "; ".join(done))
     return 0
 
 

@@ -8,8 +8,14 @@
 #   jazzy                   the ROS 2 adapter tests on Jazzy's rclpy 7.1 wheels and Python 3.12
 #                           (.venv-jazzy), and the cross-release graph: server on one release,
 #                           ROS node on the other, both ways (tests/adapters/test_ros2_cross_release.py)
-#   readme-3.10 .. 3.13     a fresh venv, `pip install .` as a user does, the README's examples
-#                           against `rlbridge serve` (scripts/readme_example.py)
+#   readme-3.10 .. 3.13     a fresh venv, `pip install .` as a user does (compiling the value
+#                           path with mypyc: setup.py), the README's examples against
+#                           `rlbridge serve` (scripts/readme_example.py); 3.11 without compiling
+#
+# The py and jazzy legs and readme-3.11 install and test with RLBRIDGE_PURE_PYTHON=1: the
+# Python files, as on a machine without a compiler (scripts/test.sh's full suite tests the
+# compiled modules on 3.11, the other readme legs run them on 3.10, 3.12 and 3.13); a compile
+# costs ~45 s of CPU (docs/benchmarks.md, "Compiled value path").
 #
 # Interpreters come from pyenv ($PYENV_ROOT or ~/.pyenv) or `pythonX.Y` on PATH. A missing one
 # is a loud "MISSING" line and its legs are skipped; with CI=true it fails the run. A leg fails
@@ -58,14 +64,21 @@ if [ "${1:-}" = "--leg" ]; then
   export RLBRIDGE_TEST_REQUIRE_ROS2=1  # an rclpy that does not import fails, never skips
   case $kind in
     py)
+      export RLBRIDGE_PURE_PYTHON=1  # the tests on the Python files (see the header)
+      unset RLBRIDGE_TEST_REQUIRE_COMPILED
       make_venv ".venv-$version" "$python" -e ".[test,ros2]"
       exec ".venv-$version/bin/python" -m pytest -q -p no:randomly "${SUBSET[@]}" ;;
     jazzy)
+      export RLBRIDGE_PURE_PYTHON=1
+      unset RLBRIDGE_TEST_REQUIRE_COMPILED
       make_venv .venv-jazzy "$python" -e ".[test,ros2-jazzy]"
       [ -x .venv/bin/python ] || { echo "no .venv (the current wheels): run scripts/test.sh"; exit 1; }
       RLBRIDGE_ROS_OTHER_PYTHON="$PWD/.venv/bin/python" \
         exec .venv-jazzy/bin/python -m pytest -q -p no:randomly tests/adapters ;;
     readme)
+      # 3.11: the pure install a machine without a compiler gets (the full suite tests the
+      # compiled modules on 3.11); the other Pythons compile, as a user's `pip install .` does.
+      if [ "$version" = 3.11 ]; then export RLBRIDGE_PURE_PYTHON=1; unset RLBRIDGE_TEST_REQUIRE_COMPILED; fi
       rm -rf ".venv-user-$version"
       make_venv ".venv-user-$version" "$python" .
       exec ".venv-user-$version/bin/python" scripts/readme_example.py ;;

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from rlbridge import _compiled  # noqa: F401  (first: it decides how the compiled modules load)
 from rlbridge._version import __version__
 
 if TYPE_CHECKING:

@@ -40,7 +40,9 @@ LogLevel = Annotated[str | None, typer.Option(
 
 def _version(value: bool) -> None:
     if value:
-        typer.echo(f"rlbridge {__version__}")
+        from rlbridge._compiled import STATE
+
+        typer.echo(f"rlbridge {__version__}\nvalue path: {STATE}")
         raise typer.Exit()
 
 
@@ -48,7 +50,8 @@ def _version(value: bool) -> None:
 def main_options(
     ctx: typer.Context,
     version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
-                                          help="Print the version and exit.")] = False,
+                                          help="Print the version and whether the value path is "
+                                               "compiled (mypyc), and exit.")] = False,
     log_level: LogLevel = None,
 ) -> None:
     """rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP."""

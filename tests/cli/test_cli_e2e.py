@@ -13,6 +13,7 @@ from typing import Any
 
 import pytest
 
+from rlbridge._compiled import STATE
 from rlbridge._version import __version__
 from rlbridge.wire import PacketCodec, Stats
 
@@ -49,7 +50,7 @@ def wait_for_topic(topics_of: Callable[[int], Sequence[str]], port: int, topic: 
 def test_version(cli: Any) -> None:
     result = cli.run("--version")
     assert result.returncode == 0, result.stderr
-    assert result.stdout.strip() == f"rlbridge {__version__}"
+    assert result.stdout.splitlines() == [f"rlbridge {__version__}", f"value path: {STATE}"]
 
 
 def test_echo_prints_what_pub_publishes(cli: Any, shared_cli_server: int,

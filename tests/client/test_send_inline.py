@@ -24,10 +24,12 @@ from link_helpers import WAIT, wait_for
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.errors import RealTimeWarning
+from rlbridge.csp.inline_round import InlineRounds
 from rlbridge.csp.process import Code
 from rlbridge.csp.sender import SendLoop
 from rlbridge.server import ServerThread
 from rlbridge.wire import Batch, Bundle, Value
+from rlbridge.wire.bundle import DatagramPacker
 from rlbridge.wire.codec import PacketCodec
 
 F64 = "std_msgs/msg/Float64"
@@ -332,16 +334,19 @@ def test_a_full_socket_buffer_hands_the_round_over_and_loses_nothing(
 def test_a_handed_over_round_of_an_ended_session_is_counted() -> None:
     """The hand-over is for the packer (session) it was taken for; a new session's round
     counts it as a failed round instead of sending old sequence numbers."""
-    loop = SendLoop.__new__(SendLoop)
+    # SendLoop's inline part alone (no connection); real packers: the compiled module
+    # (rlbridge/_compiled.py) checks the types of what it is given.
+    loop = InlineRounds()
+    loop._init_inline()
     loop.send_errors = 0
-    old, new = object(), object()
-    loop._handoff = (old, [("part",)])  # type: ignore[assignment]
+    old, new = (DatagramPacker(PacketCodec(), 1, 1400, lambda _: None) for _ in range(2))
+    loop._handoff = (old, [("part",)])
     parts: list[Any] = []
-    loop._take_handoff(new, parts)  # type: ignore[arg-type]
+    loop._take_handoff(new, parts)
     assert parts == []
     assert loop.send_errors == 1
     assert loop._handoff is None
-    loop._handoff = (new, [("part",)])  # type: ignore[assignment]
-    loop._take_handoff(new, parts)  # type: ignore[arg-type]
+    loop._handoff = (new, [("part",)])
+    loop._take_handoff(new, parts)
     assert parts == [("part",)]
     assert loop.send_errors == 1

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import rlbridge
+from rlbridge._compiled import STATE
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,7 +20,8 @@ def test_python_dash_m_rlbridge_is_the_command() -> None:
     proc = subprocess.run([sys.executable, "-m", "rlbridge", "--version"], capture_output=True,
                           text=True, timeout=60, check=False)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == f"rlbridge {rlbridge.__version__}"
+    assert proc.stdout.splitlines() == [f"rlbridge {rlbridge.__version__}",
+                                        f"value path: {STATE}"]
     helped = subprocess.run([sys.executable, "-m", "rlbridge", "--help"], capture_output=True,
                             text=True, timeout=60, check=False)
     assert helped.returncode == 0
@@ -32,7 +34,9 @@ def test_the_console_script_prints_its_version() -> None:
     assert exe is not None
     proc = subprocess.run([exe, "--version"], capture_output=True, text=True, timeout=60,
                           check=False)
-    assert (proc.returncode, proc.stdout.strip()) == (0, f"rlbridge {rlbridge.__version__}")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == [f"rlbridge {rlbridge.__version__}",
+                                        f"value path: {STATE}"]
 
 
 def test_help_of_the_package_names_bridge() -> None:

@@ -17,6 +17,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from mypy_extensions import mypyc_attr
+
 from rlbridge.adapters.base import (
     BindingError,
     GoalDone,
@@ -82,6 +84,11 @@ class _Publisher:
     #: Each subscriber with the converter this publisher's values need (None: as they are).
     _targets: tuple[tuple[_Subscriber, _Convert | None], ...] = field(
         default=(), init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        # A dataclass compiled by mypyc (setup.py) leaves ``init=False`` fields unset.
+        self._seen = None
+        self._targets = ()
 
     def publish(self, values: Sequence[Any]) -> None:
         """``_Topic.deliver`` with this publisher's fan-out computed once per subscriber set."""
@@ -159,6 +166,8 @@ class _Topic:
             self.bus.forget_if_unused(self)
 
 
+# Compiled by mypyc (rlbridge/_compiled.py); tests subclass it in Python (failing buses).
+@mypyc_attr(allow_interpreted_subclasses=True)
 class InProcessBus:
     """A :class:`~rlbridge.adapters.base.MiddlewareAdapter` living in the server process."""
 

@@ -13,8 +13,10 @@ the publisher's write time and so unique:
   call returns (sequence check, ring write, doorbell), and the blocking ``read`` returns.
 
 The probes wrap methods of the SDK objects of the child processes only, no production code
-path carries them. Each stage's p50 is a median over the samples of a run, then over the
-runs; the stages of one sample add up to its total, their medians need not.
+path carries them; those processes run rlbridge's modules as Python files
+(``RLBRIDGE_PURE_PYTHON``: a compiled module's calls would not see the wrappers). Each
+stage's p50 is a median over the samples of a run, then over the runs; the stages of one
+sample add up to its total, their medians need not.
 """
 
 from __future__ import annotations
@@ -226,7 +228,8 @@ def measure(link: Link, idle: str, rate_hz: float, count: int) -> StageRun:
     timeout = count / rate_hz + 30.0
     with ProcessGroup(link, lifetime_s=timeout + 120) as group:
         try:
-            flow = rlbridge_flow(group, MODULE, stream, timeout)
+            # The probes wrap the SDK's Python functions: its Python files, not compiled.
+            flow = rlbridge_flow(group, MODULE, stream, timeout, python_files=True)
         except BenchError as exc:
             raise BenchError(f"{exc}{group.diagnostics()}") from None
     return _stage_p50s(flow.sent["records"], flow.received["records"], flow.received["reads"])

@@ -18,6 +18,8 @@ from collections.abc import Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 
+from rlbridge._compiled import STATE
+
 
 def fmt(value: float, digits: int = 0) -> str:
     """Thousands separators, ``-`` for NaN."""
@@ -41,9 +43,10 @@ def cpu_model() -> str:
 
 
 def machine_info() -> dict[str, str]:
-    """What a reader needs to judge the figures: cores, CPU, versions, and the load average
-    as the report is written: the run's end, the 5- and 15-minute figures covering the run
-    (a report that needs the load before the run measures it itself, as soak's does)."""
+    """What a reader needs to judge the figures: cores, CPU, versions, whether rlbridge's value
+    path is compiled, and the load average as the report is written: the run's end, the 5- and
+    15-minute figures covering the run (a report that needs the load before the run measures
+    it itself, as soak's does)."""
     load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
     return {
         "nproc": str(len(os.sched_getaffinity(0))),
@@ -52,6 +55,7 @@ def machine_info() -> dict[str, str]:
         "python": platform.python_version(),
         "uvloop": _version("uvloop"),
         "msgspec": _version("msgspec"),
+        "value path": STATE,  # compiled by mypyc, or the Python files (rlbridge/_compiled.py)
         "pyzmq": _version("pyzmq"),
         "eclipse-zenoh": _version("eclipse-zenoh"),
         "load average (1, 5, 15 min) at the end": load,

@@ -171,9 +171,16 @@ class ProcessGroup:
         self.lifetime_s = lifetime_s
         self._workers: list[Worker] = []
 
-    def start(self, name: str, side: Side, module: str, role: str, params: Params) -> Worker:
-        """Start ``module.ROLES[role](params)`` on ``side``; do not wait for it."""
-        argv = [sys.executable, "-c", "from rlbridge.bench.child import worker_main; "
+    def start(self, name: str, side: Side, module: str, role: str, params: Params, *,
+              python_files: bool = False) -> Worker:
+        """Start ``module.ROLES[role](params)`` on ``side``; do not wait for it.
+
+        ``python_files``: rlbridge's compiled modules run as their ``.py`` files in the worker
+        (``RLBRIDGE_PURE_PYTHON``, rlbridge/_compiled.py), for a role that wraps their
+        functions with probes (a compiled module's calls do not see the wrappers).
+        """
+        pure = "import os; os.environ['RLBRIDGE_PURE_PYTHON'] = '1'; " if python_files else ""
+        argv = [sys.executable, "-c", pure + "from rlbridge.bench.child import worker_main; "
                 "worker_main()", module, role, json.dumps(params), str(self.lifetime_s)]
         stderr = tempfile.TemporaryFile()  # noqa: SIM115 - closed by Worker.stop
         proc = self.link.popen(side, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
@@ -254,14 +261,15 @@ def run_flow(sender: Worker, receiver: Worker, measured: Sequence[Worker], timeo
 
 
 def rlbridge_flow(group: ProcessGroup, module: str, params: Params, timeout: float,
-                  **server_config: Any) -> Flow:
+                  *, python_files: bool = False, **server_config: Any) -> Flow:
     """One stream through a server: the ``publisher`` and ``subscriber`` roles of ``module``
     (``bench latency``'s, or the probed ones of ``latency --stages``) on side ``"b"``, the
-    server on side ``"a"``; CPU of the processes ``publisher``, ``server`` and ``subscriber``."""
+    server on side ``"a"``; CPU of the processes ``publisher``, ``server`` and ``subscriber``.
+    ``python_files``: the SDK processes run the value path's Python files, not compiled."""
     server, host, port = start_server(group, **server_config)
     common: Params = {"host": host, "port": port, **params}
-    sub = group.start("subscriber", "b", module, "subscriber", common)
-    pub = group.start("publisher", "b", module, "publisher", common)
+    sub = group.start("subscriber", "b", module, "subscriber", common, python_files=python_files)
+    pub = group.start("publisher", "b", module, "publisher", common, python_files=python_files)
     for worker in (sub, pub):  # started together; the publisher waits for "go" anyway
         worker.expect("ready", STARTUP_S)
     return run_flow(pub, sub, [pub, server, sub], timeout)

@@ -27,6 +27,8 @@ from collections.abc import Sequence
 from operator import itemgetter
 from typing import Any, NamedTuple
 
+from mypy_extensions import mypyc_attr
+
 from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import _MISSING, Channel, _Missing
 from rlbridge.csp.errors import ChannelMisuseError, SecondWriterError
@@ -52,6 +54,8 @@ _second = itemgetter(1)
 _NO_CLOCK = ClockOffset()
 
 
+# Compiled by mypyc (rlbridge/_compiled.py); GuardedChannel (csp/failsafe.py) subclasses it.
+@mypyc_attr(allow_interpreted_subclasses=True)
 class IncomingChannel(Channel[Any]):
     """Middleware -> control code. Read it like any buffered channel."""
 

@@ -43,6 +43,8 @@ import warnings
 from collections.abc import Sequence
 from typing import Final, Generic, TypeVar
 
+from mypy_extensions import mypyc_attr
+
 from rlbridge.csp.doorbell import Doorbell
 from rlbridge.csp.errors import (
     ChannelClosed,
@@ -70,6 +72,8 @@ _MISSING: Final = _Missing.MISSING
 _yield_cpu = os.sched_yield
 
 
+# Compiled by mypyc (rlbridge/_compiled.py); ServiceRequests (csp/services.py) subclasses it.
+@mypyc_attr(allow_interpreted_subclasses=True)
 class Channel(Generic[T]):
     """A CSP channel; see the module docstring for the three kinds."""
 

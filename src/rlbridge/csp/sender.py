@@ -106,7 +106,7 @@ class SendLoop(InlineRounds):
         self._flushed = threading.Condition()
         self._stopping = False
         self._paused = False
-        self._thread = threading.Thread(target=self._run, name="rlbridge-send", daemon=True)
+        self._io_thread = threading.Thread(target=self._run, name="rlbridge-send", daemon=True)
         self.packets_sent = 0
         self.values_sent = 0
         self.values_repeated = 0
@@ -128,12 +128,12 @@ class SendLoop(InlineRounds):
                 source.refused(error.values or 1)
 
     def start(self) -> None:
-        self._thread.start()
+        self._io_thread.start()
 
     @property
     def native_id(self) -> int | None:
         """The send thread's OS id (for ``Bridge.set_io_priority``), ``None`` when not running."""
-        return self._thread.native_id if self._thread.is_alive() else None
+        return self._io_thread.native_id if self._io_thread.is_alive() else None
 
     def pause(self) -> None:
         """Keep values in their channels (the link is down); flushes return at once."""
@@ -371,12 +371,12 @@ class SendLoop(InlineRounds):
 
     def close(self) -> None:
         """Flush what is waiting, then stop and join the thread."""
-        if self._thread.is_alive():
+        if self._io_thread.is_alive():
             self.flush(wait=True, timeout=2.0)
         self._stopping = True
         self.doorbell.ring()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
+        if self._io_thread.is_alive():
+            self._io_thread.join(5.0)
 
 
 def packets_for(channel: int, first_seq: int, stamps: list[int], values: list[object],

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import msgspec
+from mypy_extensions import mypyc_attr
 
 from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Packet, Value
@@ -65,6 +66,8 @@ class PartlyMalformed(RemoteProtocolError):
 BUNDLE_TAG: int = Bundle.__struct_config__.tag  # type: ignore[assignment]
 
 
+# Compiled by mypyc (rlbridge/_compiled.py); SealedCodec (wire/seal.py) subclasses it.
+@mypyc_attr(allow_interpreted_subclasses=True)
 class PacketCodec:
     """Reusable msgspec encoder/decoder pair (creating them per packet costs more than a packet)."""
 
