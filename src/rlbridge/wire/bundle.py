@@ -114,8 +114,9 @@ class DatagramPacker:
 
     @property
     def one_call(self) -> bool:
-        """:meth:`send_parts` can encode a round in one call (a plain codec that bundles)."""
-        return self._plain and self.bundles
+        """:meth:`send_parts` can encode a round in one call (a codec that bundles; a sealing
+        codec then seals that one encoding)."""
+        return self.bundles
 
     @property
     def pending(self) -> int:
@@ -148,8 +149,10 @@ class DatagramPacker:
         the parts do not fit ``budget`` together: the caller then adds them one by one.
         """
         n = len(parts)
-        if not (n and self._plain and self.bundles):
+        if not (n and self.bundles):
             return False
+        if self._seal is not None:
+            return self._seal_parts(parts)
         buf = self._round
         if n == 1:
             self._encode_into(parts[0], buf, DATAGRAM_HEADER.size)
@@ -164,6 +167,24 @@ class DatagramPacker:
         self.datagrams += 1
         self.bundles_sent += n > 1
         self._send(bytes(buf))
+        return True
+
+    def _seal_parts(self, parts: list[Part]) -> bool:
+        """:meth:`send_parts` of a sealing codec: the round's body in one call, then sealed."""
+        if len(parts) == 1:
+            body = self._encode(parts[0])
+        else:
+            bundle = self._bundle
+            bundle[1] = parts
+            body = self._encode(bundle)
+        if self._overhead + len(body) > self.budget:
+            return False
+        if self._bodies:
+            self.flush()
+        self.datagrams += 1
+        self.bundles_sent += len(parts) > 1
+        assert self._seal is not None
+        self._send(self._seal(body, self.token, self._flags))
         return True
 
     def flush(self) -> None:
