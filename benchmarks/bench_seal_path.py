@@ -19,7 +19,9 @@ many repeats, and ``bench_seal.py`` for the per-datagram functions alone. Plain 
 alternate in every repeat. ``--cipher-swap`` adds keyed runs that seal with AES-256-GCM
 instead of ChaCha20-Poly1305 (same key, nonce and tag sizes), ``--diagnose`` keyed runs whose
 cipher only copies the bytes and appends a zero tag (everything sealing adds but the cipher:
-a measurement, never security).
+a measurement, never security), ``--part-by-part`` keyed runs whose send thread packs a sealed
+round part by part, as it did before sealed rounds took the one-call way (an A/B of that
+change in the same run).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from rlbridge.server import ServerConfig
 from rlbridge.server.app import ServerThread
 from rlbridge.wire import seal
 from rlbridge.wire.auth import PSK_ENV
+from rlbridge.wire.bundle import DatagramPacker
 
 TOPIC = "/bench/seal_path"
 MSG_TYPE = "std_msgs/msg/Int64"
@@ -131,6 +134,10 @@ def _variant(name: str) -> Iterator[None]:
         if cipher is not None:  # sessions opened from now on seal with it, on both ends
             stack.callback(setattr, seal, "ChaCha20Poly1305", ChaCha20Poly1305)
             setattr(seal, "ChaCha20Poly1305", cipher)  # noqa: B010 (another type on purpose)
+        if name == "keyed, rounds part by part":  # the send thread's sealed path before 11-28
+            stack.callback(setattr, DatagramPacker, "one_call", DatagramPacker.one_call)
+            setattr(DatagramPacker, "one_call",  # noqa: B010
+                    property(lambda packer: packer._plain and packer.bundles))
         yield
 
 
@@ -142,6 +149,9 @@ def main() -> None:
     parser.add_argument("--cipher-swap", action="store_true",
                         help="add keyed runs sealing with AES-256-GCM instead of "
                         "ChaCha20-Poly1305 (the alternative's cost)")
+    parser.add_argument("--part-by-part", action="store_true",
+                        help="add keyed runs whose send thread packs a sealed round part by "
+                        "part (the path before sealed rounds took the one-call way)")
     parser.add_argument("--diagnose", action="store_true",
                         help="add keyed runs whose AEADs copy the bytes and append a zero tag")
     args = parser.parse_args()
@@ -150,6 +160,8 @@ def main() -> None:
     names = ["plain", "keyed"]
     if args.cipher_swap:
         names.append("keyed, AES-256-GCM swapped in")
+    if args.part_by_part:
+        names.append("keyed, rounds part by part")
     if args.diagnose:
         names.append("keyed, no-op cipher")
     cpu: dict[str, list[list[float]]] = {name: [] for name in names}
