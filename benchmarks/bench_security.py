@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import random
 import statistics
 import subprocess
 import sys
@@ -183,6 +184,8 @@ def main() -> None:
                         "ChaCha20-Poly1305 in every process (the alternative's cost)")
     parser.add_argument("--baseline", metavar="TREE/src",
                         help="add keyed rows whose processes import rlbridge from this tree")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of the columns' order in each repeat (default: random)")
     parser.add_argument("--latency-only", action="store_true",
                         help="only the 1 kHz UDP latency rows (quick A/B of the sealing path)")
     args = parser.parse_args()
@@ -226,8 +229,15 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
     p99: dict[tuple[str, str], list[float]] = {}
     retries = dict.fromkeys(plan, 0)
     load_before = os.getloadavg()
+    seed = random.randrange(1 << 32) if args.seed is None else args.seed
+    order = random.Random(seed)
     for rep in range(args.repeats):
-        for name, (link, tput_rows, lat_rows) in plan.items():  # interleaved: same load
+        # Interleaved (same load), in a new random order every repeat: a run may find the
+        # previous run's processes still exiting, and no column may always follow the same one.
+        names = list(plan)
+        order.shuffle(names)
+        for name in names:
+            link, tput_rows, lat_rows = plan[name]
             for case in tput_rows:
                 print(f"[{rep + 1}/{args.repeats}] {name} {case.label}", file=sys.stderr)
                 m = _retrying(lambda lk=link, c=case: throughput.measure(  # type: ignore[misc]
@@ -246,7 +256,8 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
     print(f"Load average before {load_before[0]:.2f}, after {load_after[0]:.2f}; "
           f"medians of {args.repeats} interleaved repeats; runs repeated after a failure "
           f"(a watchdog timeout under load): "
-          + ", ".join(f"{k} {v}" for k, v in retries.items()) + ".\n")
+          + ", ".join(f"{k} {v}" for k, v in retries.items())
+          + f"; columns in a random order per repeat (--seed {seed}).\n")
 
     def table(other: str, heading: str, tput_rows: list[throughput.Case],
               lat_rows: list[latency.Case]) -> None:
