@@ -284,6 +284,9 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
         print()
     extra = {"noop-cipher": "diagnostic: keyed, cipher replaced by a no-op",
              "gcm-swap": "candidate: keyed, AES-256-GCM swapped in for ChaCha20-Poly1305"}
+    if any(column in plan for column in extra):
+        print("| path | plain | diagnostic or candidate | ratio |")
+        print("|---|---:|---:|---:|")
     for column, what in extra.items():
         if column not in plan:
             continue
