@@ -16,23 +16,36 @@ receive, open, decode, hand to the channel). CPU time is the kernel's per-thread
 the GIL is not counted; but at 1 kHz every wake-up meets caches that other processes have
 filled, so on a loaded machine a repeat can move by a third either way: read the medians of
 many repeats, and ``bench_seal.py`` for the per-datagram functions alone. Plain and keyed runs
-alternate in every repeat.
+alternate in every repeat. ``--cipher-swap`` adds keyed runs that seal with AES-256-GCM
+instead of ChaCha20-Poly1305 (same key, nonce and tag sizes), ``--diagnose`` keyed runs whose
+cipher only copies the bytes and appends a zero tag (everything sealing adds but the cipher:
+a measurement, never security), ``--part-by-part`` keyed runs whose send thread packs a sealed
+round part by part, as it did before sealed rounds took the one-call way (an A/B of that
+change in the same run).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
+import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
+
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives.ciphers.aead import AESGCM, ChaCha20Poly1305
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerConfig
 from rlbridge.server.app import ServerThread
+from rlbridge.wire import seal
 from rlbridge.wire.auth import PSK_ENV
+from rlbridge.wire.bundle import DatagramPacker
 
 TOPIC = "/bench/seal_path"
 MSG_TYPE = "std_msgs/msg/Int64"
@@ -97,44 +110,99 @@ def run_once(key_hex: str | None, key_file: Path | None, values: int,
     return [(b - a) / values for a, b in zip(before, after, strict=True)], read
 
 
+class _NoopCipher:
+    """``--diagnose``: copies the bytes and appends a zero tag (no security: a measurement)."""
+
+    def __init__(self, key: bytes) -> None:
+        del key
+
+    def encrypt(self, nonce: bytes, data: bytes, aad: bytes) -> bytes:
+        return bytes(data) + bytes(16)
+
+    def decrypt(self, nonce: bytes, data: bytes, aad: bytes) -> bytes:
+        if bytes(data[-16:]) != bytes(16):
+            raise InvalidTag
+        return bytes(data[:-16])
+
+
+@contextlib.contextmanager
+def _variant(name: str) -> Iterator[None]:
+    """What a column changes in this process for its run (then puts back)."""
+    with contextlib.ExitStack() as stack:
+        cipher = {"keyed, AES-256-GCM swapped in": AESGCM,
+                  "keyed, no-op cipher": _NoopCipher}.get(name)
+        if cipher is not None:  # sessions opened from now on seal with it, on both ends
+            stack.callback(setattr, seal, "ChaCha20Poly1305", ChaCha20Poly1305)
+            setattr(seal, "ChaCha20Poly1305", cipher)  # noqa: B010 (another type on purpose)
+        if name == "keyed, rounds part by part":  # the send thread's sealed path before 11-28
+            stack.callback(setattr, DatagramPacker, "one_call", DatagramPacker.one_call)
+            setattr(DatagramPacker, "one_call",  # noqa: B010
+                    property(lambda packer: packer._plain and packer.bundles))
+        yield
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--values", type=int, default=2000, help="values per run")
     parser.add_argument("--rate", type=float, default=1000.0, help="values per second")
+    parser.add_argument("--cipher-swap", action="store_true",
+                        help="add keyed runs sealing with AES-256-GCM instead of "
+                        "ChaCha20-Poly1305 (the alternative's cost)")
+    parser.add_argument("--part-by-part", action="store_true",
+                        help="add keyed runs whose send thread packs a sealed round part by "
+                        "part (the path before sealed rounds took the one-call way)")
+    parser.add_argument("--diagnose", action="store_true",
+                        help="add keyed runs whose AEADs copy the bytes and append a zero tag")
     args = parser.parse_args()
     os.environ.pop(PSK_ENV, None)  # the plain runs must really be plain
     key_hex = os.urandom(32).hex()
-    cpu: dict[str, list[list[float]]] = {"plain": [], "keyed": []}
-    delivered: dict[str, list[int]] = {"plain": [], "keyed": []}
+    names = ["plain", "keyed"]
+    if args.cipher_swap:
+        names.append("keyed, AES-256-GCM swapped in")
+    if args.part_by_part:
+        names.append("keyed, rounds part by part")
+    if args.diagnose:
+        names.append("keyed, no-op cipher")
+    cpu: dict[str, list[list[float]]] = {name: [] for name in names}
+    delivered: dict[str, list[int]] = {name: [] for name in names}
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         key_file = Path(tmp, "keys")
         key_file.write_text(key_hex + "\n")
         key_file.chmod(0o600)
         for rep in range(args.repeats):
-            for name in ("plain", "keyed"):
-                keyed = name == "keyed"
-                per_value, read = run_once(key_hex if keyed else None,
-                                           key_file if keyed else None, args.values, args.rate)
+            for name in names:
+                keyed = name != "plain"
+                with _variant(name):
+                    per_value, read = run_once(key_hex if keyed else None,
+                                               key_file if keyed else None, args.values,
+                                               args.rate)
                 cpu[name].append(per_value)
                 delivered[name].append(read)
                 print(f"[{rep + 1}/{args.repeats}] {name}: "
                       + ", ".join(f"{x / 1000:.1f}" for x in per_value)
                       + f" us/value; {read}/{args.values} read", flush=True)
     load_after = os.getloadavg()[0]
-    print(f"\nLoad average before {load_before:.2f}, after {load_after:.2f}; medians of "
+    print(f"\nCommand: `{' '.join(['.venv/bin/python', *sys.argv])}`  ")
+    print(f"Load average before {load_before:.2f}, after {load_after:.2f}; medians of "
           f"{args.repeats} interleaved repeats of {args.values} values at {args.rate:g} Hz; "
-          f"values read: plain {min(delivered['plain'])}-{max(delivered['plain'])}, keyed "
-          f"{min(delivered['keyed'])}-{max(delivered['keyed'])} per run.\n")
-    print("| thread (CPU per value) | plain us | keyed (sealed) us | extra us | keyed / plain |")
+          "values read per run: " + ", ".join(
+              f"{n} {min(delivered[n])}-{max(delivered[n])}" for n in names) + ".\n")
+    for other in names[1:]:
+        _table(cpu, other)
+        print()
+
+
+def _table(cpu: dict[str, list[list[float]]], other: str) -> None:
+    print(f"| thread (CPU per value) | plain us | {other} us | extra us | ratio |")
     print("|---|---:|---:|---:|---:|")
-    totals = {name: [sum(run) for run in runs] for name, runs in cpu.items()}
+    med = statistics.median
     for i, label in enumerate(THREADS):
-        a = statistics.median(run[i] for run in cpu["plain"]) / 1000
-        b = statistics.median(run[i] for run in cpu["keyed"]) / 1000
+        a = med(run[i] for run in cpu["plain"]) / 1000
+        b = med(run[i] for run in cpu[other]) / 1000
         print(f"| {label} | {a:.1f} | {b:.1f} | {b - a:+.1f} | {b / a:.2f} |")
-    a, b = statistics.median(totals["plain"]) / 1000, statistics.median(totals["keyed"]) / 1000
+    a, b = med(sum(run) for run in cpu["plain"]) / 1000, med(sum(run) for run in cpu[other]) / 1000
     print(f"| all three | {a:.1f} | {b:.1f} | {b - a:+.1f} | {b / a:.2f} |")
 
 

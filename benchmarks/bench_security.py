@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import random
 import statistics
 import subprocess
 import sys
@@ -108,14 +109,42 @@ _NOOP_CIPHER_CHILD = (
     "aead.ChaCha20Poly1305 = NoopCipher\n"
     "from rlbridge.bench.child import worker_main; worker_main()")
 
+#: ``--cipher-swap``: every child seals with AES-256-GCM where the code says ChaCha20-Poly1305
+#: (the same interface and key, nonce and tag sizes; not interoperable with real peers: a
+#: measurement of the alternative cipher on this path, not a mode).
+_GCM_SWAP_CHILD = (
+    "import cryptography.hazmat.primitives.ciphers.aead as aead\n"
+    "aead.ChaCha20Poly1305 = aead.AESGCM\n"
+    "from rlbridge.bench.child import worker_main; worker_main()")
 
-class NoopCipherLink(KeyedLink):
-    """:class:`KeyedLink` whose processes seal with :data:`_NOOP_CIPHER_CHILD`'s stand-in."""
+
+class SwappedCipherLink(KeyedLink):
+    """:class:`KeyedLink` whose processes start with ``entry`` (a cipher swapped in)."""
+
+    def __init__(self, inner: Link, key_hex: str, entry: str, name: str) -> None:
+        super().__init__(inner, key_hex)
+        self._entry = entry
+        self.name = f"{inner.name} + PSK, {name}"
 
     def popen(self, side: Any, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[bytes]:
         argv = list(argv)
-        argv[2] = _NOOP_CIPHER_CHILD  # python -c <entry> ... (bench/workers.py)
+        argv[2] = self._entry  # python -c <entry> ... (bench/workers.py)
         return super().popen(side, argv, **kwargs)
+
+
+class TreeLink(KeyedLink):
+    """:class:`KeyedLink` whose processes import rlbridge from another source tree (an A/B
+    against the keyed code of a baseline checkout: ``--baseline TREE/src``)."""
+
+    def __init__(self, inner: Link, key_hex: str, tree: str) -> None:
+        super().__init__(inner, key_hex)
+        self._tree = str(Path(tree).resolve())
+        self.name = f"{inner.name} + PSK, {tree}"
+
+    def popen(self, side: Any, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[bytes]:
+        env = dict(kwargs.pop("env", None) or os.environ)
+        env["PYTHONPATH"] = self._tree
+        return super().popen(side, argv, env=env, **kwargs)
 
 
 def _plain_link() -> Link:
@@ -150,6 +179,15 @@ def main() -> None:
     parser.add_argument("--no-tls", action="store_true", help="leave out the TLS table")
     parser.add_argument("--diagnose", action="store_true",
                         help="add keyed latency with a no-op cipher (module docstring)")
+    parser.add_argument("--cipher-swap", action="store_true",
+                        help="add keyed latency with AES-256-GCM swapped in for "
+                        "ChaCha20-Poly1305 in every process (the alternative's cost)")
+    parser.add_argument("--baseline", metavar="TREE/src",
+                        help="add keyed rows whose processes import rlbridge from this tree")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of the columns' order in each repeat (default: random)")
+    parser.add_argument("--latency-only", action="store_true",
+                        help="only the 1 kHz UDP latency rows (quick A/B of the sealing path)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="rlbridge-bench-tls-") as tmp:
         run(args, Path(tmp))
@@ -166,9 +204,21 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
         "keyed": (KeyedLink(LoopbackLink(), os.urandom(32).hex()), [udp_batch, tcp_batch],
                   [udp_lat]),
     }
+    if args.baseline:
+        plan["baseline"] = (TreeLink(LoopbackLink(), os.urandom(32).hex(), args.baseline),
+                            [udp_batch, tcp_batch], [udp_lat])
     if args.diagnose:
-        plan["noop-cipher"] = (NoopCipherLink(LoopbackLink(), os.urandom(32).hex()), [],
-                               [udp_lat])
+        plan["noop-cipher"] = (SwappedCipherLink(LoopbackLink(), os.urandom(32).hex(),
+                                                 _NOOP_CIPHER_CHILD, "no-op cipher"),
+                               [], [udp_lat])
+    if args.cipher_swap:
+        plan["gcm-swap"] = (SwappedCipherLink(LoopbackLink(), os.urandom(32).hex(),
+                                              _GCM_SWAP_CHILD, "AES-256-GCM swapped in"),
+                            [], [udp_lat])
+    if args.latency_only:
+        args.no_tls = True
+        for _link, tput_rows, _lat in plan.values():
+            tput_rows.clear()
     if not args.no_tls:
         cert, key, fingerprint = init_server(tmp / "tls")
         plan["plain"][2].append(tcp_lat)
@@ -179,8 +229,15 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
     p99: dict[tuple[str, str], list[float]] = {}
     retries = dict.fromkeys(plan, 0)
     load_before = os.getloadavg()
+    seed = random.randrange(1 << 32) if args.seed is None else args.seed
+    order = random.Random(seed)
     for rep in range(args.repeats):
-        for name, (link, tput_rows, lat_rows) in plan.items():  # interleaved: same load
+        # Interleaved (same load), in a new random order every repeat: a run may find the
+        # previous run's processes still exiting, and no column may always follow the same one.
+        names = list(plan)
+        order.shuffle(names)
+        for name in names:
+            link, tput_rows, lat_rows = plan[name]
             for case in tput_rows:
                 print(f"[{rep + 1}/{args.repeats}] {name} {case.label}", file=sys.stderr)
                 m = _retrying(lambda lk=link, c=case: throughput.measure(  # type: ignore[misc]
@@ -199,7 +256,8 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
     print(f"Load average before {load_before[0]:.2f}, after {load_after[0]:.2f}; "
           f"medians of {args.repeats} interleaved repeats; runs repeated after a failure "
           f"(a watchdog timeout under load): "
-          + ", ".join(f"{k} {v}" for k, v in retries.items()) + ".\n")
+          + ", ".join(f"{k} {v}" for k, v in retries.items())
+          + f"; columns in a random order per repeat (--seed {seed}).\n")
 
     def table(other: str, heading: str, tput_rows: list[throughput.Case],
               lat_rows: list[latency.Case]) -> None:
@@ -218,16 +276,40 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
                 print(f"| {lcase.label} 1 kHz one-way latency {label}, us | {a:.0f} | {b:.0f} "
                       f"| {b / a:.2f} |")
 
-    table("keyed", "keyed (sealed)", [udp_batch, tcp_batch], [udp_lat])
-    if "noop-cipher" in plan:
+    tput_keyed = [] if args.latency_only else [udp_batch, tcp_batch]
+    table("keyed", "keyed (sealed)", tput_keyed, [udp_lat])
+    if "baseline" in plan:
+        print()
+        table("baseline", f"keyed, {args.baseline}", tput_keyed, [udp_lat])
+        print()
+    extra = {"noop-cipher": "diagnostic: keyed, cipher replaced by a no-op",
+             "gcm-swap": "candidate: keyed, AES-256-GCM swapped in for ChaCha20-Poly1305"}
+    if any(column in plan for column in extra):
+        print("| path | plain | diagnostic or candidate | ratio |")
+        print("|---|---:|---:|---:|")
+    for column, what in extra.items():
+        if column not in plan:
+            continue
         for label, data in (("p50", p50), ("p99", p99)):
             a = statistics.median(data[(udp_lat.key, "plain")])
-            b = statistics.median(data[(udp_lat.key, "noop-cipher")])
-            print(f"| diagnostic: keyed, cipher replaced by a no-op, {udp_lat.label} 1 kHz "
-                  f"latency {label}, us | {a:.0f} | {b:.0f} | {b / a:.2f} |")
+            b = statistics.median(data[(udp_lat.key, column)])
+            print(f"| {what}, {udp_lat.label} 1 kHz latency {label}, us | {a:.0f} | {b:.0f} "
+                  f"| {b / a:.2f} |")
+    print()
+    print("Paired: median over the repeats of each repeat's p50 / plain p50 (the same minute's "
+          "load on both): " + ", ".join(
+              f"{column} {_paired(p50, udp_lat.key, column):.3f}"
+              for column in plan if column not in ("plain", "tls")) + ".")
     if "tls" in plan:
         print()
         table("tls", "TLS", [tcp_batch], [tcp_lat])
+
+
+def _paired(data: dict[tuple[str, str], list[float]], key: str, column: str) -> float:
+    """Median of the per-repeat ratios column / plain (runs of a repeat are minutes apart at
+    most, so a ratio compares like load with like load)."""
+    return statistics.median(b / a for a, b in zip(data[(key, "plain")], data[(key, column)],
+                                                   strict=True))
 
 
 if __name__ == "__main__":

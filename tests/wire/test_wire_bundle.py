@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from rlbridge.wire import DATAGRAM_HEADER, Batch, Bundle, PacketCodec, Value
 from rlbridge.wire.auth import SealedCodec
 from rlbridge.wire.bundle import BATCH_TAG, VALUE_TAG, DatagramPacker, Part, as_packet
-from rlbridge.wire.codec import FLAG_BUNDLES, PartlyMalformed, peek_header
+from rlbridge.wire.codec import FLAG_BUNDLES, FLAG_MAC, PartlyMalformed, peek_header
 
 PROPS = settings(deadline=None, max_examples=150, suppress_health_check=[HealthCheck.too_slow])
 TOKEN = 0x0123456789ABCDEF
@@ -151,15 +151,64 @@ def test_a_round_in_one_call_reserves_what_add_reserves(n: int) -> None:
             assert out == expected
 
 
-def test_a_round_in_one_call_needs_a_plain_codec_that_bundles() -> None:
+@pytest.mark.parametrize("n", [2, 15, 16, 40])
+def test_a_sealed_round_in_one_call_splits_where_add_splits(n: int) -> None:
+    """The sealed one-call way makes the datagrams ``add`` makes, at every budget around the
+    one where ``add`` stops splitting the round (the same reserve for the array header)."""
+    packets: list[Value | Batch] = [Value(c, 1, 2, float(c)) for c in range(n)]
+    whole: list[bytes] = []
+    DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, 65507, whole.append,
+                   flags=FLAG_BUNDLES).send_parts([as_tuple(p) for p in packets])
+    size = len(whole[0])
+    outcomes = set()
+    for budget in range(size - 8, size + 80):
+        by_add: list[bytes] = []
+        packer = DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, budget, by_add.append,
+                                limit=65507, flags=FLAG_BUNDLES)
+        for p in packets:
+            assert packer.add(p) == 0
+        packer.flush()
+        out: list[bytes] = []
+        sent = DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, budget, out.append,
+                              limit=65507, flags=FLAG_BUNDLES).send_parts(
+                                  [as_tuple(p) for p in packets])
+        assert sent == (len(by_add) == 1), budget
+        outcomes.add(sent)
+        if sent:
+            assert [len(d) for d in out] == [len(d) for d in by_add]
+    assert outcomes == {False, True}  # the budgets spanned the split
+
+
+def test_a_round_in_one_call_needs_a_codec_that_bundles() -> None:
     out: list[bytes] = []
     round_: list[Part] = [as_tuple(Value(1, 0, 0, 1.0)), as_tuple(Value(2, 0, 0, 2.0))]
-    for packer in (DatagramPacker(PacketCodec(), TOKEN, 1400, out.append, bundles=False),
-                   DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, 1400, out.append)):
-        assert packer.one_call is False
-        assert packer.send_parts(round_) is False
+    packer = DatagramPacker(PacketCodec(), TOKEN, 1400, out.append, bundles=False)
+    assert packer.one_call is False
+    assert packer.send_parts(round_) is False
     assert out == []
     assert DatagramPacker(PacketCodec(), TOKEN, 1400, out.append).send_parts([]) is False
+
+
+def test_a_sealed_round_in_one_call_is_one_sealed_bundle() -> None:
+    """A sealing codec takes the one-call way too: the round's one encoding, sealed once."""
+    out: list[bytes] = []
+    round_: list[Part] = [as_tuple(Value(1, 0, 0, 1.0)), as_tuple(Value(2, 0, 0, 2.0))]
+    packer = DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, 1400, out.append,
+                            flags=FLAG_BUNDLES)
+    packer.add(Value(3, 0, 0, 3.0))  # added before the round: goes first, alone
+    assert packer.one_call
+    assert packer.send_parts(round_)
+    assert packer.send_parts(round_[:1])
+    receiver = SealedCodec(KEY_B, KEY_A)
+    got = [receiver.decode_datagram(d) for d in out]
+    assert [flags & FLAG_MAC for flags, _t, _p in got] == [FLAG_MAC] * 3
+    assert [p for _f, _t, p in got] == [Value(3, 0, 0, 3.0),
+                                         Bundle([Value(1, 0, 0, 1.0), Value(2, 0, 0, 2.0)]),
+                                         Value(1, 0, 0, 1.0)]
+    assert (packer.datagrams, packer.bundles_sent) == (3, 1)
+    # A round too large for the budget together is refused whole (then added part by part).
+    small = DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, 60, out.append)
+    assert small.send_parts(round_) is False
 
 
 def test_parts_added_before_a_round_in_one_call_go_first() -> None:

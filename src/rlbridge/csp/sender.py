@@ -17,9 +17,10 @@ A round costs Python per channel, so the common case takes the short way: a *pla
 channel (no policy between its ring and the wire: no rate limit, credit, latest, age limit or
 redundancy) is taken by one inline loop (:func:`~rlbridge.csp.plain_round.take_plain`) as
 tuples shaped like ``Value`` packets, and the round's parts are encoded by one msgspec call
-into one datagram (:meth:`~rlbridge.wire.bundle.DatagramPacker.send_parts`). Channels with
-policies, TCP channels, and rounds that cannot bundle (a sealed codec, ``bundles=False``, a
-round larger than a datagram) go through ``take`` and the packer part by part, as before.
+into one datagram (:meth:`~rlbridge.wire.bundle.DatagramPacker.send_parts`; a sealed session
+seals that one encoding). Channels with policies, TCP channels, and rounds that cannot bundle
+(``bundles=False``, a round larger than a datagram) go through ``take`` and the packer part by
+part, as before.
 
 While the link is down (:meth:`SendLoop.pause`, from the end of a session until its channels are
 bound again) the thread takes nothing: values wait in their channels' rings, which keep the

@@ -114,8 +114,9 @@ class DatagramPacker:
 
     @property
     def one_call(self) -> bool:
-        """:meth:`send_parts` can encode a round in one call (a plain codec that bundles)."""
-        return self._plain and self.bundles
+        """:meth:`send_parts` can encode a round in one call (a codec that bundles; a sealing
+        codec then seals that one encoding)."""
+        return self.bundles
 
     @property
     def pending(self) -> int:
@@ -153,8 +154,10 @@ class DatagramPacker:
         what it raises leaves ``parts`` as they were and counts no datagram.
         """
         n = len(parts)
-        if not (n and self._plain and self.bundles):
+        if not (n and self.bundles):
             return False
+        if self._seal is not None:
+            return self._seal_parts(parts, send)
         buf = self._round
         if n == 1:
             self._encode_into(parts[0], buf, DATAGRAM_HEADER.size)
@@ -171,6 +174,29 @@ class DatagramPacker:
         if self._bodies:  # parts added before this round go first
             self.flush()
         (self._send if send is None else send)(bytes(buf))
+        self.datagrams += 1
+        self.bundles_sent += n > 1
+        return True
+
+    def _seal_parts(self, parts: Sequence[Part],
+                    send: Callable[[bytes], object] | None) -> bool:
+        """:meth:`send_parts` of a sealing codec: the round's body in one call, then sealed
+        (the same size test, so the same datagrams as :meth:`add` makes)."""
+        n = len(parts)
+        if n == 1:
+            body = self._encode(parts[0])
+            reserve = 0
+        else:
+            bundle = self._bundle
+            bundle[1] = parts
+            body = self._encode(bundle)
+            reserve = 2 if n < 16 else 0  # add()'s reserve for the array header, as above
+        if self._overhead + len(body) + reserve > self.budget or n > MAX_PARTS:
+            return False
+        if self._bodies:
+            self.flush()
+        assert self._seal is not None
+        (self._send if send is None else send)(self._seal(body, self.token, self._flags))
         self.datagrams += 1
         self.bundles_sent += n > 1
         return True

@@ -35,7 +35,6 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from rlbridge.wire.codec import (
-    DATAGRAM_HEADER,
     FLAG_MAC,
     MAGIC,
     PacketCodec,
@@ -55,7 +54,8 @@ SEAL_OVERHEAD = COUNTER.size + TAG_SIZE
 #: a burst of a few datagrams, plus redundancy copies).
 REPLAY_WINDOW = 1024
 _KEYS_LABEL = b"rlbridge-keys-v1\x00"
-_NONCE_PAD = b"\x00\x00\x00\x00"
+#: The nonce of a counter in one ``pack``: 4 zero bytes, then the counter (u64 big-endian).
+_NONCE = struct.Struct(">4xQ")
 #: Header and counter of a sealed datagram in one ``pack`` (the hot path: one call, not two).
 _SEALED_HEAD = struct.Struct(">2sBBQQ")
 #: Where the ciphertext of a sealed datagram starts (header and counter before it).
@@ -87,7 +87,7 @@ def tls_datagram_keys(secret: bytes, token: int) -> SessionKeys:
 
 
 def nonce(counter: int) -> bytes:
-    return _NONCE_PAD + COUNTER.pack(counter)
+    return _NONCE.pack(counter)
 
 
 class DatagramRejected(RemoteProtocolError):
@@ -149,9 +149,9 @@ class SealedCodec(PacketCodec):
 
     def seal_body(self, body: bytes, token: int, flags: int = 0) -> bytes:
         """A sealed datagram around ``body`` (encoded packet bytes, or anything: fuzzing)."""
-        head = _SEALED_HEAD.pack(MAGIC, PROTOCOL_VERSION, flags | FLAG_SEALED, token,
-                                 next(self._counter))
-        return head + self._seal(_NONCE_PAD + head[12:], body, head)
+        counter = next(self._counter)
+        head = _SEALED_HEAD.pack(MAGIC, PROTOCOL_VERSION, flags | FLAG_SEALED, token, counter)
+        return head + self._seal(_NONCE.pack(counter), body, head)
 
     def decode_datagram(self, data: bytes) -> tuple[int, int, Packet]:
         # The hot path of every sealed datagram on both ends: one unpack for header and
@@ -165,8 +165,7 @@ class SealedCodec(PacketCodec):
         if not flags & FLAG_SEALED:
             raise DatagramRejected("unsealed", "unsealed datagram on a sealed session")
         try:
-            body = self._open(_NONCE_PAD + data[DATAGRAM_HEADER.size:_OPENS_FROM],
-                              data[_OPENS_FROM:], data[:_OPENS_FROM])
+            body = self._open(_NONCE.pack(counter), data[_OPENS_FROM:], data[:_OPENS_FROM])
         except InvalidTag:
             raise DatagramRejected("bad_mac", "datagram does not open under this session's "
                                    "key (forged, altered, or another session's)") from None
