@@ -6,8 +6,9 @@ tens of microseconds on a VM. A caller that may make a network system call (SRT 
 HRT loop: docs/concepts.md, "Sending") can do the round itself: take the plain channels and
 send their one datagram with a ``sendto`` that never waits (``MSG_DONTWAIT``).
 
-When. The plain channels (UDP, no policy) go inline when the session bundles without a seal
-(:attr:`DatagramPacker.one_call`) and the link is up; otherwise the caller rings the send
+When. The plain channels (UDP, no policy) go inline when the session bundles
+(:attr:`DatagramPacker.one_call`) without a seal (the AEAD stays the send thread's) and the
+link is up; otherwise the caller rings the send
 thread exactly as ``send()`` does. Channels with a policy or on TCP stay the send thread's:
 when one of them has something to send, the caller rings the thread for it after its own
 datagram (so such a round leaves as two datagrams, not one). Credit for flow-controlled
@@ -109,8 +110,8 @@ class InlineRounds:
         """``send_inline`` holding ``_round``: take the plain channels, send one datagram."""
         packer = self._packer_for(self._conn)
         # Checked again under the lock: a source added, a round handed over meanwhile.
-        if (packer is None or not packer.one_call or packer.pending or self._handoff
-                or self._paused):
+        if (packer is None or not packer.one_call or packer.sealed or packer.pending
+                or self._handoff or self._paused):
             return False
         parts = self._parts
         if parts:  # left by a round that failed before it sent them (as in _send_pending)

@@ -119,6 +119,11 @@ class DatagramPacker:
         return self.bundles
 
     @property
+    def sealed(self) -> bool:
+        """Its datagrams are sealed (a session with keys)."""
+        return self._seal is not None
+
+    @property
     def pending(self) -> int:
         """Parts waiting for :meth:`flush`."""
         return len(self._bodies)
