@@ -265,3 +265,28 @@ def test_close_ends_a_goal_waiting_for_its_result(
     # The server's execute task ends before the server's adapter closes (left unawaited, its
     # coroutine would be an unraisable warning).
     assert held.finished.wait(TIMEOUT)
+
+
+def test_an_action_client_is_countable_the_moment_its_node_holds_it(
+    make: Callable[[str], Any], unique_topic: Callable[[str], str],
+) -> None:
+    """rclpy adds a new action client to its node's waitables before it creates the lock
+    that counting its entities takes; an executor counting in that window died (CI, 3.13).
+    The node here counts every waitable the moment it is added, as such an executor does."""
+    adapter = make("rlbridge_client_in_the_window")
+    fibonacci = __import__("test_msgs.action", fromlist=["Fibonacci"]).Fibonacci
+    node = adapter.node
+    add = node.add_waitable
+    counted: list[Any] = []
+
+    def add_and_count(waitable: Any) -> None:
+        add(waitable)
+        counted.append(waitable.get_num_entities())  # what the executor's rebuild does
+
+    node.add_waitable = add_and_count
+    try:
+        client = ros2_actions.SafeActionClient(node, fibonacci, unique_topic("in_window"))
+        assert len(counted) == 1
+        client.destroy()
+    finally:
+        node.add_waitable = add

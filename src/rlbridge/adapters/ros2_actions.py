@@ -24,6 +24,21 @@ from rlbridge.adapters.ros2_services import ServiceOwner, half, interface_class
 STATUS_CLOSED = 0
 
 
+
+class SafeActionClient(RclpyActionClient):  # type: ignore[type-arg]  # generic only on newer rclpy
+    """rclpy's ``ActionClient``, safe to create while the adapter's executor thread spins.
+
+    rclpy adds a new client to its node's waitables before it creates the lock that the
+    client's ``get_num_entities`` takes: an executor rebuilding its wait set in that window
+    raises ``AttributeError`` and its thread dies (seen in CI, rclpy on Python 3.13). The lock
+    exists here before rclpy's constructor runs; rclpy then replaces it before anything but
+    the executor's count can use the client.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._lock = threading.Lock()
+        super().__init__(*args, **kwargs)
+
 class _Ending:
     """Calls a goal's ``done`` once: with its result, or with ``STATUS_CLOSED`` on close."""
 
@@ -74,7 +89,7 @@ class Ros2Actions:
             adapter.check_open()
             client = self._clients.get((full, name))
             if client is None:
-                client = self._clients[(full, name)] = RclpyActionClient(adapter.node, cls, full)
+                client = self._clients[(full, name)] = SafeActionClient(adapter.node, cls, full)
         accepted = threading.Event()
         ending = _Ending(done)
         with adapter.lock:
