@@ -73,7 +73,9 @@ class InlineRounds:
         self._hrt_warned = False
 
     def _packer_for(self, conn: Connection) -> DatagramPacker | None:
-        raise NotImplementedError
+        """The packer of ``conn``'s current session: the send loop's, which overrides this
+        (a compiled base class needs the method itself, not only an annotation)."""
+        raise NotImplementedError("SendLoop provides the session's packer")
 
     def send_inline(self) -> bool:
         """Caller's thread: run the round here if that is safe; False: it could not, ring
