@@ -64,6 +64,7 @@ MODULES: tuple[str, ...] = (
     "rlbridge.wire.bundle",
     "rlbridge.wire.sequence",
     "rlbridge.wire.clock",
+    "rlbridge.wire.seal",
 )
 #: What setup.py records next to the compiled modules: ``{module: sha256 of its source}``.
 SOURCES_FILE = "_compiled_sources.json"

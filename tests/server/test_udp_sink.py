@@ -10,9 +10,16 @@ import pytest
 
 from rlbridge.server.sinks import UdpSink
 from rlbridge.wire import Batch, Error, Packet, PacketCodec, Value
+from rlbridge.wire.auth import SealedCodec
 from rlbridge.wire.bundle import DatagramPacker
 
 TOKEN = 0x0123456789ABCDEF
+SEND_KEY, RECEIVE_KEY = bytes(range(32)), bytes(range(32, 64))
+
+
+def _codec(sealed: bool) -> PacketCodec:
+    """A fresh codec: sealed ones start their counters at 1, so two seal the same bytes."""
+    return SealedCodec(SEND_KEY, RECEIVE_KEY) if sealed else PacketCodec()
 
 
 @pytest.fixture
@@ -89,10 +96,13 @@ TWELVE: list[Packet] = [Value(c, 300, 70000, 1.0 + c) for c in range(12)]
     pytest.param([TWELVE], id="255-bytes"),
     pytest.param([[Value(200, 300, 70000, 1.0), *TWELVE[1:]]], id="256-bytes"),
 ])
+@pytest.mark.parametrize("sealed", [False, True], ids=["plain", "sealed"])
 def test_corked_values_are_byte_for_byte_the_packers(rx: socket.socket,
-                                                     rounds: list[list[Packet]]) -> None:
-    """Numbers gathered unencoded and encoded as one bundle leave as the packer's datagrams."""
-    codec = PacketCodec()
+                                                     rounds: list[list[Packet]],
+                                                     sealed: bool) -> None:
+    """Numbers gathered unencoded and encoded (and sealed) as one bundle leave as the packer's
+    datagrams."""
+    codec = _codec(sealed)
     token, budget = TOKEN, 256
 
     async def send_all() -> UdpSink:
@@ -110,10 +120,13 @@ def test_corked_values_are_byte_for_byte_the_packers(rx: socket.socket,
         finally:
             transport.close()
 
-    expected = _reference(codec, token, budget, rounds)
+    expected = _reference(_codec(sealed), token, budget, rounds)
     sink = asyncio.run(send_all())
     got = [rx.recv(65536) for _ in expected]
     assert got == expected
+    if sealed:  # and they open, in order, under the receiving side's key
+        opener = SealedCodec(RECEIVE_KEY, SEND_KEY)
+        assert [opener.decode_datagram(d)[1] for d in got] == [token] * len(got)
     assert sink.datagrams == len(expected) - sum(
         not isinstance(p, Value | Batch) for r in rounds for p in r)
     assert sink.dropped == 0

@@ -123,12 +123,12 @@ class UdpSink:
     ``max_payload`` bytes instead of one per value. Control packets flush what is corked first,
     so order is kept.
 
-    Without keys, the common corked value (one number: it cannot be too large) is not even
-    encoded when it is sent: the iteration's values are kept as they are and encoded as one
-    ``Bundle`` at the flush, one msgspec call for all of them (the packer's ``send_parts``, as
-    the SDK's send round does); the bytes are those the packer would have made. Only if that
-    bundle would not fit one datagram do they go through the packer one by one, as any other
-    value does.
+    The common corked value (one number: it cannot be too large) is not even encoded when it
+    is sent: the iteration's values are kept as they are and encoded as one ``Bundle`` at the
+    flush, one msgspec call for all of them (the packer's ``send_parts``, as the SDK's send
+    round does), and with keys sealed once; the bytes are those the packer would have made.
+    Only if that bundle would not fit one datagram do they go through the packer one by one,
+    as any other value does.
     """
 
     def __init__(
@@ -155,7 +155,7 @@ class UdpSink:
         self._corked = False
         #: Corked scalar values not yet encoded (they come before anything in the packer).
         self._values: list[Value] = []
-        #: Numbers may wait unencoded: corked values, a plain codec (``bundles`` sets it).
+        #: Numbers may wait unencoded: values are corked (``bundles`` sets it).
         self._defer = False
         #: A value went to the packer this iteration: later numbers follow it there (order).
         self._packed = False
@@ -176,7 +176,7 @@ class UdpSink:
         self._spill()
         self._packer.flush()
         self._packer.bundles = on
-        self._defer = on and self._loop is not None and self._header is not None
+        self._defer = on and self._loop is not None
 
     @property
     def datagrams(self) -> int:

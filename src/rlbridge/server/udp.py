@@ -116,10 +116,10 @@ class UdpEndpoint(asyncio.DatagramProtocol):
                 packet = codec.decode_body(memoryview(data)[DATAGRAM_HEADER.size :])
             else:
                 flags, token, packet = codec.decode_datagram(data)
-        except DatagramRejected as exc:
-            ctx.count(f"udp_{exc.kind}")  # forged, replayed or unsealed: never answered
+        except DatagramRejected as rejected:  # its own name: mypyc types a name by its first use
+            ctx.count(f"udp_{rejected.kind}")  # forged, replayed or unsealed: never answered
             ctx.notices.warn("rejected datagram", f"dropped a UDP datagram from {addr}: "
-                             f"{exc.reason}")
+                             f"{rejected.reason}")
             return
         except RemoteProtocolError as exc:
             if plain:
