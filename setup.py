@@ -1,12 +1,17 @@
-"""Build: the pure-Python package, plus its value path compiled by mypyc when that works.
+"""Build: the pure-Python package, plus its value path compiled by mypyc and libsodium's cipher
+when that works.
 
 Everything else is in pyproject.toml. ``pip install .`` and ``pip install -e .`` compile the
 modules listed in ``src/rlbridge/_compiled.py`` (about a minute of CPU) and record each
 source's SHA-256 beside them; the package then runs them compiled (``rlbridge --version`` says
-so). Compiling never fails the install: without a C compiler or Python headers, or if mypyc
-refuses the code, the build says why and installs the plain package, which works the same,
-slower (docs/benchmarks.md, "Compiled value path"). ``RLBRIDGE_PURE_PYTHON=1`` skips
-compiling (a portable ``py3-none-any`` wheel for another machine, or a faster install).
+so). They also build ``rlbridge.wire._chacha``, ChaCha20-Poly1305 from libsodium for sealed
+sessions (``src/rlbridge/wire/aead.py`` says why), when libsodium's headers are installed
+(Debian: ``apt install libsodium-dev``). Each of the two is optional, on its own: compiling
+never fails the install. Without a C compiler or Python headers, if mypyc refuses the code or
+libsodium is missing, the build says why and installs without it; the package works the same,
+slower (docs/benchmarks.md, "Compiled value path" and "Cost of encryption").
+``RLBRIDGE_PURE_PYTHON=1`` compiles nothing (a portable ``py3-none-any`` wheel for another
+machine, or a faster install).
 """
 
 from __future__ import annotations
@@ -20,13 +25,17 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from setuptools import setup
+from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 ROOT = Path(__file__).resolve().parent
 COMPILED = runpy.run_path(str(ROOT / "src" / "rlbridge" / "_compiled.py"))
 MODULES: tuple[str, ...] = COMPILED["MODULES"]
 
+
+#: libsodium's ChaCha20-Poly1305 for sealed sessions (built apart from the mypyc modules).
+CIPHER = Extension("rlbridge.wire._chacha", sources=["src/rlbridge/wire/_chacha.c"],
+                   libraries=["sodium"])
 
 #: Where mypyc writes the C code of this build (removed after it).
 C_DIR = os.path.join("build", f"mypyc-{os.getpid()}")
@@ -47,16 +56,21 @@ BUILDS = {"build", "build_ext", "bdist_wheel", "editable_wheel", "install", "dev
 
 
 def _extensions() -> list[Any]:
-    """mypyc's extensions for :data:`MODULES`, or none (the pure package) if it cannot."""
+    """The cipher and mypyc's extensions for :data:`MODULES`, or none (the pure package)."""
     if not BUILDS.intersection(sys.argv[1:]):
         return []
     if COMPILED["pure_requested"](os.environ):
         _say(f"{COMPILED['PURE_ENV']} is set: not compiling, the package is pure Python")
         return []
+    return [CIPHER, *_mypyc_extensions()]
+
+
+def _mypyc_extensions() -> list[Any]:
+    """mypyc's extensions for :data:`MODULES`, or none if it cannot."""
     try:
         from mypyc.build import mypycify
     except ImportError as exc:
-        _say(f"mypyc is not available ({exc}): the package is pure Python")
+        _say(f"mypyc is not available ({exc}): the value path is pure Python")
         return []
     # Type-checked without the dependencies (the isolated build environment has none; their
     # types are Any here, which changes nothing mypyc makes of rlbridge's own code) and without
@@ -69,12 +83,13 @@ def _extensions() -> list[Any]:
         return list(mypycify(["--config-file", str(config), *_sources()], opt_level="3",
                              group_name="rlbridge", target_dir=C_DIR))
     except (Exception, SystemExit) as exc:  # mypy exits on a type error
-        _say(f"mypyc refused the code ({exc!r}): the package is pure Python")
+        _say(f"mypyc refused the code ({exc!r}): the value path is pure Python")
         return []
 
 
 class OptionalBuildExt(build_ext):
-    """Builds the compiled modules, or none of them: a failure leaves the pure package."""
+    """Builds the cipher, and the compiled modules or none of them: a failure leaves the
+    package without that part (the Python it falls back to is always installed)."""
 
     def finalize_options(self) -> None:
         super().finalize_options()
@@ -82,17 +97,40 @@ class OptionalBuildExt(build_ext):
 
     def run(self) -> None:
         if not self.extensions:  # not compiling (see _extensions): nothing to record
+            self._remove_stale([])
             return
         try:
-            super().run()
-        except Exception as exc:  # no compiler, no Python.h, a compile or link error
-            self._discard()
+            super().run()  # set-up, then build_extensions below
+        except Exception as exc:  # no compiler or no Python.h: nothing could be built
+            self._discard(self.extensions)
             _say(f"compiling failed ({exc}): the package is pure Python")
-            return
         finally:
             shutil.rmtree(C_DIR, ignore_errors=True)
-        self._record()
-        _say(f"compiled {len(MODULES)} modules with mypyc")
+
+    def build_extensions(self) -> None:
+        self.check_extensions_list(self.extensions)
+        built = []
+        try:
+            self.build_extension(CIPHER)
+            built.append(CIPHER)
+            _say("built rlbridge.wire._chacha (libsodium's ChaCha20-Poly1305)")
+        except Exception as exc:  # most often: no sodium.h
+            self._discard([CIPHER])
+            _say(f"not building rlbridge.wire._chacha ({exc}; Debian: apt install "
+                 "libsodium-dev): sealed sessions use cryptography's ChaCha20-Poly1305")
+        mypyc = [e for e in self.extensions if e is not CIPHER]
+        try:
+            for ext in mypyc:
+                self.build_extension(ext)
+        except Exception as exc:  # a compile or link error
+            self._discard(mypyc)
+            _say(f"compiling failed ({exc}): the value path is pure Python")
+        else:
+            if mypyc:
+                built += mypyc
+                self._record()
+                _say(f"compiled {len(MODULES)} modules with mypyc")
+        self._remove_stale(built)
 
     def _package_dirs(self) -> list[Path]:
         """Where the package is built (the wheel's tree) and, editable, the source tree."""
@@ -101,10 +139,23 @@ class OptionalBuildExt(build_ext):
             dirs.append(Path(self.get_finalized_command("build_py").get_package_dir("rlbridge")))
         return dirs
 
-    def _discard(self) -> None:
+    def _discard(self, extensions: list[Any]) -> None:
         """No half build: the compiled modules import each other's code from one library."""
-        for output in self.get_outputs():
-            Path(output).unlink(missing_ok=True)
+        for ext in extensions:
+            Path(self.get_ext_fullpath(ext.name)).unlink(missing_ok=True)
+
+    def _remove_stale(self, built: list[Any]) -> None:
+        """Remove this interpreter's extensions in the package that this build did not make:
+        in an editable checkout, one left from an earlier build (a module no longer compiled)
+        would shadow its ``.py``. Other Pythons' builds (other suffixes) are theirs."""
+        suffix = str(self.get_ext_filename("x"))[1:]  # e.g. .cpython-311-x86_64-linux-gnu.so
+        keep = {ext.name for ext in built}
+        for package_dir in self._package_dirs():
+            for path in package_dir.rglob(f"*{suffix}"):
+                module = ".".join(("rlbridge", *path.relative_to(package_dir).parts))
+                if module[: -len(suffix)] not in keep:
+                    _say(f"removing {path} (not built this time)")
+                    path.unlink()
 
     def _record(self) -> None:
         """Each compiled source's SHA-256, so a later edit runs as Python (_compiled.py)."""

@@ -8,8 +8,11 @@ UDP value path runs per datagram: the sending side's ``DatagramPacker.add`` + ``
 SDK's send thread and the server's ``UdpSink`` alike), the server's decode (plain: the body
 after the checked header, as ``server/udp.py`` does; sealed: ``decode_datagram``), the SDK
 receive thread's ``decode_datagram``; the same for a batch that fills a datagram (70 values,
-sealed or not); the replay window's check; and the AEAD alone for ChaCha20-Poly1305 and
-AES-256-GCM (the alternative considered).
+sealed or not); the replay window's check; the AEAD alone for ChaCha20-Poly1305 and
+AES-256-GCM (the alternative considered); and, when ``rlbridge.wire._chacha`` was built, the
+AEAD call of libsodium's ChaCha20-Poly1305 against cryptography's, warm and cold (the two
+implementations rlbridge.wire.aead chooses between). The sealed rows use this process's
+choice (``rlbridge --version``; ``RLBRIDGE_AEAD=cryptography`` for the other).
 """
 
 from __future__ import annotations
@@ -26,9 +29,12 @@ from collections.abc import Callable, Iterator
 from cryptography.hazmat.primitives.ciphers.aead import AESGCM, ChaCha20Poly1305
 
 from rlbridge.wire import Batch, PacketCodec, Value
+from rlbridge.wire.aead import IMPLEMENTATIONS, LIBSODIUM
+from rlbridge.wire.aead import STATE as AEAD_STATE
 from rlbridge.wire.auth import ReplayWindow, SealedCodec
 from rlbridge.wire.bundle import DatagramPacker
 from rlbridge.wire.codec import DATAGRAM_HEADER, FLAG_BUNDLES
+from rlbridge.wire.seal import nonce
 
 
 def _pack(packer: DatagramPacker, packet: Value | Batch, sent: list[bytes]) -> None:
@@ -93,6 +99,12 @@ def cases(calls: int) -> dict[str, tuple[Callable[[], object], Callable[[], obje
         lambda: gcm.encrypt(nonce, msg, aad),
         lambda: chacha.encrypt(nonce, msg, aad),
     )
+    if LIBSODIUM in IMPLEMENTATIONS:
+        sodium = IMPLEMENTATIONS[LIBSODIUM](key_a)
+        out["AEAD only, 1 value: ChaCha20-Poly1305, libsodium vs cryptography"] = (
+            lambda: sodium.encrypt(nonce, msg, aad),
+            lambda: chacha.encrypt(nonce, msg, aad),
+        )
     return out
 
 
@@ -115,8 +127,14 @@ def main() -> None:
         ma, mb = statistics.median(a), statistics.median(b)
         print(f"| {name} | {ma:.0f} | {mb:.0f} | {mb - ma:+.0f} | {mb / ma:.2f} |")
     a_cold, b_cold = cold_hop(args.cold)
-    print(f"| one hop at 1 kHz, caches cold (encode + decode, 1 value; median of {args.cold}) "
-          f"| {a_cold:.0f} | {b_cold:.0f} | {b_cold - a_cold:+.0f} | {b_cold / a_cold:.2f} |")
+    print(f"| one hop at 1 kHz, caches cold (encode + decode, 1 value; median of {args.cold}; "
+          f"sealing: {AEAD_STATE}) | {a_cold:.0f} | {b_cold:.0f} | {b_cold - a_cold:+.0f} | "
+          f"{b_cold / a_cold:.2f} |")
+    if LIBSODIUM in IMPLEMENTATIONS:
+        a_cold, b_cold = cold_aead(args.cold)
+        print(f"| AEAD only, 1 value, caches cold: ChaCha20-Poly1305, libsodium vs "
+              f"cryptography (median of {args.cold}) | {a_cold:.0f} | {b_cold:.0f} | "
+              f"{b_cold - a_cold:+.0f} | {b_cold / a_cold:.2f} |")
     load = os.getloadavg()
     print(f"\nload average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
 
@@ -126,27 +144,41 @@ def _cpu_ns(call: Callable[[], object], number: int) -> float:
     return timeit.Timer(call, timer=time.thread_time).timeit(number) / number * 1e9
 
 
-def cold_hop(samples: int) -> tuple[float, float]:
-    """Median CPU ns of one datagram's encode + decode, plain and sealed, as a 1 kHz stream
-    meets them: 1 ms apart, with 8 MiB of other memory touched in between (the tight loops above
-    run with every cache warm, which a control stream's datagrams never find)."""
-    key_a, key_b = os.urandom(32), os.urandom(32)
-    plain, sender, receiver = PacketCodec(), SealedCodec(key_a, key_b), SealedCodec(key_b, key_a)
+def _cold(a: Callable[[int], object], b: Callable[[int], object],
+          samples: int) -> tuple[float, float]:
+    """Median CPU ns of ``a(i)`` and ``b(i)`` as a 1 kHz stream meets them: 1 ms apart, with
+    8 MiB of other memory touched in between (the tight loops above run with every cache warm,
+    which a control stream's datagrams never find). Interleaved."""
     other = [bytearray(1 << 20) for _ in range(8)]
-    times: dict[str, list[int]] = {"plain": [], "sealed": []}
+    times: tuple[list[int], list[int]] = ([], [])
     for i in range(samples):
-        for name, samples_of in times.items():  # interleaved
+        for call, samples_of in zip((a, b), times, strict=True):
             for block in other:
                 block[::4096] = b"\x01" * 256
             time.sleep(0.001)
-            packet = Value(1, i, i, 1.5)
             start = time.thread_time_ns()
-            if name == "plain":
-                plain.decode_datagram(plain.encode_datagram(packet, 7))
-            else:
-                receiver.decode_datagram(sender.encode_datagram(packet, 7))
+            call(i)
             samples_of.append(time.thread_time_ns() - start)
-    return statistics.median(times["plain"]), statistics.median(times["sealed"])
+    return statistics.median(times[0]), statistics.median(times[1])
+
+
+def cold_hop(samples: int) -> tuple[float, float]:
+    """One datagram's encode + decode, plain and sealed, cold (:func:`_cold`)."""
+    key_a, key_b = os.urandom(32), os.urandom(32)
+    plain, sender, receiver = PacketCodec(), SealedCodec(key_a, key_b), SealedCodec(key_b, key_a)
+    return _cold(
+        lambda i: plain.decode_datagram(plain.encode_datagram(Value(1, i, i, 1.5), 7)),
+        lambda i: receiver.decode_datagram(sender.encode_datagram(Value(1, i, i, 1.5), 7)),
+        samples)
+
+
+def cold_aead(samples: int) -> tuple[float, float]:
+    """One ChaCha20-Poly1305 seal of a 1-value datagram, libsodium's and cryptography's, cold."""
+    key = os.urandom(32)
+    sodium, openssl = IMPLEMENTATIONS[LIBSODIUM](key), ChaCha20Poly1305(key)
+    msg, aad = bytes(34), bytes(20)
+    return _cold(lambda i: sodium.encrypt(nonce(i + 1), msg, aad),
+                 lambda i: openssl.encrypt(nonce(i + 1), msg, aad), samples)
 
 
 if __name__ == "__main__":

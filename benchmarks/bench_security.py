@@ -19,6 +19,11 @@ ChaCha20-Poly1305 is replaced, in all three processes, by a stand-in that copies
 appends a zero tag (no security at all: a measurement only). That row is everything sealing
 adds except the cipher call itself (handshake, counters, replay window, the sealed code
 paths); the rest of the keyed row's gap is the cipher.
+
+The keyed column seals with this install's ChaCha20-Poly1305 (libsodium's through
+``rlbridge.wire._chacha`` when it was built: ``rlbridge --version`` says); ``--aead-compare``
+adds keyed rows whose processes seal with cryptography's (``$RLBRIDGE_AEAD=cryptography``),
+an A/B of the two libraries in the same run.
 """
 
 from __future__ import annotations
@@ -38,15 +43,18 @@ from typing import Any, TypeVar
 from rlbridge.bench import latency, throughput
 from rlbridge.bench.common import BenchError, Link, LoopbackLink
 from rlbridge.tls.certs import init_server
+from rlbridge.wire.aead import AEAD_ENV, CRYPTOGRAPHY
+from rlbridge.wire.aead import STATE as AEAD_STATE
 from rlbridge.wire.auth import PSK_ENV
 
 
 class KeyedLink:
     """``inner`` whose processes all get ``$RLBRIDGE_PSK`` (server and clients alike)."""
 
-    def __init__(self, inner: Link, key_hex: str) -> None:
+    def __init__(self, inner: Link, key_hex: str, env: dict[str, str] | None = None) -> None:
         self._inner = inner
         self._key = key_hex
+        self._env = env or {}
         self.name = f"{inner.name} + PSK"
 
     def address(self, side: Any) -> str:
@@ -55,6 +63,7 @@ class KeyedLink:
     def popen(self, side: Any, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[bytes]:
         env = dict(kwargs.pop("env", None) or os.environ)
         env[PSK_ENV] = self._key
+        env.update(self._env)
         return self._inner.popen(side, argv, env=env, **kwargs)
 
 
@@ -122,7 +131,8 @@ class SwappedCipherLink(KeyedLink):
     """:class:`KeyedLink` whose processes start with ``entry`` (a cipher swapped in)."""
 
     def __init__(self, inner: Link, key_hex: str, entry: str, name: str) -> None:
-        super().__init__(inner, key_hex)
+        # cryptography's class is the one swapped: libsodium's must not be chosen over it.
+        super().__init__(inner, key_hex, {AEAD_ENV: CRYPTOGRAPHY})
         self._entry = entry
         self.name = f"{inner.name} + PSK, {name}"
 
@@ -182,6 +192,10 @@ def main() -> None:
     parser.add_argument("--cipher-swap", action="store_true",
                         help="add keyed latency with AES-256-GCM swapped in for "
                         "ChaCha20-Poly1305 in every process (the alternative's cost)")
+    parser.add_argument("--aead-compare", action="store_true",
+                        help="add keyed rows sealing with cryptography's ChaCha20-Poly1305 in "
+                        "every process ($RLBRIDGE_AEAD=cryptography), against the default "
+                        "(libsodium's, when built): the same construction, another library")
     parser.add_argument("--baseline", metavar="TREE/src",
                         help="add keyed rows whose processes import rlbridge from this tree")
     parser.add_argument("--seed", type=int, default=None,
@@ -207,6 +221,10 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
     if args.baseline:
         plan["baseline"] = (TreeLink(LoopbackLink(), os.urandom(32).hex(), args.baseline),
                             [udp_batch, tcp_batch], [udp_lat])
+    if args.aead_compare:
+        plan["cryptography"] = (KeyedLink(LoopbackLink(), os.urandom(32).hex(),
+                                          {AEAD_ENV: CRYPTOGRAPHY}), [udp_batch, tcp_batch],
+                                [udp_lat])
     if args.diagnose:
         plan["noop-cipher"] = (SwappedCipherLink(LoopbackLink(), os.urandom(32).hex(),
                                                  _NOOP_CIPHER_CHILD, "no-op cipher"),
@@ -253,6 +271,7 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
                 p99.setdefault((lcase.key, name), []).append(lm.p99)
     load_after = os.getloadavg()
     print(f"Command: `{' '.join(['.venv/bin/python', *sys.argv])}`  ")
+    print(f"Keyed column's ChaCha20-Poly1305: {AEAD_STATE}  ")
     print(f"Load average before {load_before[0]:.2f}, after {load_after[0]:.2f}; "
           f"medians of {args.repeats} interleaved repeats; runs repeated after a failure "
           f"(a watchdog timeout under load): "
@@ -278,6 +297,9 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
 
     tput_keyed = [] if args.latency_only else [udp_batch, tcp_batch]
     table("keyed", "keyed (sealed)", tput_keyed, [udp_lat])
+    if "cryptography" in plan:
+        print()
+        table("cryptography", "keyed, cryptography's AEAD", tput_keyed, [udp_lat])
     if "baseline" in plan:
         print()
         table("baseline", f"keyed, {args.baseline}", tput_keyed, [udp_lat])

@@ -41,8 +41,10 @@ LogLevel = Annotated[str | None, typer.Option(
 def _version(value: bool) -> None:
     if value:
         from rlbridge._compiled import STATE
+        from rlbridge.wire.aead import STATE as AEAD
 
-        typer.echo(f"rlbridge {__version__}\nvalue path: {STATE}")
+        typer.echo(f"rlbridge {__version__}\nvalue path: {STATE}\n"
+                   f"sealing (ChaCha20-Poly1305): {AEAD}")
         raise typer.Exit()
 
 

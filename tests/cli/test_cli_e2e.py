@@ -16,6 +16,7 @@ import pytest
 from rlbridge._compiled import STATE
 from rlbridge._version import __version__
 from rlbridge.wire import PacketCodec, Stats
+from rlbridge.wire.aead import STATE as AEAD
 
 F64 = "std_msgs/msg/Float64"
 
@@ -50,7 +51,8 @@ def wait_for_topic(topics_of: Callable[[int], Sequence[str]], port: int, topic: 
 def test_version(cli: Any) -> None:
     result = cli.run("--version")
     assert result.returncode == 0, result.stderr
-    assert result.stdout.splitlines() == [f"rlbridge {__version__}", f"value path: {STATE}"]
+    assert result.stdout.splitlines() == [f"rlbridge {__version__}", f"value path: {STATE}",
+                                          f"sealing (ChaCha20-Poly1305): {AEAD}"]
 
 
 def test_echo_prints_what_pub_publishes(cli: Any, shared_cli_server: int,

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import rlbridge
 from rlbridge._compiled import STATE
+from rlbridge.wire.aead import STATE as AEAD
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -21,7 +22,8 @@ def test_python_dash_m_rlbridge_is_the_command() -> None:
                           text=True, timeout=60, check=False)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines() == [f"rlbridge {rlbridge.__version__}",
-                                        f"value path: {STATE}"]
+                                        f"value path: {STATE}",
+                                        f"sealing (ChaCha20-Poly1305): {AEAD}"]
     helped = subprocess.run([sys.executable, "-m", "rlbridge", "--help"], capture_output=True,
                             text=True, timeout=60, check=False)
     assert helped.returncode == 0
@@ -36,7 +38,8 @@ def test_the_console_script_prints_its_version() -> None:
                           check=False)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines() == [f"rlbridge {rlbridge.__version__}",
-                                        f"value path: {STATE}"]
+                                        f"value path: {STATE}",
+                                        f"sealing (ChaCha20-Poly1305): {AEAD}"]
 
 
 def test_help_of_the_package_names_bridge() -> None:

@@ -16,9 +16,7 @@ read), and once strict, a plain frame is refused as injected.
 
 from __future__ import annotations
 
-from cryptography.exceptions import InvalidTag
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
-
+from rlbridge.wire.aead import InvalidTag, chacha20_poly1305
 from rlbridge.wire.codec import (
     DEFAULT_MAX_PACKET,
     FRAME_HEADER,
@@ -40,7 +38,7 @@ class RecordSealer:
     """Frames -> sealed TCP records, for one direction (implicit counter: call in send order)."""
 
     def __init__(self, key: bytes) -> None:
-        self._seal = ChaCha20Poly1305(key).encrypt
+        self._seal = chacha20_poly1305(key).encrypt
         self._counter = 0
 
     def seal(self, frames: bytes | bytearray | memoryview) -> bytes:
@@ -67,7 +65,7 @@ class RecordOpener:
     """Sealed records -> the frame stream inside them, for one direction."""
 
     def __init__(self, key: bytes) -> None:
-        self._open = ChaCha20Poly1305(key).decrypt
+        self._open = chacha20_poly1305(key).decrypt
         self._counter = 0
 
     def open(self, head: bytes | memoryview, sealed: bytes | memoryview) -> bytes:

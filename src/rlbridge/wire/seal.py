@@ -1,7 +1,8 @@
 """Sealing with an AEAD, sans-IO: session keys, sealed datagrams, sealed TCP records.
 
 Theory of operation (docs/protocol.md section 16 is normative, with test vectors). A session
-that has a secret seals what it sends with ChaCha20-Poly1305: encrypted *and* authenticated,
+that has a secret seals what it sends with ChaCha20-Poly1305 (libsodium's or cryptography's:
+:mod:`rlbridge.wire.aead`): encrypted *and* authenticated,
 so a value can be neither read nor forged nor altered on the way. ChaCha20-Poly1305 rather
 than AES-GCM because control boards often lack AES instructions (a Raspberry Pi 4 does), where
 it is the faster and the constant-time one; on a PC the two differ by a fraction of a
@@ -29,11 +30,10 @@ import struct
 from dataclasses import dataclass
 
 import msgspec
-from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives import hashes
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
+from rlbridge.wire.aead import InvalidTag, chacha20_poly1305
 from rlbridge.wire.codec import (
     FLAG_MAC,
     MAGIC,
@@ -139,8 +139,8 @@ class SealedCodec(PacketCodec):
 
     def __init__(self, send_key: bytes, receive_key: bytes) -> None:
         super().__init__()
-        self._seal = ChaCha20Poly1305(send_key).encrypt
-        self._open = ChaCha20Poly1305(receive_key).decrypt
+        self._seal = chacha20_poly1305(send_key).encrypt
+        self._open = chacha20_poly1305(receive_key).decrypt
         self._counter = itertools.count(1)
         self.window = ReplayWindow()
 

@@ -1,0 +1,103 @@
+"""Which ChaCha20-Poly1305 seals this process's datagrams and records: libsodium's, or
+cryptography's.
+
+Both implement the same construction (RFC 8439 section 2.8), so the bytes are the same and
+either end may use either; docs/protocol.md section 16's test vectors pass with both. What
+differs is the cost of one call when the caches are cold, which is every call on a 1 kHz
+control stream: `cryptography` copies a fresh OpenSSL context per call and sets nonce, data
+and tag through OpenSSL's parameter calls, libsodium is one function call
+(docs/benchmarks.md, "Cost of encryption", has both figures). So the package prefers
+libsodium, through ``rlbridge.wire._chacha``, a small C extension that setup.py builds when
+libsodium's headers are there (Debian: ``apt install libsodium-dev``), and falls back to
+`cryptography` (always installed) when it was not built. :data:`STATE` says which this
+process uses; ``rlbridge --version`` prints it.
+
+``$RLBRIDGE_AEAD`` chooses for a process: ``cryptography`` (the fallback, e.g. for an A/B
+measurement or a test that both interoperate), ``libsodium`` (refuse to start without the
+extension), unset or empty: libsodium if built. ``$RLBRIDGE_PURE_PYTHON`` (no compiled code
+at all, ``rlbridge._compiled``) implies ``cryptography``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping
+from typing import Protocol
+
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305 as _OpenSSLChaCha
+
+from rlbridge._compiled import pure_requested
+
+#: Chooses the implementation for a process (module docstring).
+AEAD_ENV = "RLBRIDGE_AEAD"
+LIBSODIUM = "libsodium"
+CRYPTOGRAPHY = "cryptography"
+
+__all__ = ["AEAD_ENV", "CRYPTOGRAPHY", "IMPLEMENTATIONS", "LIBSODIUM", "STATE", "Aead",
+           "InvalidTag", "chacha20_poly1305"]
+
+
+#: What encrypt and decrypt take as data and associated data (both implementations take any
+#: contiguous buffer).
+_Data = bytes | bytearray | memoryview
+
+
+class Aead(Protocol):
+    """A ChaCha20-Poly1305 under one key: ``decrypt`` raises :class:`InvalidTag` for data
+    that does not verify (both implementations raise cryptography's class)."""
+
+    def encrypt(self, nonce: bytes, data: _Data, associated_data: _Data | None, /) -> bytes:
+        ...
+
+    def decrypt(self, nonce: bytes, data: _Data, associated_data: _Data | None, /) -> bytes:
+        ...
+
+
+def _available() -> dict[str, Callable[[bytes], Aead]]:
+    found: dict[str, Callable[[bytes], Aead]] = {}
+    try:
+        from rlbridge.wire._chacha import ChaCha20Poly1305 as _SodiumChaCha
+    except ImportError:
+        pass
+    else:
+        found[LIBSODIUM] = _SodiumChaCha
+    found[CRYPTOGRAPHY] = _OpenSSLChaCha
+    return found
+
+
+#: The implementations importable here, preferred first: tests run every one of them.
+IMPLEMENTATIONS: Mapping[str, Callable[[bytes], Aead]] = _available()
+
+
+def choose(environ: Mapping[str, str],
+           available: Mapping[str, Callable[[bytes], Aead]]) -> tuple[str | None, str]:
+    """``(implementation, why)`` for a process with this environment; the implementation is
+    None when ``$RLBRIDGE_AEAD`` asks for what cannot be had (``why`` says what is wrong)."""
+    wanted = environ.get(AEAD_ENV, "")
+    if wanted not in ("", LIBSODIUM, CRYPTOGRAPHY):
+        return None, (f"none: ${AEAD_ENV}={wanted!r} is not {LIBSODIUM!r} or "
+                      f"{CRYPTOGRAPHY!r} (unset it to choose the best available)")
+    if wanted == LIBSODIUM and LIBSODIUM not in available:
+        return None, (f"none: ${AEAD_ENV}=libsodium, but rlbridge.wire._chacha was not "
+                      "built (apt install libsodium-dev, then install rlbridge-sdk again)")
+    if pure_requested(environ):
+        return CRYPTOGRAPHY, "cryptography (RLBRIDGE_PURE_PYTHON is set)"
+    if wanted == CRYPTOGRAPHY:
+        return CRYPTOGRAPHY, f"cryptography (${AEAD_ENV}=cryptography)"
+    if LIBSODIUM in available:
+        from rlbridge.wire._chacha import LIBSODIUM_VERSION
+
+        return LIBSODIUM, f"libsodium {LIBSODIUM_VERSION} (C extension)"
+    return CRYPTOGRAPHY, ("cryptography (the libsodium extension was not built: "
+                          "apt install libsodium-dev, then pip install again)")
+
+
+_CHOSEN, STATE = choose(os.environ, IMPLEMENTATIONS)
+
+
+def chacha20_poly1305(key: bytes) -> Aead:
+    """This process's ChaCha20-Poly1305 under ``key`` (32 bytes)."""
+    if _CHOSEN is None:  # a session that must seal cannot start: say why
+        raise RuntimeError(f"no ChaCha20-Poly1305 to seal with: {STATE.removeprefix('none: ')}")
+    return IMPLEMENTATIONS[_CHOSEN](key)
