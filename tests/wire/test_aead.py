@@ -21,6 +21,7 @@ from rlbridge.wire.aead import (
     CRYPTOGRAPHY,
     IMPLEMENTATIONS,
     LIBSODIUM,
+    NONCE,
     Aead,
     InvalidTag,
     choose,
@@ -94,6 +95,41 @@ def test_the_same_bytes_as_cryptography_and_any_change_is_refused(
         cipher.decrypt(nonce, sealed[:-1], aad)
     with pytest.raises(InvalidTag):  # other associated data (the header it was sealed with)
         cipher.decrypt(nonce, sealed, (aad or b"") + b"x")
+
+
+@IMPL
+@given(key=st.binary(min_size=32, max_size=32), counter=st.integers(0, 2**64 - 1),
+       head=st.binary(max_size=40), body=st.binary(max_size=1500))
+def test_counted_calls_are_encrypt_and_decrypt_with_the_counters_nonce(
+        make: Make, key: bytes, counter: int, head: bytes, body: bytes) -> None:
+    """What sealed datagrams and records call: the same bytes as the generic calls make."""
+    cipher, reference = make(key), IMPLEMENTATIONS[CRYPTOGRAPHY](key)
+    nonce = NONCE.pack(counter)
+    sealed = cipher.seal_counted(counter, head, body)
+    assert sealed == head + reference.encrypt(nonce, body, head)
+    assert cipher.open_counted(sealed, len(head), counter) == body
+    assert reference.open_counted(sealed, len(head), counter) == body
+    with pytest.raises(InvalidTag):  # another counter: another nonce
+        cipher.open_counted(sealed, len(head), counter ^ 1)
+    if head:
+        with pytest.raises(InvalidTag):  # a changed head: other associated data
+            cipher.open_counted(bytes([head[0] ^ 1]) + sealed[1:], len(head), counter)
+    with pytest.raises(InvalidTag):  # too short to hold a tag after the head
+        cipher.open_counted(sealed[:len(head) + 15], len(head), counter)
+
+
+@IMPL
+def test_counted_calls_refuse_bad_counters_and_sizes(make: Make) -> None:
+    cipher = make(bytes(32))
+    for counter in (-1, 2**64):
+        with pytest.raises(OverflowError):
+            cipher.seal_counted(counter, b"h", b"b")
+    with pytest.raises(TypeError):
+        cipher.seal_counted("1", b"h", b"b")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="negative"):
+        cipher.open_counted(bytes(40), -1, 1)
+    with pytest.raises(InvalidTag):  # a head longer than the data
+        cipher.open_counted(bytes(20), 30, 1)
 
 
 @IMPL

@@ -11,7 +11,10 @@
  * Deliberately small: no cryptography here, only argument checks, buffers and the two
  * libsodium calls. The API mirrors cryptography's ChaCha20Poly1305 (encrypt/decrypt with
  * nonce, data, associated_data; a tag that does not verify raises
- * cryptography.exceptions.InvalidTag), so the callers do not know which one they hold.
+ * cryptography.exceptions.InvalidTag), so the callers do not know which one they hold, plus
+ * the two calls rlbridge's records and datagrams make (seal_counted/open_counted: the nonce
+ * made from a counter, the associated data the bytes before the ciphertext), each one
+ * allocation and no slicing, which rlbridge.wire.aead gives cryptography's class too.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -173,11 +176,123 @@ done:
     return out;
 }
 
+/* The nonce of a record or datagram counter: 4 zero bytes, then the counter (u64 big-endian;
+ * docs/protocol.md section 16). */
+static int
+counter_nonce(PyObject *counter, unsigned char nonce[NONCE_BYTES])
+{
+    unsigned long long value = PyLong_AsUnsignedLongLong(counter);
+    if (value == (unsigned long long)-1 && PyErr_Occurred())
+        return -1;
+    memset(nonce, 0, 4);
+    for (int i = 0; i < 8; i++)
+        nonce[4 + i] = (unsigned char)(value >> (56 - 8 * i));
+    return 0;
+}
+
+/* seal_counted(counter, head, body) -> head || ciphertext || tag: the associated data is head,
+ * the nonce the counter's. */
+static PyObject *
+aead_seal_counted(Aead *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    unsigned char nonce[NONCE_BYTES];
+    Py_buffer head, body;
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "seal_counted() takes 3 arguments (counter, head, "
+                     "body), %zd given", nargs);
+        return NULL;
+    }
+    if (!self->keyed) {
+        PyErr_SetString(PyExc_ValueError, "ChaCha20Poly1305 was not given a key");
+        return NULL;
+    }
+    if (counter_nonce(args[0], nonce) < 0)
+        return NULL;
+    if (PyObject_GetBuffer(args[1], &head, PyBUF_SIMPLE) < 0)
+        return NULL;
+    if (PyObject_GetBuffer(args[2], &body, PyBUF_SIMPLE) < 0) {
+        PyBuffer_Release(&head);
+        return NULL;
+    }
+    PyObject *out = NULL;
+    if (body.len > PY_SSIZE_T_MAX - TAG_BYTES - head.len) {
+        PyErr_SetString(PyExc_OverflowError, "data too long to encrypt");
+        goto done;
+    }
+    out = PyBytes_FromStringAndSize(NULL, head.len + body.len + TAG_BYTES);
+    if (out == NULL)
+        goto done;
+    unsigned char *sealed = (unsigned char *)PyBytes_AS_STRING(out);
+    memcpy(sealed, head.buf, (size_t)head.len);
+    crypto_aead_chacha20poly1305_ietf_encrypt_detached(
+        sealed + head.len, sealed + head.len + body.len, NULL, body.buf,
+        (unsigned long long)body.len, head.buf, (unsigned long long)head.len, NULL, nonce,
+        self->key);
+done:
+    PyBuffer_Release(&head);
+    PyBuffer_Release(&body);
+    return out;
+}
+
+/* open_counted(data, head_size, counter) -> the plaintext of data = head || ciphertext || tag,
+ * head (its first head_size bytes) the associated data; InvalidTag if it does not verify. */
+static PyObject *
+aead_open_counted(Aead *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    unsigned char nonce[NONCE_BYTES];
+    Py_buffer data;
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "open_counted() takes 3 arguments (data, head_size, "
+                     "counter), %zd given", nargs);
+        return NULL;
+    }
+    if (!self->keyed) {
+        PyErr_SetString(PyExc_ValueError, "ChaCha20Poly1305 was not given a key");
+        return NULL;
+    }
+    Py_ssize_t head_size = PyLong_AsSsize_t(args[1]);
+    if (head_size == -1 && PyErr_Occurred())
+        return NULL;
+    if (head_size < 0) {
+        PyErr_SetString(PyExc_ValueError, "head_size must not be negative");
+        return NULL;
+    }
+    if (counter_nonce(args[2], nonce) < 0)
+        return NULL;
+    if (PyObject_GetBuffer(args[0], &data, PyBUF_SIMPLE) < 0)
+        return NULL;
+    PyObject *out = NULL;
+    if (data.len - head_size < TAG_BYTES) {  /* no room for a tag after the head */
+        PyErr_SetNone(invalid_tag);
+        goto done;
+    }
+    const unsigned char *head = data.buf;
+    const unsigned char *sealed = head + head_size;
+    Py_ssize_t plain_len = data.len - head_size - TAG_BYTES;
+    out = PyBytes_FromStringAndSize(NULL, plain_len);
+    if (out == NULL)
+        goto done;
+    if (crypto_aead_chacha20poly1305_ietf_decrypt_detached(
+            (unsigned char *)PyBytes_AS_STRING(out), NULL, sealed,
+            (unsigned long long)plain_len, sealed + plain_len, head,
+            (unsigned long long)head_size, nonce, self->key) != 0) {
+        Py_CLEAR(out);
+        PyErr_SetNone(invalid_tag);
+    }
+done:
+    PyBuffer_Release(&data);
+    return out;
+}
+
 static PyMethodDef aead_methods[] = {
     {"encrypt", (PyCFunction)(void (*)(void))aead_encrypt, METH_FASTCALL,
      "encrypt(nonce, data, associated_data) -> ciphertext + 16-byte tag"},
     {"decrypt", (PyCFunction)(void (*)(void))aead_decrypt, METH_FASTCALL,
      "decrypt(nonce, data, associated_data) -> plaintext; InvalidTag if it does not verify"},
+    {"seal_counted", (PyCFunction)(void (*)(void))aead_seal_counted, METH_FASTCALL,
+     "seal_counted(counter, head, body) -> head + ciphertext + tag (nonce from counter)"},
+    {"open_counted", (PyCFunction)(void (*)(void))aead_open_counted, METH_FASTCALL,
+     "open_counted(data, head_size, counter) -> plaintext of data[head_size:]"},
     {NULL, NULL, 0, NULL},
 };
 

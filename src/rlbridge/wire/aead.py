@@ -21,6 +21,7 @@ at all, ``rlbridge._compiled``) implies ``cryptography``.
 from __future__ import annotations
 
 import os
+import struct
 from collections.abc import Callable, Mapping
 from typing import Protocol
 
@@ -34,8 +35,8 @@ AEAD_ENV = "RLBRIDGE_AEAD"
 LIBSODIUM = "libsodium"
 CRYPTOGRAPHY = "cryptography"
 
-__all__ = ["AEAD_ENV", "CRYPTOGRAPHY", "IMPLEMENTATIONS", "LIBSODIUM", "STATE", "Aead",
-           "InvalidTag", "chacha20_poly1305"]
+__all__ = ["AEAD_ENV", "CRYPTOGRAPHY", "IMPLEMENTATIONS", "LIBSODIUM", "NONCE", "STATE",
+           "Aead", "CryptographyChaCha", "InvalidTag", "chacha20_poly1305"]
 
 
 #: What encrypt and decrypt take as data and associated data (both implementations take any
@@ -43,15 +44,62 @@ __all__ = ["AEAD_ENV", "CRYPTOGRAPHY", "IMPLEMENTATIONS", "LIBSODIUM", "STATE", 
 _Data = bytes | bytearray | memoryview
 
 
+#: The nonce of a record or datagram counter: 4 zero bytes, then the counter (u64 big-endian).
+NONCE = struct.Struct(">4xQ")
+
+
 class Aead(Protocol):
-    """A ChaCha20-Poly1305 under one key: ``decrypt`` raises :class:`InvalidTag` for data
-    that does not verify (both implementations raise cryptography's class)."""
+    """A ChaCha20-Poly1305 under one key: ``decrypt`` and ``open_counted`` raise
+    :class:`InvalidTag` for data that does not verify (both implementations raise
+    cryptography's class).
+
+    ``seal_counted`` and ``open_counted`` are what sealed datagrams and records do (docs/
+    protocol.md section 16): the nonce made from a counter (:data:`NONCE`), the associated
+    data the bytes in front of the ciphertext, so one call makes or opens the whole message.
+    """
 
     def encrypt(self, nonce: bytes, data: _Data, associated_data: _Data | None, /) -> bytes:
         ...
 
     def decrypt(self, nonce: bytes, data: _Data, associated_data: _Data | None, /) -> bytes:
         ...
+
+    def seal_counted(self, counter: int, head: _Data, body: _Data, /) -> bytes:
+        """``head + ciphertext + tag`` of ``body``, ``head`` the associated data."""
+        ...
+
+    def open_counted(self, data: _Data, head_size: int, counter: int, /) -> bytes:
+        """The plaintext of ``data[head_size:]``, ``data[:head_size]`` the associated data."""
+        ...
+
+
+class CryptographyChaCha:
+    """cryptography's ChaCha20Poly1305 with :class:`Aead`'s counted calls (what the C
+    extension does in one call, here in a few)."""
+
+    def __init__(self, key: bytes) -> None:
+        cipher = _OpenSSLChaCha(key)
+        self.encrypt = cipher.encrypt
+        self.decrypt = cipher.decrypt
+
+    def seal_counted(self, counter: int, head: _Data, body: _Data, /) -> bytes:
+        return bytes(head) + self.encrypt(_counter_nonce(counter), body, head)
+
+    def open_counted(self, data: _Data, head_size: int, counter: int, /) -> bytes:
+        view = memoryview(data)
+        if head_size < 0:
+            raise ValueError("head_size must not be negative")
+        return self.decrypt(_counter_nonce(counter), view[head_size:], view[:head_size])
+
+
+def _counter_nonce(counter: int) -> bytes:
+    """:data:`NONCE` of ``counter``; OverflowError outside u64, as the C extension says."""
+    try:
+        return NONCE.pack(counter)
+    except struct.error:
+        if isinstance(counter, int):
+            raise OverflowError(f"counter {counter} is not a u64") from None
+        raise TypeError(f"counter must be an int, not {type(counter).__name__}") from None
 
 
 def _available() -> dict[str, Callable[[bytes], Aead]]:
@@ -62,7 +110,7 @@ def _available() -> dict[str, Callable[[bytes], Aead]]:
         pass
     else:
         found[LIBSODIUM] = _SodiumChaCha
-    found[CRYPTOGRAPHY] = _OpenSSLChaCha
+    found[CRYPTOGRAPHY] = CryptographyChaCha
     return found
 
 

@@ -38,7 +38,7 @@ class RecordSealer:
     """Frames -> sealed TCP records, for one direction (implicit counter: call in send order)."""
 
     def __init__(self, key: bytes) -> None:
-        self._seal = chacha20_poly1305(key).encrypt
+        self._seal = chacha20_poly1305(key).seal_counted
         self._counter = 0
 
     def seal(self, frames: bytes | bytearray | memoryview) -> bytes:
@@ -48,8 +48,7 @@ class RecordSealer:
             chunk = view[start:start + RECORD_MAX]
             head = FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, FLAG_SEALED,
                                      len(chunk) + TAG_SIZE)
-            out += head
-            out += self._seal(nonce(self._counter), chunk, head)
+            out += self._seal(self._counter, head, chunk)
             self._counter += 1
         return bytes(out)
 

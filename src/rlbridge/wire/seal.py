@@ -33,7 +33,7 @@ import msgspec
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
-from rlbridge.wire.aead import InvalidTag, chacha20_poly1305
+from rlbridge.wire.aead import NONCE, InvalidTag, chacha20_poly1305
 from rlbridge.wire.codec import (
     FLAG_MAC,
     MAGIC,
@@ -54,8 +54,6 @@ SEAL_OVERHEAD = COUNTER.size + TAG_SIZE
 #: a burst of a few datagrams, plus redundancy copies).
 REPLAY_WINDOW = 1024
 _KEYS_LABEL = b"rlbridge-keys-v1\x00"
-#: The nonce of a counter in one ``pack``: 4 zero bytes, then the counter (u64 big-endian).
-_NONCE = struct.Struct(">4xQ")
 #: Header and counter of a sealed datagram in one ``pack`` (the hot path: one call, not two).
 _SEALED_HEAD = struct.Struct(">2sBBQQ")
 #: Where the ciphertext of a sealed datagram starts (header and counter before it).
@@ -87,7 +85,7 @@ def tls_datagram_keys(secret: bytes, token: int) -> SessionKeys:
 
 
 def nonce(counter: int) -> bytes:
-    return _NONCE.pack(counter)
+    return NONCE.pack(counter)
 
 
 class DatagramRejected(RemoteProtocolError):
@@ -139,8 +137,8 @@ class SealedCodec(PacketCodec):
 
     def __init__(self, send_key: bytes, receive_key: bytes) -> None:
         super().__init__()
-        self._seal = chacha20_poly1305(send_key).encrypt
-        self._open = chacha20_poly1305(receive_key).decrypt
+        self._seal = chacha20_poly1305(send_key).seal_counted
+        self._open = chacha20_poly1305(receive_key).open_counted
         self._counter = itertools.count(1)
         self.window = ReplayWindow()
 
@@ -150,8 +148,8 @@ class SealedCodec(PacketCodec):
     def seal_body(self, body: bytes, token: int, flags: int = 0) -> bytes:
         """A sealed datagram around ``body`` (encoded packet bytes, or anything: fuzzing)."""
         counter = next(self._counter)
-        head = _SEALED_HEAD.pack(MAGIC, PROTOCOL_VERSION, flags | FLAG_SEALED, token, counter)
-        return head + self._seal(_NONCE.pack(counter), body, head)
+        return self._seal(counter, _SEALED_HEAD.pack(MAGIC, PROTOCOL_VERSION,
+                                                     flags | FLAG_SEALED, token, counter), body)
 
     def decode_datagram(self, data: bytes) -> tuple[int, int, Packet]:
         # The hot path of every sealed datagram on both ends: one unpack for header and
@@ -165,7 +163,7 @@ class SealedCodec(PacketCodec):
         if not flags & FLAG_SEALED:
             raise DatagramRejected("unsealed", "unsealed datagram on a sealed session")
         try:
-            body = self._open(_NONCE.pack(counter), data[_OPENS_FROM:], data[:_OPENS_FROM])
+            body = self._open(data, _OPENS_FROM, counter)
         except InvalidTag:
             raise DatagramRejected("bad_mac", "datagram does not open under this session's "
                                    "key (forged, altered, or another session's)") from None
