@@ -119,6 +119,16 @@ def test_counted_calls_are_encrypt_and_decrypt_with_the_counters_nonce(
 
 
 @IMPL
+@given(data=st.binary(max_size=200), head_size=st.integers(0, 220),
+       counter=st.integers(0, 2**64 - 1))
+def test_arbitrary_bytes_never_open(make: Make, data: bytes, head_size: int,
+                                    counter: int) -> None:
+    """What anyone on the network can send the opener: refused, whatever its shape."""
+    with pytest.raises(InvalidTag):
+        make(bytes(range(32))).open_counted(data, head_size, counter)
+
+
+@IMPL
 def test_counted_calls_refuse_bad_counters_and_sizes(make: Make) -> None:
     cipher = make(bytes(32))
     for counter in (-1, 2**64):
