@@ -15,6 +15,7 @@ import pytest
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.connection import ConnectionFailed
+from rlbridge.server import ServerThread
 from rlbridge.wire import aead
 from rlbridge.wire.aead import AEAD_ENV, CRYPTOGRAPHY, IMPLEMENTATIONS, LIBSODIUM
 
@@ -66,3 +67,32 @@ def test_server_and_client_on_different_implementations(tmp_path: Path,
         server.terminate()
         _, err = server.communicate(timeout=WAIT)
     assert "Traceback" not in err, err
+
+
+def test_an_impossible_choice_is_one_line_on_both_ends(
+        tmp_path: Path, free_port: Callable[[], int],
+        make_server: Callable[..., ServerThread]) -> None:
+    """``$RLBRIDGE_AEAD`` naming nothing that can seal: the server refuses to start, a keyed
+    client refuses to connect, each with one line that says why; the server it tried is
+    unharmed."""
+    keys = tmp_path / "keys"
+    keys.write_text(KEY.hex() + "\n")
+    keys.chmod(0o600)
+    env = {k: v for k, v in os.environ.items() if k != "RLBRIDGE_PURE_PYTHON"}
+    env |= {AEAD_ENV: "bogus", "COLUMNS": "200", "NO_COLOR": "1"}
+    served = subprocess.run(
+        [sys.executable, "-m", "rlbridge", "serve", "--port", str(free_port()), "--psk-file",
+         str(keys)], env=env, capture_output=True, text=True, timeout=WAIT, check=False)
+    assert served.returncode == 1
+    assert served.stderr.count("\n") == 1, served.stderr
+    assert "no ChaCha20-Poly1305 to seal with: $RLBRIDGE_AEAD='bogus'" in served.stderr
+    server = make_server(psk_file=keys)
+    echoed = subprocess.run(
+        [sys.executable, "-m", "rlbridge", "topic", "echo", "/x", F64, "--port",
+         str(server.port), "--count", "1"], env=env | {"RLBRIDGE_PSK": KEY.hex()},
+        capture_output=True, text=True, timeout=WAIT, check=False)
+    assert echoed.returncode == 1
+    assert echoed.stderr.count("\n") == 1, echoed.stderr
+    assert "no ChaCha20-Poly1305 to seal with" in echoed.stderr
+    with _connect(server.port) as bridge:  # the server serves the next client
+        assert bridge.link_state == "connected"

@@ -32,6 +32,8 @@ from rlbridge.server.tcp import TcpConnection
 from rlbridge.server.udp import UdpEndpoint
 from rlbridge.tls import TlsError, server_context
 from rlbridge.wire import PacketCodec
+from rlbridge.wire.aead import NoCipher
+from rlbridge.wire.aead import require as require_cipher
 
 log = logging.getLogger("rlbridge.server")
 
@@ -102,7 +104,9 @@ class Server:
             keys, entries = load_keys(cfg.psk_file)
             tls = (server_context(cfg.tls_cert, cfg.tls_key, cfg.tls_client_ca)
                    if cfg.tls_cert is not None and cfg.tls_key is not None else None)
-        except (ValueError, TlsError) as exc:
+            if keys is not None or tls is not None:
+                require_cipher()  # its sessions seal: refuse now, not at the first client
+        except (ValueError, TlsError, NoCipher) as exc:
             raise ServerError(str(exc)) from None
         exposed = not cfg.loopback and keys is None and tls is None
         if exposed and not cfg.insecure:

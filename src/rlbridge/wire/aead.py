@@ -29,6 +29,7 @@ from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305 as _OpenSSLChaCha
 
 from rlbridge._compiled import pure_requested
+from rlbridge.wire.errors import RlbridgeError
 
 #: Chooses the implementation for a process (module docstring).
 AEAD_ENV = "RLBRIDGE_AEAD"
@@ -36,7 +37,8 @@ LIBSODIUM = "libsodium"
 CRYPTOGRAPHY = "cryptography"
 
 __all__ = ["AEAD_ENV", "CRYPTOGRAPHY", "IMPLEMENTATIONS", "LIBSODIUM", "NONCE", "STATE",
-           "Aead", "CryptographyChaCha", "InvalidTag", "chacha20_poly1305"]
+           "Aead", "CryptographyChaCha", "InvalidTag", "NoCipher", "chacha20_poly1305",
+           "require"]
 
 
 #: What encrypt and decrypt take as data and associated data (both implementations take any
@@ -144,8 +146,18 @@ def choose(environ: Mapping[str, str],
 _CHOSEN, STATE = choose(os.environ, IMPLEMENTATIONS)
 
 
+class NoCipher(RlbridgeError):
+    """``$RLBRIDGE_AEAD`` asks for a ChaCha20-Poly1305 that cannot be had: nothing can seal."""
+
+
+def require() -> None:
+    """Raise :class:`NoCipher` unless this process can seal (a server checks at start)."""
+    if _CHOSEN is None:
+        raise NoCipher(f"no ChaCha20-Poly1305 to seal with: {STATE.removeprefix('none: ')}")
+
+
 def chacha20_poly1305(key: bytes) -> Aead:
-    """This process's ChaCha20-Poly1305 under ``key`` (32 bytes)."""
-    if _CHOSEN is None:  # a session that must seal cannot start: say why
-        raise RuntimeError(f"no ChaCha20-Poly1305 to seal with: {STATE.removeprefix('none: ')}")
+    """This process's ChaCha20-Poly1305 under ``key`` (32 bytes); :class:`NoCipher` if none."""
+    require()  # a session that must seal cannot start: say why
+    assert _CHOSEN is not None
     return IMPLEMENTATIONS[_CHOSEN](key)
