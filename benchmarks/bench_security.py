@@ -24,6 +24,9 @@ The keyed column seals with this install's ChaCha20-Poly1305 (libsodium's throug
 ``rlbridge.wire._chacha`` when it was built: ``rlbridge --version`` says); ``--aead-compare``
 adds keyed rows whose processes seal with cryptography's (``$RLBRIDGE_AEAD=cryptography``),
 an A/B of the two libraries in the same run.
+
+``--per-process`` splits the throughput rows' CPU per value by process (publisher, server,
+subscriber), to see which one pays a keyed extra.
 """
 
 from __future__ import annotations
@@ -165,6 +168,9 @@ def _plain_link() -> Link:
 
 T = TypeVar("T")
 
+#: The processes of a throughput run whose CPU ``--per-process`` reports (bench/throughput.py).
+_PROCESSES = ("publisher", "server", "subscriber")
+
 
 def _retrying(run: Callable[[], T], retries: dict[str, int], name: str, tries: int = 3) -> T:
     """``run()``, again after a BenchError (a session's watchdog firing on a loaded machine);
@@ -202,6 +208,9 @@ def main() -> None:
                         help="seed of the columns' order in each repeat (default: random)")
     parser.add_argument("--latency-only", action="store_true",
                         help="only the 1 kHz UDP latency rows (quick A/B of the sealing path)")
+    parser.add_argument("--per-process", action="store_true",
+                        help="add each process's CPU per value to the throughput rows "
+                        "(publisher, server, subscriber: where a keyed extra is paid)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="rlbridge-bench-tls-") as tmp:
         run(args, Path(tmp))
@@ -243,6 +252,8 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
         plan["tls"] = (TlsLink(LoopbackLink(), cert, key, fingerprint), [tcp_batch], [tcp_lat])
     tput: dict[tuple[str, str], list[float]] = {}
     cpu: dict[tuple[str, str], list[float]] = {}
+    #: (case, column, process) -> CPU s per 1M values of that process (``--per-process``).
+    cpu_of: dict[tuple[str, str, str], list[float]] = {}
     p50: dict[tuple[str, str], list[float]] = {}
     p99: dict[tuple[str, str], list[float]] = {}
     retries = dict.fromkeys(plan, 0)
@@ -262,6 +273,8 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
                     lk, c, count=50_000_000, seconds=args.seconds), retries, name)
                 tput.setdefault((case.key, name), []).append(m.rate)
                 cpu.setdefault((case.key, name), []).append(m.cpu["total"])
+                for process in _PROCESSES:
+                    cpu_of.setdefault((case.key, name, process), []).append(m.cpu[process])
             for lcase in lat_rows:
                 print(f"[{rep + 1}/{args.repeats}] {name} {lcase.label} 1 kHz latency",
                       file=sys.stderr)
@@ -289,6 +302,11 @@ def run(args: argparse.Namespace, tmp: Path) -> None:
             a, b = med(cpu[(case.key, "plain")]), med(cpu[(case.key, other)])
             print(f"| {case.label}, CPU s per 1M values (3 processes) | {a:.2f} | {b:.2f} | "
                   f"{b / a:.2f} |")
+            for process in _PROCESSES if args.per_process else ():
+                a = med(cpu_of[(case.key, "plain", process)])
+                b = med(cpu_of[(case.key, other, process)])
+                print(f"| {case.label}, CPU s per 1M values, {process} | {a:.3f} | {b:.3f} | "
+                      f"{b / a:.2f} |")
         for lcase in lat_rows:
             for label, data in (("p50", p50), ("p99", p99)):
                 a, b = med(data[(lcase.key, "plain")]), med(data[(lcase.key, other)])

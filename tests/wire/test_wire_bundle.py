@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from rlbridge.wire import DATAGRAM_HEADER, Batch, Bundle, PacketCodec, Value
-from rlbridge.wire.auth import SealedCodec
+from rlbridge.wire.auth import SEAL_OVERHEAD, SealedCodec
 from rlbridge.wire.bundle import BATCH_TAG, VALUE_TAG, DatagramPacker, Part, as_packet
 from rlbridge.wire.codec import FLAG_BUNDLES, FLAG_MAC, PartlyMalformed, peek_header
 
@@ -309,3 +309,36 @@ def test_a_failed_send_is_not_repeated_with_the_next_round() -> None:
     packer.add(Value(1, 1, 0, 2.0))
     packer.flush()
     assert [PacketCodec().decode_datagram(d)[2] for d in sent[1:]] == [Value(1, 1, 0, 2.0)]
+
+
+@pytest.mark.parametrize("budget", [300, 1400, 9000])
+def test_sealing_adds_its_overhead_to_each_datagram_and_changes_nothing_else(
+        budget: int) -> None:
+    """A sealed packer given SEAL_OVERHEAD more budget makes the plain packer's datagrams,
+    byte for byte once opened: the same splits of a large batch, the same bundles. So at the
+    same budget a sealed datagram holds what fits in 24 bytes less, not in a wider margin
+    (more, smaller datagrams would each pay the cipher call and two system calls)."""
+    stamps = [1_700_000_000_000_000_000 + i for i in range(4096)]
+    rounds: list[list[Value | Batch]] = [
+        [Value(c, 1, stamps[c], float(c)) for c in range(300)],
+        [Batch(2, 0, stamps[:40], [1.5] * 40), Value(3, 9, 7, 2.5), Batch(4, 1, [8] * 3,
+                                                                           [1, 2, 3])],
+        [Batch(1, 5, stamps, [float(i) for i in range(4096)])],
+    ]
+    for packets in rounds:
+        plain: list[bytes] = []
+        sealed: list[bytes] = []
+        a = DatagramPacker(PacketCodec(), TOKEN, budget, plain.append, flags=FLAG_BUNDLES)
+        b = DatagramPacker(SealedCodec(KEY_A, KEY_B), TOKEN, budget + SEAL_OVERHEAD,
+                           sealed.append, flags=FLAG_BUNDLES)
+        for p in packets:
+            assert a.add(p) == b.add(p) == 0
+        a.flush()
+        b.flush()
+        receiver = SealedCodec(KEY_B, KEY_A)
+        assert len(sealed) == len(plain)
+        assert [len(d) for d in sealed] == [len(d) + SEAL_OVERHEAD for d in plain]
+        assert max(len(d) for d in sealed) <= budget + SEAL_OVERHEAD
+        assert ([receiver.decode_datagram(d)[2] for d in sealed]
+                == [PacketCodec().decode_datagram(d)[2] for d in plain])
+    assert len(sealed) > 73_000 // budget  # the last round: 4096 values split to fit

@@ -43,7 +43,7 @@ import msgspec
 
 from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC, PacketCodec
 from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Value
-from rlbridge.wire.seal import SealedCodec
+from rlbridge.wire.seal import SEAL_OVERHEAD, SealedCodec
 
 #: ``[32, parts]``: fixarray of 2, tag 32, then the parts' array: ``dc`` + u16 count (array16),
 #: or a fixarray ``0x90 | n`` when there are at most 15 parts.
@@ -54,8 +54,6 @@ _FIXARRAYS = [b"\x92\x20" + bytes([0x90 | n]) for n in range(16)]
 BUNDLE_OVERHEAD = len(BUNDLE_PREFIX) + _COUNT.size
 #: At most this many parts in one bundle (the array16 count).
 MAX_PARTS = 0xFFFF
-#: What a sealing codec may add to a datagram beyond the header (counter, MAC, AEAD tag).
-SEAL_MARGIN = 64
 
 ValuePacket = Value | Batch
 #: The wire tags of ``Value``, ``Batch`` and ``Bundle`` (the first element of their arrays).
@@ -99,7 +97,10 @@ class DatagramPacker:
         #: A sealing codec's ``seal_body`` (the datagram around an encoded body), else None.
         self._seal = codec.seal_body if isinstance(codec, SealedCodec) else None
         self._header = DATAGRAM_HEADER.pack(MAGIC, PROTOCOL_VERSION, flags, token)
-        self._overhead = DATAGRAM_HEADER.size + (0 if self._plain else SEAL_MARGIN)
+        # A sealing codec adds exactly SEAL_OVERHEAD (counter and tag) to the body, so a sealed
+        # datagram holds as many values as the budget allows: a margin beyond it would only
+        # make more, smaller datagrams, each paying the cipher call and its system calls.
+        self._overhead = DATAGRAM_HEADER.size + (0 if self._plain else SEAL_OVERHEAD)
         encoder = msgspec.msgpack.Encoder()
         self._encode = encoder.encode
         self._encode_into = encoder.encode_into
@@ -251,8 +252,10 @@ class DatagramPacker:
         n = len(packet.values) if isinstance(packet, Batch) else 1
         if n > 1:
             assert isinstance(packet, Batch)
-            size = self._overhead + len(body)
-            per = max(1, min(n // 2, n * (self.budget - self._overhead - 64) // size))
+            # From the room for the body alone (64 bytes spare for what varies per chunk), so
+            # a sealed packer with SEAL_OVERHEAD more budget splits exactly as a plain one.
+            room = self.budget - self._overhead - 64
+            per = max(1, min(n // 2, n * room // len(body)))
             refused = 0
             for i in range(0, n, per):
                 refused += self.add(Batch(packet.channel, packet.first_seq + i,
