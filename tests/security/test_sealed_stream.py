@@ -38,6 +38,7 @@ from rlbridge.wire import (
     TopicConnect,
     Value,
 )
+from rlbridge.wire.aead import BULK_FROM, CRYPTOGRAPHY, IMPLEMENTATIONS
 from rlbridge.wire.records import (
     RECORD_MAX,
     RecordOpener,
@@ -45,7 +46,7 @@ from rlbridge.wire.records import (
     SealedStreamDecoder,
     stream_sealers,
 )
-from rlbridge.wire.seal import derive_keys
+from rlbridge.wire.seal import derive_keys, nonce
 
 F64 = "std_msgs/msg/Float64"
 KEY = bytes(range(32))
@@ -84,6 +85,26 @@ def test_a_frame_larger_than_a_record_spans_records() -> None:
     sealer, decoder = keys_pair()
     big = Value(1, 0, 0, "x" * (RECORD_MAX * 2))
     assert decoder.feed(sealer.seal(CODEC.encode_frame(big))) == [big]
+
+
+@pytest.mark.parametrize("size", [1, BULK_FROM - 1, BULK_FROM, 3 * BULK_FROM, RECORD_MAX + 5])
+def test_small_and_bulk_records_are_the_same_construction(size: int) -> None:
+    """A record of BULK_FROM bytes or more is sealed and opened by cryptography's
+    ChaCha20-Poly1305, a smaller one by the install's choice: the bytes of each record are
+    those of the one construction (docs/protocol.md section 16.5), whichever sealed it."""
+    sealer, decoder = keys_pair()
+    data = bytes(range(256)) * (size // 256 + 1)
+    frame = CODEC.encode_frame(Value(1, 0, 0, data[:size]))
+    wire = sealer.seal(frame)
+    key = derive_keys(KEY, b"salt", b"context").stream_client_to_server
+    reference, at, counter = IMPLEMENTATIONS[CRYPTOGRAPHY](key), 0, 0
+    for start in range(0, len(frame), RECORD_MAX):  # each record, sealed by one reference
+        chunk = frame[start:start + RECORD_MAX]
+        record = wire[at:at + 8 + len(chunk) + 16]
+        assert record == record[:8] + reference.encrypt(nonce(counter), chunk, record[:8])
+        at, counter = at + len(record), counter + 1
+    assert at == len(wire)
+    assert decoder.feed(wire) == [Value(1, 0, 0, data[:size])]
 
 
 @pytest.mark.parametrize("attack", ["flip", "replay", "reorder", "drop", "plain", "reflect"])

@@ -16,7 +16,12 @@ read), and once strict, a plain frame is refused as injected.
 
 from __future__ import annotations
 
-from rlbridge.wire.aead import InvalidTag, chacha20_poly1305
+from rlbridge.wire.aead import (
+    BULK_FROM,
+    InvalidTag,
+    bulk_chacha20_poly1305,
+    chacha20_poly1305,
+)
 from rlbridge.wire.codec import (
     DEFAULT_MAX_PACKET,
     FRAME_HEADER,
@@ -39,6 +44,7 @@ class RecordSealer:
 
     def __init__(self, key: bytes) -> None:
         self._seal = chacha20_poly1305(key).seal_counted
+        self._seal_bulk = bulk_chacha20_poly1305(key).seal_counted
         self._counter = 0
 
     def seal(self, frames: bytes | bytearray | memoryview) -> bytes:
@@ -48,7 +54,8 @@ class RecordSealer:
             chunk = view[start:start + RECORD_MAX]
             head = FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, FLAG_SEALED,
                                      len(chunk) + TAG_SIZE)
-            out += self._seal(self._counter, head, chunk)
+            seal = self._seal if len(chunk) < BULK_FROM else self._seal_bulk
+            out += seal(self._counter, head, chunk)
             self._counter += 1
         return bytes(out)
 
@@ -65,11 +72,13 @@ class RecordOpener:
 
     def __init__(self, key: bytes) -> None:
         self._open = chacha20_poly1305(key).decrypt
+        self._open_bulk = bulk_chacha20_poly1305(key).decrypt
         self._counter = 0
 
     def open(self, head: bytes | memoryview, sealed: bytes | memoryview) -> bytes:
+        opener = self._open if len(sealed) < BULK_FROM + TAG_SIZE else self._open_bulk
         try:
-            plain = self._open(nonce(self._counter), sealed, head)
+            plain = opener(nonce(self._counter), sealed, head)
         except InvalidTag:
             raise RemoteProtocolError(
                 ErrorCode.AUTH_FAILED,
