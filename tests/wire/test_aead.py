@@ -187,6 +187,10 @@ def test_the_extension_without_a_key_refuses_to_seal() -> None:
         keyless.encrypt(bytes(12), b"x", None)
     with pytest.raises(TypeError, match="3 arguments"):
         ChaCha20Poly1305(bytes(32)).encrypt(bytes(12), b"x")  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match=r"seal_counted\(counter, head, body\) takes 3"):
+        ChaCha20Poly1305(bytes(32)).seal_counted(1, b"h")  # type: ignore[call-arg]
+    with pytest.raises(ValueError, match="not given a key"):
+        keyless.open_counted(bytes(40), 0, 1)
 
 
 @pytest.mark.parametrize(("env", "available", "chosen", "why"), [

@@ -60,21 +60,30 @@ aead_dealloc(Aead *self)
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* The three arguments as buffers: the nonce (12 bytes), the data and the associated data
- * (None: none). On success every buffer is held and must be released (release_args). */
+/* Every method: the object has a key, and the call gives three arguments (named in
+ * `signature`, for the error). */
 static int
-get_args(Aead *self, PyObject *const *args, Py_ssize_t nargs, const char *name,
-         Py_buffer *nonce, Py_buffer *data, Py_buffer *aad)
+check_call(const Aead *self, Py_ssize_t nargs, const char *signature)
 {
     if (!self->keyed) {
         PyErr_SetString(PyExc_ValueError, "ChaCha20Poly1305 was not given a key");
         return -1;
     }
     if (nargs != 3) {
-        PyErr_Format(PyExc_TypeError, "%s() takes 3 arguments (nonce, data, "
-                     "associated_data), %zd given", name, nargs);
+        PyErr_Format(PyExc_TypeError, "%s takes 3 arguments, %zd given", signature, nargs);
         return -1;
     }
+    return 0;
+}
+
+/* The three arguments as buffers: the nonce (12 bytes), the data and the associated data
+ * (None: none). On success every buffer is held and must be released (release_args). */
+static int
+get_args(Aead *self, PyObject *const *args, Py_ssize_t nargs, const char *signature,
+         Py_buffer *nonce, Py_buffer *data, Py_buffer *aad)
+{
+    if (check_call(self, nargs, signature) < 0)
+        return -1;
     if (PyObject_GetBuffer(args[0], nonce, PyBUF_SIMPLE) < 0)
         return -1;
     if (nonce->len != NONCE_BYTES) {
@@ -134,7 +143,8 @@ static PyObject *
 aead_encrypt(Aead *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer nonce, data, aad;
-    if (get_args(self, args, nargs, "encrypt", &nonce, &data, &aad) < 0)
+    if (get_args(self, args, nargs, "encrypt(nonce, data, associated_data)", &nonce, &data,
+                 &aad) < 0)
         return NULL;
     PyObject *out = NULL;
     if (data.len > PY_SSIZE_T_MAX - TAG_BYTES) {
@@ -155,7 +165,8 @@ static PyObject *
 aead_decrypt(Aead *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer nonce, data, aad;
-    if (get_args(self, args, nargs, "decrypt", &nonce, &data, &aad) < 0)
+    if (get_args(self, args, nargs, "decrypt(nonce, data, associated_data)", &nonce, &data,
+                 &aad) < 0)
         return NULL;
     PyObject *out = NULL;
     if (data.len < TAG_BYTES) {
@@ -167,7 +178,8 @@ aead_decrypt(Aead *self, PyObject *const *args, Py_ssize_t nargs)
     if (out == NULL)
         goto done;
     unsigned char *plain = (unsigned char *)PyBytes_AS_STRING(out);
-    if (open_into(self, plain, &nonce, &data, &aad) != 0) {  /* libsodium verifies before it decrypts: nothing unverified escapes */
+    /* libsodium verifies before it decrypts: nothing unverified escapes */
+    if (open_into(self, plain, &nonce, &data, &aad) != 0) {
         Py_CLEAR(out);
         PyErr_SetNone(invalid_tag);
     }
@@ -197,16 +209,8 @@ aead_seal_counted(Aead *self, PyObject *const *args, Py_ssize_t nargs)
 {
     unsigned char nonce[NONCE_BYTES];
     Py_buffer head, body;
-    if (nargs != 3) {
-        PyErr_Format(PyExc_TypeError, "seal_counted() takes 3 arguments (counter, head, "
-                     "body), %zd given", nargs);
-        return NULL;
-    }
-    if (!self->keyed) {
-        PyErr_SetString(PyExc_ValueError, "ChaCha20Poly1305 was not given a key");
-        return NULL;
-    }
-    if (counter_nonce(args[0], nonce) < 0)
+    if (check_call(self, nargs, "seal_counted(counter, head, body)") < 0
+        || counter_nonce(args[0], nonce) < 0)
         return NULL;
     if (PyObject_GetBuffer(args[1], &head, PyBUF_SIMPLE) < 0)
         return NULL;
@@ -241,15 +245,8 @@ aead_open_counted(Aead *self, PyObject *const *args, Py_ssize_t nargs)
 {
     unsigned char nonce[NONCE_BYTES];
     Py_buffer data;
-    if (nargs != 3) {
-        PyErr_Format(PyExc_TypeError, "open_counted() takes 3 arguments (data, head_size, "
-                     "counter), %zd given", nargs);
+    if (check_call(self, nargs, "open_counted(data, head_size, counter)") < 0)
         return NULL;
-    }
-    if (!self->keyed) {
-        PyErr_SetString(PyExc_ValueError, "ChaCha20Poly1305 was not given a key");
-        return NULL;
-    }
     Py_ssize_t head_size = PyLong_AsSsize_t(args[1]);
     if (head_size == -1 && PyErr_Occurred())
         return NULL;
