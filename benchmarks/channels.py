@@ -350,7 +350,7 @@ def format_markdown(rows: list[BenchRow]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m benchmarks.channels [--n N] [--repeats R] [--out docs/bench-channels.md]``."""
+    """``python -m benchmarks.channels [--n N] [--repeats R] [--out FILE]``."""
     import argparse
     import datetime
 
@@ -358,7 +358,7 @@ def main(argv: list[str] | None = None) -> None:
                                      description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--n", type=int, default=200_000, help="operations per measurement")
     parser.add_argument("--repeats", type=int, default=5, help="repeats; figures are medians")
-    parser.add_argument("--out", default="docs/bench-channels.md",
+    parser.add_argument("--out", default="benchmarks/results/channels.md",
                         help="markdown file the figures are written to")
     args = parser.parse_args(argv)
     text = format_markdown(run_channel_bench(args.n, args.repeats))

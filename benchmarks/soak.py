@@ -104,7 +104,7 @@ def main(
         help="Bytes the server asks for its UDP receive buffer (serve --udp-receive-buffer).")]
     = UDP_RECEIVE_BUFFER,
     out: Annotated[Path, typer.Option("--out", help="Markdown file the figures are written to.")]
-    = Path("docs/load.md"),
+    = Path("benchmarks/results/soak.md"),
 ) -> None:
     """Load held for MINUTES: server RSS and latency per interval (a leak shows as a trend)."""
     if client not in ("raw", "sdk"):

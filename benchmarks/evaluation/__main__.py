@@ -18,7 +18,7 @@ app = typer.Typer(add_completion=False)
 @app.command()
 def evaluation(
     out: Annotated[Path, typer.Option("--out", help="Markdown file the figures are written to.")]
-    = Path("docs/evaluation.md"),
+    = Path("benchmarks/results/evaluation.md"),
     quick: Annotated[bool, typer.Option(
         help="Fewer scenarios and samples (about 3 minutes instead of ~12).")] = False,
     count: Annotated[int | None, typer.Option(

@@ -179,7 +179,7 @@ def run_command(
         help="Patterns suite: run the reference between every two scenarios and compare each "
              "with its neighbours (about twice the time per round).")] = True,
     out: Annotated[Path, typer.Option(help="Markdown file the figures are written to.")]
-    = Path("docs/jitter.md"),
+    = Path("benchmarks/results/jitter.md"),
     plot: Annotated[Path, typer.Option(help="PNG of the jitter per cycle.")]
     = Path("docs/figures/jitter.png"),
     results: Annotated[Path, typer.Option(help="Directory of the raw runs' JSON.")] = RESULTS,
