@@ -84,6 +84,8 @@ class Session:
         )
         self.tcp: PacketSink | None = None
         self.udp: UdpSink | None = None
+        #: UDP channels holding values until the client's UDP address is known (connect.py).
+        self.udp_waiters: list[Callable[[], None]] = []
         self._close_tcp: Callable[[], None] | None = None
         self.inbound: dict[int, Inbound] = {}
         self.outbound: dict[int, Outbound] = {}
@@ -123,6 +125,9 @@ class Session:
             cfg = self.ctx.config
             self.udp = UdpSink(transport, self.codec, self.token, addr, cfg.udp_payload,
                                self.ctx.loop)
+            waiters, self.udp_waiters = self.udp_waiters, []
+            for waiter in waiters:
+                waiter()
         elif self.udp.addr != addr:
             self.udp.addr = addr
 
