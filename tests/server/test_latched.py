@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from rlbridge.csp.bridge import Bridge
-from rlbridge.wire import Heartbeat, TopicAck, TopicConnect, Value
+from rlbridge.wire import Heartbeat, TopicAck, TopicClose, TopicConnect, Value
 
 
 def _published(bridge: Bridge, topic: str) -> bool:
@@ -77,3 +77,22 @@ def test_values_of_a_udp_channel_bound_before_the_address_is_known_wait_for_it(
     assert token == ack.token
     assert isinstance(packet, Value)
     assert (packet.channel, packet.seq, packet.value) == (1, 0, 4.5)
+
+
+def test_values_still_waiting_when_the_channel_closes_are_counted_dropped(
+        bridge: Callable[..., Bridge], raw_tcp: Callable[..., Any],
+        wait_until: Callable[..., Any]) -> None:
+    tcp = raw_tcp()
+    tcp.hello()
+    tcp.send(TopicConnect(1, "subscribe", "/waiting", "std_msgs/msg/Float64", "data", "udp"))
+    tcp.expect(TopicAck)
+    publisher = bridge()
+    out = publisher.publish("/waiting", "std_msgs/msg/Float64", transport="tcp")
+    for value in (1.0, 2.0, 3.0):
+        out.write(value)
+    wait_until(lambda: tcp.stats()["session"]["channels"]["1"]["values_out"] == 3,
+               what="three values waiting for the UDP address")
+    tcp.send(TopicClose(1))
+    session = tcp.stats()["session"]
+    assert "1" not in session["channels"]
+    assert session["dropped"] == 3  # never sent: counted, not silently lost

@@ -90,7 +90,6 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
 
     if isinstance(sink, ChannelSink):  # what it held and could not send counts as dropped
         sink.lost = on_drop
-        sink.live = lambda: session.outbound.get(req.channel) is out
 
     out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
                                          ctx.handoff.wrap(out.on_values, on_drop))
@@ -121,8 +120,6 @@ class ChannelSink:
         self._held: deque[Packet] = deque()
         #: Told how many values a packet carried that was held and then not sent.
         self.lost: Callable[[int], None] = lambda count: None
-        #: Whether the channel is still bound: a closed one sends nothing it held.
-        self.live: Callable[[], bool] = lambda: True
 
     @property
     def dropped(self) -> int:
@@ -163,10 +160,15 @@ class ChannelSink:
         """The client's UDP address is known: send what waited for it, in order."""
         held, self._held = self._held, deque()
         sink = self._session.udp
-        live = self.live()
         for packet in held:
-            if sink is None or not live or not sink.send(packet, data=True):
+            if sink is None or not sink.send(packet, data=True):
                 self._lose(packet)
+
+    def discard(self) -> None:
+        """The channel closes: what still waits is never sent, and counted so."""
+        held, self._held = self._held, deque()
+        for packet in held:
+            self._lose(packet)
 
     def _lose(self, packet: Packet) -> None:
         self._dropped += 1
