@@ -88,8 +88,11 @@ def _mypyc_extensions() -> list[Any]:
 
 
 class OptionalBuildExt(build_ext):
-    """Builds the cipher, and the compiled modules or none of them: a failure leaves the
-    package without that part (the Python it falls back to is always installed)."""
+    """Builds the cipher, and the compiled modules or none of them, each part on its own: a
+    part that fails is discarded and dropped from the build's list, so setuptools neither
+    copies it (an editable install copies every listed extension into the source tree, and a
+    missing one would fail the whole build) nor records it; the Python it falls back to is
+    always installed."""
 
     def finalize_options(self) -> None:
         super().finalize_options()
@@ -100,37 +103,44 @@ class OptionalBuildExt(build_ext):
             self._remove_stale([])
             return
         try:
-            super().run()  # set-up, then build_extensions below
+            super().run()  # set-up, build_extensions below, then (editable) the copies
         except Exception as exc:  # no compiler or no Python.h: nothing could be built
-            self._discard(self.extensions)
-            _say(f"compiling failed ({exc}): the package is pure Python")
+            self._give_up(self.extensions, f"compiling failed ({exc}): the package is pure "
+                          "Python and seals with cryptography's ChaCha20-Poly1305")
         finally:
             shutil.rmtree(C_DIR, ignore_errors=True)
 
     def build_extensions(self) -> None:
         self.check_extensions_list(self.extensions)
-        built = []
-        try:
-            self.build_extension(CIPHER)
-            built.append(CIPHER)
-            _say("built rlbridge.wire._chacha (libsodium's ChaCha20-Poly1305)")
-        except Exception as exc:  # most often: no sodium.h
-            self._discard([CIPHER])
-            _say(f"not building rlbridge.wire._chacha ({exc}; Debian: apt install "
-                 "libsodium-dev): sealed sessions use cryptography's ChaCha20-Poly1305")
+        cipher = [e for e in self.extensions if e is CIPHER]
         mypyc = [e for e in self.extensions if e is not CIPHER]
+        if self._build_part(cipher, "not building rlbridge.wire._chacha ({}; Debian: apt "
+                            "install libsodium-dev): sealed sessions use cryptography's "
+                            "ChaCha20-Poly1305"):
+            _say("built rlbridge.wire._chacha (libsodium's ChaCha20-Poly1305)")
+        if self._build_part(mypyc, "compiling failed ({}): the value path is pure Python"):
+            self._record()
+            _say(f"compiled {len(MODULES)} modules with mypyc")
+        self._remove_stale(self.extensions)
+
+    def _build_part(self, part: list[Any], failed: str) -> bool:
+        """Build one part whole (True), or leave no trace of it in the build (False)."""
+        if not part:
+            return False
         try:
-            for ext in mypyc:
+            for ext in part:
                 self.build_extension(ext)
-        except Exception as exc:  # a compile or link error
-            self._discard(mypyc)
-            _say(f"compiling failed ({exc}): the value path is pure Python")
-        else:
-            if mypyc:
-                built += mypyc
-                self._record()
-                _say(f"compiled {len(MODULES)} modules with mypyc")
-        self._remove_stale(built)
+        except Exception as exc:  # a compile or link error (the cipher's: most often no sodium.h)
+            self._give_up(part, failed.format(exc))
+            return False
+        return True
+
+    def _give_up(self, part: list[Any], why: str) -> None:
+        """No half build: the compiled modules import each other's code from one library."""
+        for ext in part:
+            Path(self.get_ext_fullpath(ext.name)).unlink(missing_ok=True)
+        self.extensions = [e for e in self.extensions if e not in part]
+        _say(why)
 
     def _package_dirs(self) -> list[Path]:
         """Where the package is built (the wheel's tree) and, editable, the source tree."""
@@ -138,11 +148,6 @@ class OptionalBuildExt(build_ext):
         if self.inplace or getattr(self, "editable_mode", False):
             dirs.append(Path(self.get_finalized_command("build_py").get_package_dir("rlbridge")))
         return dirs
-
-    def _discard(self, extensions: list[Any]) -> None:
-        """No half build: the compiled modules import each other's code from one library."""
-        for ext in extensions:
-            Path(self.get_ext_fullpath(ext.name)).unlink(missing_ok=True)
 
     def _remove_stale(self, built: list[Any]) -> None:
         """Remove this interpreter's extensions in the package that this build did not make:

@@ -26,6 +26,31 @@ python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".[test,ros2,compare]"
 
+# The compiled value path must not depend on libsodium (setup.py: each extension optional on
+# its own). Install a copy of the package once more, editable as the README's quick start does,
+# in a venv of its own and a mount namespace where libsodium's headers are hidden; it must
+# report the value path compiled and sealing by cryptography's cipher. Needs root (unshare).
+nosodium=$(mktemp -d)
+if [ "$(id -u)" = 0 ] && unshare --mount true 2>/dev/null; then
+  tar -c --exclude='*.so' --exclude=__pycache__ --exclude=_compiled_sources.json \
+    setup.py pyproject.toml README.md LICENSE src | tar -x -C "$nosodium"
+  mkdir "$nosodium/empty"
+  python3 -m venv "$nosodium/venv"
+  unshare --mount bash -ec '
+    [ ! -e /usr/include/sodium ] || mount --bind "$1/empty" /usr/include/sodium
+    [ ! -e /usr/include/sodium.h ] || mount --bind /dev/null /usr/include/sodium.h
+    "$1/venv/bin/python" -m pip install -q -e "$1" >"$1/pip.log" 2>&1 || { cat "$1/pip.log"; exit 1; }
+    "$1/venv/bin/rlbridge" --version' _ "$nosodium" | tee "$nosodium/version"
+  grep -q "^value path: compiled" "$nosodium/version" && grep -q "^sealing.*: cryptography" \
+    "$nosodium/version" || { echo "FAILED: without libsodium's headers the value path is not compiled"; exit 1; }
+  echo "install without libsodium's headers: value path compiled"
+elif [ "${CI:-}" = true ]; then
+  echo "MISSING: root and a mount namespace (unshare --mount) for the install without libsodium's headers"; exit 1
+else
+  echo "MISSING: root and a mount namespace (unshare --mount): the install without libsodium's headers is not checked"
+fi
+rm -rf "$nosodium"
+
 .venv/bin/ruff check src tests scripts benchmarks examples setup.py
 .venv/bin/mypy --strict src benchmarks
 # pytest exits 5 when it collected no test: that fails the run, as it should. The matrix runs

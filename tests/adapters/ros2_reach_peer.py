@@ -20,6 +20,10 @@ Imports nothing from rlbridge. Modes:
     (1 ms a message); count messages and the gaps in their publication sequence numbers (from
     the first message on, printed as ``first DATA``); print ``{"received": R, "gaps": G,
     "last": L}`` once message LAST arrived (else after 2 s of quiet).
+``latched TOPIC``
+    A late subscriber: subscribe to std_msgs/String with a transient-local, reliable
+    KEEP_LAST(1) queue, print ``got DATA`` for the first message and exit (after 60 s
+    without one: ``nothing``, exit 1).
 ``call SERVICE``
     Call std_srvs/SetBool ``SERVICE`` (provided by an rlbridge client) with data=true, print
     the response as JSON, exit. Its steps go to stderr; still running after 60 s, it prints
@@ -175,6 +179,22 @@ def flood(topic: str, count: int) -> None:
     rclpy.try_shutdown()
 
 
+def latched(topic: str) -> None:
+    rclpy.init(args=[])
+    node = Node("reach_late")
+    got: list[str] = []
+    latched_qos = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                             reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(String, topic, lambda msg: got.append(msg.data), latched_qos)
+    deadline = time.monotonic() + 60.0
+    while not got and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    print(f"got {got[0]}" if got else "nothing", flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    sys.exit(0 if got else 1)
+
+
 def count_gaps(topic: str, depth: int, last: int | None = None) -> None:
     rclpy.init(args=[])
     node = Node("reach_count")
@@ -211,6 +231,8 @@ if __name__ == "__main__":
         call(sys.argv[2])
     elif sys.argv[1:2] == ["flood"]:
         flood(sys.argv[2], int(sys.argv[3]))
+    elif sys.argv[1:2] == ["latched"]:
+        latched(sys.argv[2])
     elif sys.argv[1:2] == ["count"]:
         count_gaps(sys.argv[2], int(sys.argv[3]),
                    int(sys.argv[4]) if len(sys.argv) > 4 else None)

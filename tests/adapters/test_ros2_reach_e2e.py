@@ -12,6 +12,7 @@ import json
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -142,13 +143,41 @@ def test_parameters_read_listed_and_set(sdk: Bridge) -> None:
         sdk.get_parameter("reach_peer", "nope")
 
 
+@pytest.mark.parametrize("transport", ["tcp", "udp"])
+@pytest.mark.parametrize("field", ["data", None])
 @pytest.mark.parametrize("durability", ["transient_local", "match"])
 def test_latched_topic_published_before_the_client_connected(
-        sdk: Bridge, durability: Any) -> None:
-    ch = sdk.subscribe("/reach/map", "std_msgs/msg/String", transport="tcp", blocking=True,
-                       durability=durability)
-    assert ch.read(timeout=30) == "map v1"
+        sdk: Bridge, durability: Any, field: str | None, transport: Any) -> None:
+    """The value a latched topic holds when the channel binds arrives on either transport
+    (over UDP the server's subscription is reliable, or DDS would send it no history)."""
+    ch = sdk.subscribe("/reach/map", "std_msgs/msg/String", field, transport=transport,
+                       blocking=True, durability=durability)
+    assert ch.read(timeout=30) == ("map v1" if field else {"data": "map v1"})
     sdk.unsubscribe(ch)
+
+
+def _published(sdk: Bridge, topic: str) -> bool:
+    """The server published a value of this session's channel on ``topic``."""
+    channels = sdk.server_stats()["session"]["channels"]
+    return any(c["topic"] == topic and c["values_in"] > 0 for c in channels.values())
+
+
+@pytest.mark.parametrize("transport", ["tcp", "udp"])
+def test_a_latched_value_from_the_sdk_reaches_a_late_rclpy_subscriber(
+        reach: World, sdk: Bridge, transport: Any) -> None:
+    topic = f"/reach/sdk_map_{transport}"
+    out = sdk.publish(topic, "std_msgs/msg/String", transport=transport,
+                      durability="transient_local")
+    deadline = time.monotonic() + 30
+    while not _published(sdk, topic):  # a lost datagram is written again
+        assert time.monotonic() < deadline, f"the server never published on {topic}"
+        out.write(f"sdk map over {transport}")
+        time.sleep(0.2)
+    late = reach.peer("latched", topic)
+    assert late.wait(90) == 0, late.log
+    late.stop()
+    assert f"got sdk map over {transport}" in late.lines[-1], late.log
+    sdk.unsubscribe(out)
 
 
 # -- the CLI, as processes in the namespace ----------------------------------------------------

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import io
 import json
 import math
 import os
@@ -34,10 +35,12 @@ import pytest
 
 from localhost import free_port, rlbridge_command
 from rlbridge.demo.controller import PanTiltController
+from rlbridge.demo.dashboard import AnsiDashboard, Status
 from rlbridge.demo.loop import NO_SETPOINT, ControllerState, PanTiltLoop, SetpointSample
 from rlbridge.demo.metrics import Reference, tracking_metrics
-from rlbridge.demo.monitor import Trace, TraceSnapshot
+from rlbridge.demo.monitor import GONE, Trace, TraceSnapshot
 from rlbridge.demo.plant import COUNTS_PER_REV, PAN, RAD_PER_COUNT, PanTiltPlant
+from rlbridge.demo.run import DemoOptions, DemoResult, run_demo, summary
 from rlbridge.demo.sides import connect_controller, middleware_side
 from rlbridge.demo.topics import Diagnostics
 from rlbridge.demo.vision import Dropout, Lissajous
@@ -325,3 +328,55 @@ def test_controller_holds_position_while_the_server_is_gone_and_resumes_when_it_
         states = [s.value for _, s in controller.states()]
         assert states[states.index("lost-link"):][:2] in (
             ["lost-link", "safe"], ["lost-link", "tracking"])
+
+
+# -- what the bridge side says when the controller goes --------------------------------------
+@pytest.mark.filterwarnings(RT_REFUSED)
+def test_the_bridge_side_reports_the_controllers_session_gone_when_it_exits() -> None:
+    """The controller cannot report its own absence: the server's session close tells the
+    trace, so the view and the end summary stop saying "tracking, link connected"."""
+    with middleware_side(vision_start=0.0) as mw:
+        with connect_controller("127.0.0.1", mw.port, timeout=10) as bridge, \
+                PanTiltController(bridge):
+            assert mw.trace.wait_for(lambda s: "tracking" in [x for _, x in s.statuses]
+                                     and s.diagnostics is not None, 10)
+            live = Status.of("demo", mw.trace.snapshot(), 0)
+            assert (live.state, live.link) == ("tracking", "connected")
+        assert mw.trace.wait_for(lambda s: s.statuses[-1][1] == GONE, 10)
+        snap = mw.trace.snapshot()
+    gone = Status.of("demo", snap, 0)
+    assert (gone.state, gone.link) == (GONE, "closed")
+    assert snap.diagnostics is not None
+    assert snap.diagnostics.link == "connected"  # its last word
+    assert "link closed" in "".join(AnsiDashboard(io.StringIO()).render(gone))
+    result = DemoResult("bridge", "here", snap.elapsed, "signal", snap.statuses,
+                        snap.diagnostics, tracking_metrics(snap), snap)
+    text = "\n".join(summary(result))
+    assert f"controller link: its session closed at {snap.statuses[-1][0]:.1f} s" in text
+    assert "[signal: stopped by SIGINT or SIGTERM]" in text
+
+
+@pytest.mark.filterwarnings(RT_REFUSED)
+def test_a_one_second_demo_does_not_ask_whether_there_is_a_controller() -> None:
+    """``rlbridge demo --seconds 1``: the controller is there, it only tracked for less than
+    the settling time (or a few samples settled): the summary says which."""
+    out = io.StringIO()
+    result = run_demo(DemoOptions(seconds=1), out)
+    text = out.getvalue()
+    assert result.reason == "time"
+    assert "[time: --seconds ran out]" in text
+    assert "no controller" not in text
+    assert result.metrics is not None
+    if not result.metrics.samples:
+        assert ("no settled tracking samples (tracking lasted less than the 0.5 s settling time"
+                in text or "never reached tracking" in text), text
+
+
+def test_the_summary_says_why_no_sample_settled() -> None:
+    nothing = TraceSnapshot(elapsed=1.0)
+    none = DemoResult("bridge", "here", 1.0, "time", [], None, tracking_metrics(nothing),
+                      nothing)
+    assert "(no controller reported)" in "\n".join(summary(none))
+    idle = DemoResult("bridge", "here", 1.0, "time", [(0.1, "idle")], Diagnostics(),
+                      tracking_metrics(nothing), nothing)
+    assert "never reached tracking" in "\n".join(summary(idle))

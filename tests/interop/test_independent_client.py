@@ -366,21 +366,23 @@ def test_udp_hello_with_wrong_version(client: ic.IndependentClient) -> None:
     assert body[:2] == [ic.TAG_CONNECT_ERROR, ic.UNSUPPORTED_VERSION]
 
 
-def test_udp_channel_values_are_dropped_until_registered(client: ic.IndependentClient) -> None:
-    """Doc 8.3: without a registered UDP address, a UDP channel's values are dropped, counted."""
+def test_udp_channel_values_wait_until_registered(client: ic.IndependentClient) -> None:
+    """Doc 8.3: without a registered UDP address, a UDP channel's newest values (up to its
+    depth, 10 by default) wait and arrive first once it is registered; older ones are
+    dropped, counted."""
     client.connect_tcp("no-udp-yet", with_udp=False)
     topic = new_topic()
     client.bind(1, "subscribe", topic, F64, "data", "udp")
     client.bind(2, "publish", topic, F64)
-    client.publish(2, [1.0, 2.0])
+    client.publish(2, [float(i) for i in range(12)])
     channels = client.stats()["session"]["channels"]
     assert channels["1"]["dropped"] == 2
-    assert channels["2"]["values_in"] == 2
+    assert channels["2"]["values_in"] == 12
     client.open_udp()
     client.send_udp(ic.heartbeat(time.monotonic_ns()))
     client.stats(via="udp")
-    client.publish(2, [3.0])
-    assert client.collect(1, 1) == [3.0]
+    client.publish(2, [12.0])
+    assert client.collect(1, 11) == [float(i) for i in range(2, 13)]
 
 
 def test_values_over_udp_on_a_tcp_bound_channel(session: ic.IndependentClient) -> None:

@@ -247,11 +247,12 @@ def test_forged_replayed_reordered_truncated_and_unsealed_datagrams(
     client.sock.send(later)  # and a copy of one of them: replayed
     truncated = client.seal(Value(1, 3, 0, 4.0))
     client.sock.send(truncated[:-1])  # tag cut short: does not open
-    client.sock.send(truncated[:30])  # shorter than any seal
+    client.sock.send(truncated[:30])  # flag set, shorter than any seal: cannot open either
     body = client.request(Stats())
     assert isinstance(body, Stats)
     server = body.body["server"]
-    assert (server["udp_replayed"], server["udp_bad_mac"], server["udp_unsealed"]) == (2, 2, 2)
+    # docs/protocol.md 16.3: no flag is unsealed; a seal cut short, like a forged one, bad_mac.
+    assert (server["udp_replayed"], server["udp_bad_mac"], server["udp_unsealed"]) == (2, 3, 1)
     channel = body.body["session"]["channels"]["1"]
     # Only the genuine ones got past the seal, each once (the reordered one arrives late).
     assert (channel["values_in"], channel["late"]) == (2, 1)

@@ -170,7 +170,7 @@ def test_oversized_record_and_frame_are_refused_from_the_header() -> None:
     head = FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 1, RECORD_MAX + 17)
     with pytest.raises(RemoteProtocolError, match="exceeds") as exc:
         decoder.feed(head)
-    assert exc.value.code == ErrorCode.TOO_LARGE
+    assert exc.value.code == ErrorCode.AUTH_FAILED  # a record layer refusal (16.5)
     fresh = SealedStreamDecoder(CODEC, max_packet=1024)
     with pytest.raises(RemoteProtocolError, match="exceeds"):
         fresh.feed(FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, 4096))

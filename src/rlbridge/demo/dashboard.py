@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Protocol, TextIO
 
 from rlbridge.demo.metrics import Reference, TrackingMetrics, tracking_metrics
-from rlbridge.demo.monitor import TraceSnapshot
+from rlbridge.demo.monitor import GONE, TraceSnapshot
 from rlbridge.demo.topics import AXES, Diagnostics
 
 WINDOW = 5.0
@@ -50,6 +50,14 @@ class Status:
     def state(self) -> str:
         statuses = self.snapshot.statuses
         return statuses[-1][1] if statuses else "(no controller yet)"
+
+    @property
+    def link(self) -> str:
+        """The controller's link as its last diagnostics said, unless its session has closed
+        since (then those diagnostics describe a controller that is gone)."""
+        if self.state == GONE:
+            return "closed"
+        return self.diag.link if self.diag is not None else "-"
 
     def axis_now(self, axis: str) -> tuple[float, float, float]:
         """Latest set-point, latest angle, and the newest error that is known; NaN if none.
@@ -130,7 +138,7 @@ def _clip(line: str, width: int) -> str:
     return "".join(out) + "\x1b[0m"
 
 
-_COLOURS = {"tracking": "32", "idle": "33", "safe": "33", "lost-link": "31"}
+_COLOURS = {"tracking": "32", "idle": "33", "safe": "33", "lost-link": "31", GONE: "31"}
 
 
 class AnsiDashboard:
@@ -148,8 +156,9 @@ class AnsiDashboard:
         diag = status.diag
         snap = status.snapshot
         total = f" / {status.duration:.1f} s" if status.duration > 0 else " s"
-        link = diag.link if diag is not None else "-"
-        age = f"{diag.setpoint_age_ms:.0f} ms" if diag is not None else "-"
+        link = status.link
+        age = (f"{diag.setpoint_age_ms:.0f} ms" if diag is not None and status.state != GONE
+               else "-")
         lines = [
             f"\x1b[1m{status.title}\x1b[0m | {status.elapsed:5.1f}{total}",
             f" controller  {self._colour(status.state.upper(), status.state)}"
@@ -224,7 +233,7 @@ class LineReport:
                     else "p99 -")
         lost = diag.setpoints_lost if diag is not None else 0
         self._out.write(
-            f"t={status.elapsed:5.1f}s {status.state:<10} link {diag.link if diag else '-':<9} "
+            f"t={status.elapsed:5.1f}s {status.state:<10} link {status.link:<9} "
             f"{' | '.join(axes)} | loop {lateness} | lost sp {lost} angles "
             f"{status.angles_lost()}\n")
         self._out.flush()

@@ -49,6 +49,10 @@ class TraceSnapshot:
         return max(0, self.angles_sent - sum(self.angles_total.values()))
 
 
+#: The state the bridge side records when the controller's session with its server closes:
+#: not one the controller reports (it cannot report its own absence), so the trace says it.
+GONE = "gone"
+
 _T = TypeVar("_T", bound=tuple[float, ...])
 
 
@@ -113,6 +117,11 @@ class Trace:
         with self._cond:
             self._statuses.append((t, status))
             self._cond.notify_all()
+
+    def controller_left(self) -> None:
+        """The controller's session with the server closed (its last status and diagnostics
+        describe it as it was, not as it is): record the state :data:`GONE`."""
+        self.add_status(GONE)
 
     def set_diagnostics(self, diag: Diagnostics) -> None:
         t = self.now()

@@ -16,13 +16,14 @@ from typing import Any
 
 from rlbridge._version import pip_install
 from rlbridge.demo.metrics import MAX_FRAME_GAP, TrackingMetrics, errors
-from rlbridge.demo.monitor import TraceSnapshot
+from rlbridge.demo.monitor import GONE, TraceSnapshot
 from rlbridge.demo.topics import AXES, Diagnostics
 
 DEFAULT_NAME = "pan_tilt.png"
 
 _SHADE = {"idle": ("#bdbdbd", "idle"), "safe": ("#ffcc80", "safe (hold)"),
-          "lost-link": ("#ef9a9a", "lost-link (hold)")}
+          "lost-link": ("#ef9a9a", "lost-link (hold)"),
+          GONE: ("#e0e0e0", "no controller session")}
 
 
 class PlotUnavailable(RuntimeError):

@@ -34,7 +34,7 @@ from rlbridge.demo.controller import PanTiltController
 from rlbridge.demo.dashboard import WINDOW, AnsiDashboard, LineReport, Status, View, states_line
 from rlbridge.demo.loop import ControllerState
 from rlbridge.demo.metrics import TrackingMetrics, tracking_metrics
-from rlbridge.demo.monitor import Trace, TraceSnapshot
+from rlbridge.demo.monitor import GONE, Trace, TraceSnapshot
 from rlbridge.demo.plot import PlotUnavailable, write_plot
 from rlbridge.demo.sides import AdapterName, connect_controller, middleware_side, switch_interval
 from rlbridge.demo.topics import DEFAULT_NAMESPACE, Diagnostics, Topics
@@ -246,10 +246,15 @@ def _watch_controller(controller: PanTiltController, opts: DemoOptions, stop: th
 
 
 # -- reporting ---------------------------------------------------------------------------------
+#: Why a role ended, as the summary's tag says it (the report's ``reason`` is the bare word).
+REASONS = {"time": "time: --seconds ran out", "signal": "signal: stopped by SIGINT or SIGTERM",
+           "lost-link": "lost-link: the link was lost for --lost-exit seconds"}
+
+
 def summary(result: DemoResult) -> list[str]:
     """The lines printed at the end of every role."""
     lines = [f"pan-tilt demo ({result.role}) finished after {result.elapsed:.1f} s "
-             f"[{result.reason}], bridge {result.address}"]
+             f"[{REASONS[result.reason]}], bridge {result.address}"]
     lines.append(f"  states: {states_line(result.states, limit=8)}")
     m = result.metrics
     if m is not None:
@@ -260,7 +265,7 @@ def summary(result: DemoResult) -> list[str]:
                          f"  max {a.max_abs * 1e3:5.1f}"
                          for axis, a in (("pan", m.pan), ("tilt", m.tilt)))
         else:
-            lines.append("  tracking error: no settled tracking samples (no controller?)")
+            lines.append(f"  tracking error: no settled tracking samples ({_why_none(result)})")
     d = result.diagnostics
     if d is not None:
         lines.append(f"  loop: {d.cycles} cycles, lateness p50 {d.late_p50_us / 1e3:.3f} ms, "
@@ -272,11 +277,26 @@ def summary(result: DemoResult) -> list[str]:
             snap = result.snapshot
             lost += f", angles {snap.angles_lost} of {snap.angles_sent} (UDP)"
         lines.append(lost)
-        lines.append(f"  controller link: {d.link}; controller-side error rms "
+        last = result.states[-1] if result.states else None
+        link = (f"its session closed at {last[0]:.1f} s" if last is not None
+                and last[1] == GONE else d.link)
+        lines.append(f"  controller link: {link}; controller-side error rms "
                      f"{d.error_rms_mrad[0]:.1f} / {d.error_rms_mrad[1]:.1f} mrad")
     if result.plot is not None:
         lines.append(f"  plot: {result.plot}")
     return lines
+
+
+def _why_none(result: DemoResult) -> str:
+    """Why no tracking sample counted: no controller, or one that tracked too briefly."""
+    states = [state for _, state in result.states]
+    if not states and result.diagnostics is None:
+        return "no controller reported"
+    if "tracking" not in states:
+        return "the controller never reached tracking"
+    settle = result.metrics.settle if result.metrics is not None else SETTLE_S
+    return (f"tracking lasted less than the {settle:g} s settling time; run longer "
+            "(--seconds)")
 
 
 def _finite(value: Any) -> Any:

@@ -2,6 +2,8 @@
 
 * :func:`middleware_side`: the resource-rich machine. A middleware adapter (the in-process bus,
   or ROS 2), a bridge server on it, and the vision and monitor nodes on the same middleware.
+  The server tells the trace when the controller's session closes: the controller cannot
+  report its own absence, and its last report would otherwise stand for it.
 * :func:`connect_controller`: the embedded board's session with the server, retried until the
   server answers (in docker compose the controller may start first).
 
@@ -30,6 +32,9 @@ from rlbridge.demo.vision import Dropout, VisionNode
 from rlbridge.server import ServerConfig, ServerThread
 
 AdapterName = Literal["inproc", "ros2"]
+#: The name the controller's session has on the server (``Hello.name``): how the bridge side
+#: tells the controller's session from any other client's.
+CONTROLLER_NAME = "pan-tilt-controller"
 
 
 @dataclass(frozen=True)
@@ -64,6 +69,10 @@ def middleware_side(*, host: str = "127.0.0.1", port: int = 0, adapter: AdapterN
                               psk_file=psk_file)
         server = stack.enter_context(ServerThread(config, adapter=mw))
         trace = Trace()
+        registry = server.server.registry
+        assert registry is not None  # the thread has started
+        registry.on_forget.append(
+            lambda session: trace.controller_left() if session.name == CONTROLLER_NAME else None)
         monitor = Monitor(mw, trace, topics=topics)
         stack.callback(monitor.close)
         vision = VisionNode(mw, trace, topics=topics, start_after=vision_start, dropout=dropout)
@@ -74,7 +83,7 @@ def middleware_side(*, host: str = "127.0.0.1", port: int = 0, adapter: AdapterN
 
 def connect_controller(host: str, port: int, *, timeout: float = 30.0,
                        stop: threading.Event | None = None,
-                       name: str = "pan-tilt-controller",
+                       name: str = CONTROLLER_NAME,
                        psk_file: Path | None = None) -> Bridge:
     """``Bridge.connect`` again and again (backing off to 1 s) until it works or ``timeout``.
 

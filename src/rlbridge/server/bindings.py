@@ -386,6 +386,9 @@ class Outbound:
         if self._held is not None:  # never sent: counted, not silently lost
             self._held = None
             self.dropped += 1
+        discard = getattr(self.sink, "discard", None)  # values waiting for a UDP address
+        if discard is not None:  # (server/connect.py ChannelSink): never sent, counted
+            discard()
         if self.subscription is not None:
             self._ros_lost = self.ros_lost
             self.subscription.close()

@@ -8,15 +8,21 @@ request becomes an :class:`Inbound` binding (client -> middleware) or an :class:
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from rlbridge.adapters.base import QoS, Reliability
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.flow import SOCKET_SHARE, InboundCredit, OutboundCredit, wants_flow
-from rlbridge.wire import ErrorCode, Packet, TopicAck, TopicConnect
+from rlbridge.wire import Batch, ErrorCode, Packet, TopicAck, TopicConnect
 
 if TYPE_CHECKING:
     from rlbridge.server.session_owner import SessionOwner
+
+#: Value packets a UDP channel keeps (its newest, at most its QoS depth) while the client's
+#: UDP address is unknown: a TCP session's UDP datagram may arrive after its TopicConnect.
+HOLD_MAX = 64
 
 
 def refusal(session: SessionOwner, req: TopicConnect) -> tuple[ErrorCode, str] | None:
@@ -51,9 +57,15 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
 
     The QoS follows the transport unless the client chose: reliable over TCP, best effort
     over UDP, so the middleware does not retransmit what the client's transport would not.
+    Except a latched topic (durability not ``volatile``): reliable on both, because the
+    middleware keeps a latched value for reliable readers only (DDS sends a transient-local
+    writer's history to late readers by its reliable protocol; a best-effort reader gets the
+    next value, which a latched topic may never send), and a reliable reader does not match
+    a best-effort writer.
     """
     ctx = session.ctx
-    default_rel: Reliability = "reliable" if req.transport == "tcp" else "best_effort"
+    default_rel: Reliability = ("reliable" if req.transport == "tcp"
+                                or req.durability != "volatile" else "best_effort")
     qos = QoS(req.reliability or default_rel, req.depth, req.durability)
     adapter = ctx.adapter
     spec = adapter.resolve(req.msg_type, req.field)
@@ -68,12 +80,16 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
     # The transport's sink itself when the session has it (a sink, once made, stays the
     # session's: a new client address is set on it), else one looked up at send time.
     known = session.udp if req.transport == "udp" else session.tcp
-    sink = known if known is not None else ChannelSink(session, req.transport)
+    sink = known if known is not None else ChannelSink(session, req.transport,
+                                                       min(req.depth, HOLD_MAX))
     out = Outbound(req.channel, spec, sink, ctx.config.max_batch,
                    req.redundancy if req.transport == "udp" else 0, req)
 
     def on_drop(count: int) -> None:  # batches the loop was too far behind to take
         out.dropped += count
+
+    if isinstance(sink, ChannelSink):  # what it held and could not send counts as dropped
+        sink.lost = on_drop
 
     out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
                                          ctx.handoff.wrap(out.on_values, on_drop))
@@ -89,15 +105,21 @@ class ChannelSink:
     """The sink of a channel's chosen transport, looked up at send time.
 
     A UDP channel may be connected before the client's first datagram told us its address
-    (a TCP session's UDP channel); looking the sink up per send handles it. A channel whose
-    session has its transport's sink already is bound to that sink directly (``bind``): a
-    client's new address (NAT rebinding) is set on the sink, which stays the session's.
+    (a TCP session's UDP channel: its datagram and its TopicConnect race); the values of that
+    time, a latched topic's history among them, wait here (the newest ``hold`` packets) and
+    go out once the address is known. A channel whose session has its transport's sink
+    already is bound to that sink directly (``bind``): a client's new address (NAT
+    rebinding) is set on the sink, which stays the session's.
     """
 
-    def __init__(self, session: SessionOwner, transport: str) -> None:
+    def __init__(self, session: SessionOwner, transport: str, hold: int = 0) -> None:
         self._session = session
         self._udp = transport == "udp"
         self._dropped = 0
+        self._hold = hold if self._udp else 0
+        self._held: deque[Packet] = deque()
+        #: Told how many values a packet carried that was held and then not sent.
+        self.lost: Callable[[int], None] = lambda count: None
 
     @property
     def dropped(self) -> int:
@@ -113,10 +135,44 @@ class ChannelSink:
         """Send through the channel's transport as it is now; False (and counted) if not sent."""
         s = self._session
         sink = s.udp if self._udp else s.tcp
-        if sink is None or not sink.send(packet, data=data):
+        if sink is None:
+            if data and self._hold:
+                self._keep(packet)
+                return True
+            self._dropped += 1
+            return False
+        if self._held:
+            self._release()
+        if not sink.send(packet, data=data):
             self._dropped += 1
             return False
         return True
+
+    def _keep(self, packet: Packet) -> None:
+        held = self._held
+        if not held:
+            self._session.udp_waiters.append(self._release)
+        if len(held) == self._hold:
+            self._lose(held.popleft())
+        held.append(packet)
+
+    def _release(self) -> None:
+        """The client's UDP address is known: send what waited for it, in order."""
+        held, self._held = self._held, deque()
+        sink = self._session.udp
+        for packet in held:
+            if sink is None or not sink.send(packet, data=True):
+                self._lose(packet)
+
+    def discard(self) -> None:
+        """The channel closes: what still waits is never sent, and counted so."""
+        held, self._held = self._held, deque()
+        for packet in held:
+            self._lose(packet)
+
+    def _lose(self, packet: Packet) -> None:
+        self._dropped += 1
+        self.lost(len(packet.values) if isinstance(packet, Batch) else 1)
 
 
 def ack_for(binding: Inbound | Outbound) -> TopicAck:

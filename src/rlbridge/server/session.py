@@ -84,6 +84,8 @@ class Session:
         )
         self.tcp: PacketSink | None = None
         self.udp: UdpSink | None = None
+        #: UDP channels holding values until the client's UDP address is known (connect.py).
+        self.udp_waiters: list[Callable[[], None]] = []
         self._close_tcp: Callable[[], None] | None = None
         self.inbound: dict[int, Inbound] = {}
         self.outbound: dict[int, Outbound] = {}
@@ -123,6 +125,9 @@ class Session:
             cfg = self.ctx.config
             self.udp = UdpSink(transport, self.codec, self.token, addr, cfg.udp_payload,
                                self.ctx.loop)
+            waiters, self.udp_waiters = self.udp_waiters, []
+            for waiter in waiters:
+                waiter()
         elif self.udp.addr != addr:
             self.udp.addr = addr
 
@@ -271,9 +276,9 @@ class Session:
             if not self.reach.withdraw(ch):
                 self.error(ErrorCode.UNKNOWN_CHANNEL, f"channel {ch} is not connected", ch)
             return
+        binding.close()  # first: what it drops on closing is in its final counters
         self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
         self._loss.forget(ch)
-        binding.close()
         self.ctx.flows.release(binding.request.topic)
 
     # -- lifetime --------------------------------------------------------------------------
@@ -287,11 +292,11 @@ class Session:
             self.send_control(Disconnect(code, reason))
         bindings: list[Inbound | Outbound] = [*self.inbound.values(), *self.outbound.values()]
         for binding in bindings:
-            self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
             try:
-                binding.close()
+                binding.close()  # first: what it drops on closing is in its final counters
             except Exception:  # a middleware failing to release must not stop the others
                 log.exception("closing channel %d of session %d", binding.channel, self.id)
+            self._retire({**binding.stats(), **binding.health(self.link.rtt_ns)})
             self.ctx.flows.release(binding.request.topic)
         self.inbound.clear()
         self.outbound.clear()

@@ -12,6 +12,7 @@ imports run one way (``session`` -> parts -> ``session_owner``), and mypy checks
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 from rlbridge.server.bindings import Inbound, Outbound
@@ -32,6 +33,8 @@ class SessionOwner(Protocol):
     link: LinkMonitor
     tcp: PacketSink | None
     udp: UdpSink | None
+    #: Called once the client's UDP address is known (the sink exists), then forgotten.
+    udp_waiters: list[Callable[[], None]]
     inbound: dict[int, Inbound]
     outbound: dict[int, Outbound]
     tcp_bytes_in: int

@@ -215,6 +215,20 @@ def check_header(magic: bytes, version: int) -> None:
         )
 
 
+def refuse_sealed(flags: int) -> None:
+    """Refuse a frame header with bit 0 (``SEALED``): it is set on the outer headers of a
+    sealed TCP stream only (docs/protocol.md, sections 2 and 16.5), and it changes how the
+    bytes after the header are read, so where a plain frame belongs it loses the framing:
+    before the key handshake, on a session without sealed records, inside a record."""
+    if flags & FLAG_MAC:
+        raise RemoteProtocolError(
+            ErrorCode.MALFORMED,
+            "a frame header with flags bit 0 (a sealed record) where a plain frame belongs: "
+            "records exist only after the key handshake of a pre-shared-key session without TLS",
+            fatal=True,
+        )
+
+
 class FrameDecoder:
     """Turns a TCP byte stream, in chunks of any size, into packets.
 
@@ -256,10 +270,11 @@ class FrameDecoder:
         view = memoryview(buf)
         try:
             while size - pos >= hsize:
-                magic, version, _flags, length = unpack(buf, pos)
-                if magic != MAGIC or version != PROTOCOL_VERSION:
+                magic, version, flags, length = unpack(buf, pos)
+                if magic != MAGIC or version != PROTOCOL_VERSION or flags & FLAG_MAC:
                     try:
                         check_header(magic, version)
+                        refuse_sealed(flags)
                     except RemoteProtocolError as exc:
                         self._broken = exc
                         raise

@@ -11,7 +11,9 @@ frame stream; a frame may span records.
 :class:`SealedStreamDecoder` reads a stream that starts in plain frames (the handshake) and
 turns into records once :meth:`~SealedStreamDecoder.install` gave it the key: a record that
 arrives before the key waits in the buffer (the proof that yields the key may sit in the same
-read), and once strict, a plain frame is refused as injected.
+read), and once strict, anything but a record is refused as injected (:func:`refuse_record`).
+On the server, which knows the packet after which the key comes (``stop_after``), a record
+before it is refused at once: nothing sealed can precede the key.
 """
 
 from __future__ import annotations
@@ -142,44 +144,63 @@ class SealedStreamDecoder:
         try:
             while size - pos >= hsize:
                 magic, version, flags, length = FRAME_HEADER.unpack_from(buf, pos)
-                check_header(magic, version)
                 end = pos + hsize + length
-                if flags & FLAG_SEALED:
-                    if self._opener is None:  # the key is not there yet: wait in the buffer
-                        if size - pos > RECORD_MAX + TAG_SIZE + hsize:
+                if not (self._strict or self.records):  # plain frames may still come
+                    check_header(magic, version)
+                    if not flags & FLAG_SEALED:
+                        if length > self._max:
+                            raise RemoteProtocolError(
+                                ErrorCode.TOO_LARGE, f"frame of {length} bytes exceeds the "
+                                f"limit of {self._max} bytes", fatal=True)
+                        if end > size:
+                            break
+                        got = self._frames.feed(bytes(buf[pos:end]))
+                        out += got
+                        pos = end
+                        if (self._stop_after is not None and self._opener is None
+                                and any(isinstance(p, self._stop_after) for p in got)):
+                            break
+                        continue
+                    if self._opener is None:
+                        if self._stop_after is not None:  # nothing sealed precedes the key
+                            raise RemoteProtocolError(
+                                ErrorCode.MALFORMED, "a sealed record before the key "
+                                "handshake gave its key", fatal=True)
+                        if size - pos > RECORD_MAX + TAG_SIZE + hsize:  # waits for the key
                             raise RemoteProtocolError(
                                 ErrorCode.UNEXPECTED, "sealed records before the handshake "
                                 "gave their key", fatal=True)
                         break
-                    if length > RECORD_MAX + TAG_SIZE:
-                        raise RemoteProtocolError(
-                            ErrorCode.TOO_LARGE, f"TCP record of {length} bytes exceeds "
-                            f"the limit of {RECORD_MAX + TAG_SIZE}", fatal=True)
-                    if end > size:
-                        break
-                    plain = self._opener.open(bytes(buf[pos:pos + hsize]),
-                                              bytes(buf[pos + hsize:end]))
-                    self.records += 1
-                    out += self._frames.feed(plain)
-                else:
-                    if self._strict or self.records:
-                        raise RemoteProtocolError(
-                            ErrorCode.AUTH_FAILED, "unsealed frame on a sealed TCP "
-                            "session (injected on the way?); the session ends", fatal=True)
-                    if length > self._max:
-                        raise RemoteProtocolError(
-                            ErrorCode.TOO_LARGE, f"frame of {length} bytes exceeds the limit "
-                            f"of {self._max} bytes", fatal=True)
-                    if end > size:
-                        break
-                    got = self._frames.feed(bytes(buf[pos:end]))
-                    out += got
-                    if (self._stop_after is not None and self._opener is None
-                            and any(isinstance(p, self._stop_after) for p in got)):
-                        pos = end
-                        break
+                refuse_record(magic, version, flags, length)
+                if end > size:
+                    break
+                assert self._opener is not None  # strict or records: installed
+                plain = self._opener.open(bytes(buf[pos:pos + hsize]),
+                                          bytes(buf[pos + hsize:end]))
+                self.records += 1
+                out += self._frames.feed(plain)
                 pos = end
         finally:
             if pos:
                 del buf[:pos]
         return out
+
+
+def refuse_record(magic: bytes, version: int, flags: int, length: int) -> None:
+    """Once a stream is sealed every header is a record's: anything else (a plain frame, a
+    header that is not ours, a record longer than the limit) is refused as injected, before
+    its body is read (docs/protocol.md 16.5). The limit bounds what a receiver buffers: the
+    length is authenticated only with the record, so it cannot be trusted before."""
+    if magic != MAGIC or version != PROTOCOL_VERSION:
+        raise RemoteProtocolError(
+            ErrorCode.AUTH_FAILED, f"not a sealed record (header {magic!r} version {version}) "
+            "on a sealed TCP session (injected on the way?); the session ends", fatal=True)
+    if not flags & FLAG_SEALED:
+        raise RemoteProtocolError(
+            ErrorCode.AUTH_FAILED, "unsealed frame on a sealed TCP session (injected on the "
+            "way?); the session ends", fatal=True)
+    if length > RECORD_MAX + TAG_SIZE:
+        raise RemoteProtocolError(
+            ErrorCode.AUTH_FAILED, f"TCP record of {length} bytes (length field) exceeds the "
+            f"limit of {RECORD_MAX + TAG_SIZE} (injected on the way?); the session ends",
+            fatal=True)

@@ -154,7 +154,10 @@ class SealedCodec(PacketCodec):
     def decode_datagram(self, data: bytes) -> tuple[int, int, Packet]:
         # The hot path of every sealed datagram on both ends: one unpack for header and
         # counter, the body decoded by msgspec directly (decode_body only for an error).
-        if len(data) < _OPENS_FROM + TAG_SIZE:
+        if len(data) < _OPENS_FROM + TAG_SIZE:  # the counter and tag cannot both be there
+            if len(data) > 3 and data[3] & FLAG_SEALED:  # a seal cut short: it cannot open
+                raise DatagramRejected("bad_mac", f"sealed datagram of {len(data)} bytes is "
+                                       "too short to hold its counter and tag (truncated)")
             raise DatagramRejected("unsealed", f"datagram of {len(data)} bytes is too short "
                                    "to be sealed")
         magic, version, flags, token, counter = _SEALED_HEAD.unpack_from(data)
