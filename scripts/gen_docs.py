@@ -64,19 +64,20 @@ def _walk(cmd: Any, ctx: Any) -> Iterator[tuple[str, str]]:
             if sub is None or sub.hidden:
                 continue
             sub_ctx = sub.context_class(sub, info_name=name, parent=ctx, terminal_width=WIDTH,
-                                        max_content_width=WIDTH)
+                                        **{"max_content_width": WIDTH, **sub.context_settings})
             yield from _walk(sub, sub_ctx)
 
 
 def render_cli() -> str:
     root = _cli_root()
+    # The app's own context settings (-h, the width), as a terminal of WIDTH columns gets them.
     ctx = root.context_class(root, info_name="rlbridge", terminal_width=WIDTH,
-                             max_content_width=WIDTH)
+                             **{"max_content_width": WIDTH, **root.context_settings})
     pages = list(_walk(root, ctx))
     out = [HEADER.format(cmd=REGENERATE, src="the typer app (`rlbridge.cli`)"),
            "# CLI reference\n",
-           "Every `rlbridge` command with its `--help`. The same text is one `--help` away in a "
-           "terminal (there with colours and boxes). Concepts behind the options: "
+           "Every `rlbridge` command with its `--help` (or `-h`): the same text as in a "
+           "terminal of 100 columns or more. Concepts behind the options: "
            "[concepts.md](concepts.md); the Python API: [api.md](api.md).\n"]
     out += [f"- [`{path}`](#{anchor(path)})" for path, _ in pages]
     out.append("")

@@ -12,5 +12,8 @@ DISTRIBUTION = "rlbridge-sdk"
 
 
 def pip_install(extra: str) -> str:
-    """The command that adds an optional extra (``plot``, ``ros2``) to an installed SDK."""
-    return f"pip install '{DISTRIBUTION}[{extra}]'"
+    """The command that adds an optional extra (``plot``, ``ros2``) to this install: from the
+    checkout or wheel it came from, since the distribution is not on PyPI (rlbridge._install)."""
+    from rlbridge._install import pip_install as for_this_install
+
+    return for_this_install(extra)

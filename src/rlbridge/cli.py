@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -25,11 +25,17 @@ from rlbridge.cli_options import (
 )
 from rlbridge.cli_topic import topic_app
 
+#: ``-h`` as well as ``--help``, and help wrapped at 100 columns (or the terminal's width if
+#: narrower), in every command: click hands these down to each subcommand's context, and
+#: docs/cli.md is the same text at 100 columns (scripts/gen_docs.py).
+HELP_OPTIONS: dict[str, Any] = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
+
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
+    context_settings=HELP_OPTIONS,
 )
 app.add_typer(topic_app, name="topic")
 
@@ -39,12 +45,18 @@ LogLevel = Annotated[str | None, typer.Option(
 
 
 def _version(value: bool) -> None:
+    """Version, value path and cipher; when either was not built, what builds it into this
+    install (an editable checkout, a checkout, or a wheel: rlbridge._install)."""
     if value:
-        from rlbridge._compiled import STATE
+        from rlbridge._compiled import NOT_BUILT, STATE
+        from rlbridge._install import compile_hint
+        from rlbridge.wire.aead import NOT_BUILT as NO_LIBSODIUM
         from rlbridge.wire.aead import STATE as AEAD
 
         typer.echo(f"rlbridge {__version__}\nvalue path: {STATE}\n"
                    f"sealing (ChaCha20-Poly1305): {AEAD}")
+        if NOT_BUILT in (STATE, AEAD) or NO_LIBSODIUM in (STATE, AEAD):
+            typer.echo(f"to compile: {compile_hint()}")
         raise typer.Exit()
 
 
@@ -209,7 +221,21 @@ def build_app() -> typer.Typer:
         pass
     else:
         app.add_typer(netem_app, name="netem")
+    _plain_help(app)
     return app
+
+
+def _plain_help(typer_app: typer.Typer) -> None:
+    """Click's plain help and error lines for ``typer_app`` and every group under it.
+
+    With rich installed, typer draws help in boxes, reads ``[default: ...]`` in a help text as
+    markup (and drops it) and shows each flag as ``<bool>``; docs/cli.md is click's plain text.
+    Plain help everywhere makes the terminal and docs/cli.md one text (scripts/gen_docs.py).
+    """
+    typer_app.rich_markup_mode = None
+    for group in typer_app.registered_groups:
+        if group.typer_instance is not None:
+            _plain_help(group.typer_instance)
 
 
 def main() -> None:

@@ -26,6 +26,20 @@ class AdapterUnavailable(RuntimeError):
     """The chosen middleware cannot be used on this machine; the message says what to install."""
 
 
+class RclpyMissing(ImportError):
+    """rclpy (or a module it loads, e.g. ``rosidl_generator_py``) does not import: the one
+    line that says so, raised by :mod:`rlbridge.adapters.ros2_rclpy` and passed on as it is."""
+
+    def __init__(self, exc: ImportError) -> None:
+        root = (exc.name or "").split(".")[0]
+        why = "is not installed" if root in _ROS_WHEELS else f"does not import ({exc})"
+        super().__init__(f"the ros2 adapter needs rclpy, which {why}: {pip_install('ros2')}")
+
+
+#: Modules of the ros2 extra whose absence means "rclpy is not installed".
+_ROS_WHEELS = frozenset({"rclpy", "rosidl_generator_py", "rpyutils", "rosidl_parser"})
+
+
 def load_adapter(
     name: str,
     *,
@@ -39,15 +53,15 @@ def load_adapter(
     if name == "ros2":
         try:
             from rlbridge.adapters.ros2 import Ros2Adapter
+        except RclpyMissing as exc:
+            raise AdapterUnavailable(str(exc)) from None
         except ImportError as exc:
-            raise AdapterUnavailable(
-                f"the ros2 adapter needs rclpy ({exc}); install it with: {pip_install('ros2')}"
-            ) from None
+            raise AdapterUnavailable(str(RclpyMissing(exc))) from None
         return Ros2Adapter(node_name, namespace, parameters=dict(parameters or {}))
     raise AdapterUnavailable(f"unknown adapter '{name}'; choose one of: {', '.join(ADAPTERS)}")
 
 
 __all__ = [
     "ADAPTERS", "AdapterUnavailable", "BindingError", "InProcessBus", "MiddlewareAdapter",
-    "Publisher", "QoS", "Subscription", "ValueSpec", "load_adapter",
+    "Publisher", "QoS", "RclpyMissing", "Subscription", "ValueSpec", "load_adapter",
 ]
