@@ -46,10 +46,10 @@ LogLevel = Annotated[str | None, typer.Option(
 
 def _version(value: bool) -> None:
     """Version, value path and cipher; when either was not built, what builds it into this
-    install (an editable checkout, a checkout, or a wheel: rlbridge._install)."""
+    install (an editable checkout, a checkout, or a wheel: rlbridge._version)."""
     if value:
         from rlbridge._compiled import NOT_BUILT, STATE
-        from rlbridge._install import compile_hint
+        from rlbridge._version import compile_hint
         from rlbridge.wire.aead import NOT_BUILT as NO_LIBSODIUM
         from rlbridge.wire.aead import STATE as AEAD
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from rlbridge._version import pip_install
 from rlbridge.adapters.base import (
     BindingError,
     MiddlewareAdapter,
     Publisher,
     QoS,
+    RclpyMissing,
     Subscription,
     ValueSpec,
 )
@@ -24,20 +24,6 @@ ADAPTERS = ("inproc", "ros2")
 
 class AdapterUnavailable(RuntimeError):
     """The chosen middleware cannot be used on this machine; the message says what to install."""
-
-
-class RclpyMissing(ImportError):
-    """rclpy (or a module it loads, e.g. ``rosidl_generator_py``) does not import: the one
-    line that says so, raised by :mod:`rlbridge.adapters.ros2_rclpy` and passed on as it is."""
-
-    def __init__(self, exc: ImportError) -> None:
-        root = (exc.name or "").split(".")[0]
-        why = "is not installed" if root in _ROS_WHEELS else f"does not import ({exc})"
-        super().__init__(f"the ros2 adapter needs rclpy, which {why}: {pip_install('ros2')}")
-
-
-#: Modules of the ros2 extra whose absence means "rclpy is not installed".
-_ROS_WHEELS = frozenset({"rclpy", "rosidl_generator_py", "rpyutils", "rosidl_parser"})
 
 
 def load_adapter(

@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import warnings
 
-from rlbridge.adapters import RclpyMissing
+from rlbridge.adapters.base import RclpyMissing
 
 try:
     # rosidl_generator_py (imported by rclpy when a message's type support is first loaded)

@@ -36,7 +36,7 @@ AEAD_ENV = "RLBRIDGE_AEAD"
 LIBSODIUM = "libsodium"
 CRYPTOGRAPHY = "cryptography"
 #: The state when the libsodium extension was not built (``rlbridge --version`` then says what
-#: builds it into the install at hand: rlbridge._install).
+#: builds it into the install at hand: rlbridge._version).
 NOT_BUILT = "cryptography (the libsodium extension was not built)"
 
 __all__ = ["AEAD_ENV", "BULK_FROM", "CRYPTOGRAPHY", "IMPLEMENTATIONS", "LIBSODIUM", "NONCE",
