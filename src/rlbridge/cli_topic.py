@@ -96,10 +96,12 @@ def topic_echo(
     topic: Topic,
     msg_type: MsgType,
     field: Field = "data",
-    count: Annotated[int, typer.Option(help="Exit after this many values (0 = never).")] = 0,
+    count: Annotated[int, typer.Option(help="Exit after this many values (0 = never).", min=0)]
+    = 0,
     transport: TransportOpt = "udp",
     timeout: Annotated[float, typer.Option(help="Exit with an error after this many seconds "
-                                                "without a value (0 = wait forever).")] = 0.0,
+                                                "without a value (0 = wait forever).", min=0.0)]
+    = 0.0,
     server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
@@ -147,9 +149,9 @@ def topic_hz(
     topic: Topic,
     msg_type: MsgType,
     field: Field = "data",
-    window: Annotated[int, typer.Option(help="Messages in the rate window.")] = 10000,
-    duration: Annotated[float, typer.Option(help="Stop after this many seconds (0 = never).")]
-    = 0.0,
+    window: Annotated[int, typer.Option(help="Messages in the rate window.", min=2)] = 10000,
+    duration: Annotated[float, typer.Option(help="Stop after this many seconds (0 = never).",
+                                            min=0.0)] = 0.0,
     transport: TransportOpt = "udp",
     server: ServerTarget = LOCAL_SERVER,
 ) -> None:

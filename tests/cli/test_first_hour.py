@@ -46,14 +46,22 @@ def test_pub_count_without_rate_publishes_count(cli: Any, shared_cli_server: int
     assert result.stdout.strip() == "published 5 message(s) on /first/count"
 
 
-@pytest.mark.parametrize("option", [("--rate", "-5"), ("--count", "0")])
+@pytest.mark.parametrize(("command", "option"), [
+    (("pub", "/first/rate", F64, "1.5"), ("--rate", "-5")),
+    (("pub", "/first/rate", F64, "1.5"), ("--count", "0")),
+    (("echo", "/first/rate", F64), ("--timeout", "-1")),
+    (("echo", "/first/rate", F64), ("--count", "-1")),
+    (("hz", "/first/rate", F64), ("--duration", "-1")),
+    (("hz", "/first/rate", F64), ("--window", "1")),
+])
 def test_a_negative_rate_or_no_messages_is_a_usage_error(
-        cli: Any, shared_cli_server: int, option: tuple[str, str]) -> None:
-    result = cli.run("topic", "pub", "/first/rate", F64, "1.5", *option,
-                     "-p", str(shared_cli_server))
+        cli: Any, shared_cli_server: int, command: tuple[str, ...],
+        option: tuple[str, str]) -> None:
+    """Refused before anything connects (a negative --rate used to mean "once")."""
+    result = cli.run("topic", *command, *option, "-p", str(shared_cli_server))
     assert result.returncode == 2, result
     assert f"Invalid value for '{option[0]}'" in result.stderr
-    assert "published" not in result.stdout
+    assert result.stdout == ""
 
 
 def test_a_negative_value_needs_no_double_dash(
