@@ -256,9 +256,9 @@ async def _resolvable(loop: asyncio.AbstractEventLoop, host: str) -> None:
     try:
         await loop.getaddrinfo(host, None, family=_family(host), flags=socket.AI_PASSIVE)
     except socket.gaierror as exc:
-        raise ServerError(f"cannot listen on {host}: {exc.strerror or exc} (--host takes an "
+        raise ServerError(f"cannot listen on {host}: {exc.strerror or exc}; --host takes an "
                           "address of this machine, or a name that resolves to one; "
-                          "0.0.0.0 for all)") from None
+                          "0.0.0.0 for all") from None
 
 
 def _family(host: str) -> socket.AddressFamily:
