@@ -166,10 +166,13 @@ def test_a_tls_client_that_refuses_the_certificate_is_logged(
     assert made.returncode == 0, made.stderr
     port, proc, _first = serve("--tls-cert", str(tmp_path / "server.crt"),
                                "--tls-key", str(tmp_path / "server.key"))
+    plain = _rlbridge("topic", "list", "-p", str(port), env=_env())  # a notice of its own kind
+    assert plain.returncode == 1
     pinned = _rlbridge("topic", "list", "-p", str(port), "--fingerprint", "ab" * 32,
                        env=_env())
     assert pinned.returncode == 1
     _code, err = _stop(proc)
+    assert "refused a plaintext client from 127.0.0.1:" in err
     lines = [line for line in err.splitlines() if "TLS client 127.0.0.1:" in line]
     assert len(lines) == 1, err
     assert "WARNING" in lines[0]

@@ -21,6 +21,10 @@ from rlbridge.server.guarded import GuardedTransport
 from rlbridge.tls import TlsEngine
 from rlbridge.wire import MAGIC, ConnectError, ErrorCode
 
+#: The notice kind of a failed handshake: its own, so a plaintext client's refusal just before
+#: does not hold it back for the interval (each kind is logged once per interval).
+HANDSHAKE = "TLS handshake"
+
 
 class ServerTls:
     """TLS for one accepted connection; :attr:`transport` is what the sinks write to."""
@@ -42,7 +46,8 @@ class ServerTls:
         first, self._first = self._first, False
         if first and data.startswith(MAGIC):
             self._ctx.count("tls_plaintext_clients")
-            self._ctx.notices.warn("tls", f"refused a plaintext client from {self._peer}: "
+            self._ctx.notices.warn("plaintext client", f"refused a plaintext client from "
+                                   f"{self._peer}: "
                                    "this server requires TLS")
             self._refused = True
             self._raw.write(self._ctx.codec.encode_frame(ConnectError(
@@ -57,7 +62,8 @@ class ServerTls:
         except ssl.SSLError as exc:
             self._refused = True
             self._ctx.count("tls_failed")
-            self._ctx.notices.warn("tls", f"TLS with {self._peer} failed: {exc.reason or exc}")
+            self._ctx.notices.warn(HANDSHAKE, f"TLS with {self._peer} failed: "
+                                   f"{exc.reason or exc}")
             alert = engine.outgoing()
             if alert:
                 self._raw.write(alert)
@@ -82,4 +88,4 @@ class ServerTls:
         when = ("after the TLS handshake, before its hello: it may not accept this server's "
                 "certificate (a --fingerprint pinned to another, or another --ca)"
                 if self._engine.handshake_done else "during the TLS handshake")
-        self._ctx.notices.warn("tls", f"TLS client {self._peer} hung up {when}")
+        self._ctx.notices.warn(HANDSHAKE, f"TLS client {self._peer} hung up {when}")
