@@ -2,7 +2,7 @@
 """Run the README's two SDK examples as a user would, on the Python that runs this script.
 
 What a user on Ubuntu 22.04 (Python 3.10), 24.04 (3.12) or Debian 13 (3.13) does after
-``pip install rlbridge-sdk``: start ``rlbridge serve --udp --nodelay`` (the command installed next
+``pip install .``: start ``rlbridge serve --udp --nodelay`` (the command installed next
 to this interpreter), then run the README's control-code example and its coupling-pattern
 example against it. The examples are taken from README.md as printed; only the server address
 changes (and the pattern's cycle count, to keep it short).

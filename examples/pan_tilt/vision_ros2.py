@@ -46,7 +46,7 @@ try:
     from std_msgs.msg import Float64, String
 except ImportError as exc:
     print(f"vision_ros2.py: skipped: rclpy is not available ({exc}); "
-          "install it with: pip install 'rlbridge-sdk[ros2]'", file=sys.stderr)
+          "install it with: pip install -e '.[ros2]' in the rlbridge checkout", file=sys.stderr)
     sys.exit(0)
 
 AXES = ("pan", "tilt")

@@ -51,7 +51,7 @@ def publisher(host: str, port: int, seconds: float, enabled: bool = True,
     """A sine on SETPOINT at ``rate`` from a separate process, killed on exit.
 
     The process is ``_publisher.py`` beside this file, run by this interpreter: nothing from
-    a checkout (the examples run after ``pip install rlbridge-sdk``).
+    a checkout (the examples run after ``pip install -e .`` or the wheel's install).
     """
     if not enabled:
         yield

@@ -1,8 +1,8 @@
 """A sine on a topic at a rate, for a bounded time: the receive examples' publisher process.
 
 ``_common.publisher`` starts this file with the same interpreter, so it needs nothing but the
-installed package (``pip install rlbridge-sdk``). Its own process, so that it does not share the
-example's GIL; it reconnects if the server drops its session, until its time is up.
+installed package (``pip install -e .`` or the wheel). Its own process, so that it does not
+share the example's GIL; it reconnects if the server drops its session, until its time is up.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -25,11 +25,17 @@ from rlbridge.cli_options import (
 )
 from rlbridge.cli_topic import topic_app
 
+#: ``-h`` as well as ``--help``, and help wrapped at 100 columns (or the terminal's width if
+#: narrower), in every command: click hands these down to each subcommand's context, and
+#: docs/cli.md is the same text at 100 columns (scripts/gen_docs.py).
+HELP_OPTIONS: dict[str, Any] = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
+
 app = typer.Typer(
     help="rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
+    context_settings=HELP_OPTIONS,
 )
 app.add_typer(topic_app, name="topic")
 
@@ -39,12 +45,18 @@ LogLevel = Annotated[str | None, typer.Option(
 
 
 def _version(value: bool) -> None:
+    """Version, value path and cipher; when either was not built, what builds it into this
+    install (an editable checkout, a checkout, or a wheel: rlbridge._version)."""
     if value:
-        from rlbridge._compiled import STATE
+        from rlbridge._compiled import NOT_BUILT, STATE
+        from rlbridge._version import compile_hint
+        from rlbridge.wire.aead import NOT_BUILT as NO_LIBSODIUM
         from rlbridge.wire.aead import STATE as AEAD
 
         typer.echo(f"rlbridge {__version__}\nvalue path: {STATE}\n"
                    f"sealing (ChaCha20-Poly1305): {AEAD}")
+        if NOT_BUILT in (STATE, AEAD) or NO_LIBSODIUM in (STATE, AEAD):
+            typer.echo(f"to compile: {compile_hint()}")
         raise typer.Exit()
 
 
@@ -76,27 +88,26 @@ def serve(
     = "inproc",
     heartbeat_ms: Annotated[int, typer.Option(help="Heartbeat period.")] = 200,
     timeout_ms: Annotated[int, typer.Option(help=(
-        "Watchdog: a silent client is dropped after. On a heavily loaded machine (CI) raise "
-        "it, e.g. 2000: stalls of 0.5-0.8 s were measured (docs/reliability.md)."))]
+        "Watchdog: a silent client is dropped after; 2000 on a loaded machine "
+        "(docs/reliability.md)."))]
     = 600,
     node_name: Annotated[str, typer.Option(help="ROS 2 node name (adapter ros2).")]
     = "rlbridge",
     namespace: Annotated[str, typer.Option(help="ROS 2 namespace (adapter ros2).")] = "",
     psk_file: Annotated[str | None, typer.Option(
-        help="Key file: hex keys, one line per client ('<hex>' or '<client-name> <hex>'), "
-        "optionally with topic rules (docs/security.md); without it $RLBRIDGE_PSK (hex); "
-        "without both, no keys. Never a key on the command line.")] = None,
+        help="Key file: '<hex>' or '<client-name> <hex>' per line, topic rules optional "
+        "(docs/security.md); else $RLBRIDGE_PSK; else no keys.")] = None,
     tls_cert: Annotated[str | None, typer.Option(
-        help="TLS certificate (PEM): TCP clients must then use TLS 1.3. `rlbridge tls init` "
-        "makes one.")] = None,
+        help="TLS certificate (PEM; `rlbridge tls init` makes one): TCP clients need TLS 1.3.")]
+    = None,
     tls_key: Annotated[str | None, typer.Option(help="The TLS certificate's key (PEM).")]
     = None,
     tls_client_ca: Annotated[str | None, typer.Option(
-        help="Mutual TLS: clients need a certificate signed by this CA; its common name is "
-        "the client's identity.")] = None,
+        help="Mutual TLS: clients need a certificate this CA signed (its name: their "
+        "identity).")] = None,
     insecure: Annotated[bool, typer.Option(
-        "--insecure", help="Listen on an address other than loopback without TLS or a key "
-        "(warned at start); without it such a server refuses to start.")] = False,
+        "--insecure", help="Allow an address other than loopback without TLS or a key "
+        "(warned).")] = False,
     allow: Annotated[list[str] | None, typer.Option(
         help="Client network allowed in (repeatable): 192.168.1.0/24, 127.0.0.1. Default: any.")]
     = None,
@@ -106,24 +117,20 @@ def serve(
     max_channels: Annotated[int, typer.Option(help="Channels per session.")] = 256,
     max_packet: Annotated[int, typer.Option(help="Largest packet body, bytes.")] = 1 << 20,
     udp_receive_buffer: Annotated[int | None, typer.Option(
-        help="Bytes of datagrams the UDP socket may queue while the server is busy (default: "
-             "32 MiB, or what net.core.rmem_max allows without CAP_NET_ADMIN; a size given "
-             "here that the kernel caps is warned about; docs/load.md).")] = None,
+        help="Bytes of datagrams the UDP socket may queue (default: 32 MiB, or what "
+             "net.core.rmem_max allows; docs/load.md).")] = None,
     metrics_port: Annotated[int | None, typer.Option(
-        help="Serve http://METRICS-HOST:PORT/metrics (Prometheus), /healthz and /status "
-             "(JSON); default: off.")] = None,
+        help="Serve /metrics (Prometheus), /healthz and /status (JSON); default: off.")]
+    = None,
     metrics_host: Annotated[str, typer.Option(
-        help="Address of the metrics endpoint. It asks no key and names every client and "
-             "topic, so it stays on loopback whatever --host is; another address is warned "
-             "at start.")] = "127.0.0.1",
+        help="Address of the metrics endpoint, which asks no key: loopback whatever --host "
+             "is (another is warned).")] = "127.0.0.1",
     log_level: LogLevel = None,
 ) -> None:
     """Run the bridge server until Ctrl-C / SIGTERM (security: docs/security.md).
 
-    It logs one line when it listens (address, ports, adapter, authentication) and one when
-    it stops, and, at most once per 10 s per kind, what clients got wrong (a wrong key, a
-    malformed packet, a refused channel). Exit status 0 after a clean stop, 1 if it cannot
-    start.
+    It logs a line when it listens and when it stops, and, at most once per 10 s per kind,
+    what clients got wrong. Exit status 0 after a clean stop, 1 if it cannot start.
     """
     configure_logging(log_level or (ctx.obj or {}).get("log_level") or "info")
     from pydantic import ValidationError
@@ -209,7 +216,21 @@ def build_app() -> typer.Typer:
         pass
     else:
         app.add_typer(netem_app, name="netem")
+    _plain_help(app)
     return app
+
+
+def _plain_help(typer_app: typer.Typer) -> None:
+    """Click's plain help and error lines for ``typer_app`` and every group under it.
+
+    With rich installed, typer draws help in boxes, reads ``[default: ...]`` in a help text as
+    markup (and drops it) and shows each flag as ``<bool>``; docs/cli.md is click's plain text.
+    Plain help everywhere makes the terminal and docs/cli.md one text (scripts/gen_docs.py).
+    """
+    typer_app.rich_markup_mode = None
+    for group in typer_app.registered_groups:
+        if group.typer_instance is not None:
+            _plain_help(group.typer_instance)
 
 
 def main() -> None:

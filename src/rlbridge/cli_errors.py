@@ -17,6 +17,10 @@ __all__ = ["fail", "one_line_errors"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+#: Error codes that refuse a name the command line gave (a topic, a type, a field): the same
+#: usage error (exit 2) as a value of the wrong type, which the SDK catches before sending.
+USAGE_CODES = frozenset({"BAD_TOPIC", "UNKNOWN_TYPE", "NO_SUCH_FIELD"})
+
 
 def fail(message: str, code: int = 1) -> typer.Exit:
     """Print one line on stderr and exit non-zero: the CLI's only way to report an error.
@@ -40,11 +44,12 @@ def one_line_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except RemoteError as exc:  # the server's reason, without the protocol's code name
-            raise fail(exc.reason) from None
+            usage = getattr(exc.code, "name", None) in USAGE_CODES
+            raise fail(exc.reason, 2 if usage else 1) from None
         except (RlbridgeError, ServerError, AdapterUnavailable) as exc:
             raise fail(str(exc)) from None
         except BindingError as exc:
-            raise fail(exc.reason) from None
+            raise fail(exc.reason, 2 if exc.code in USAGE_CODES else 1) from None
         except OSError as exc:  # a file the user named: say which
             reason = exc.strerror or str(exc)
             raise fail(f"{exc.filename}: {reason}" if exc.filename else reason) from None

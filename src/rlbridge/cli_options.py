@@ -87,20 +87,14 @@ Host = Annotated[str, option("--host", "Bridge server address.")]
 Port = Annotated[int, option("--port", "Bridge server port.")]
 Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
 TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=checked_transport)]
-TlsOpt = Annotated[bool, typer.Option("--tls", help="Connect with TLS, trusting the system's "
-                                      "CAs (or --ca / --fingerprint).")]
-CaOpt = Annotated[str | None, typer.Option("--ca", help="CA file the server's TLS certificate "
-                                           "must be signed by (implies --tls).")]
+TlsOpt = Annotated[bool, typer.Option("--tls", help="TLS, trusting the system's CAs.")]
+CaOpt = Annotated[str | None, typer.Option("--ca", help="TLS, trusting this CA file.")]
 FingerprintOpt = Annotated[str | None, typer.Option(
-    "--fingerprint", help="SHA-256 fingerprint of the server's TLS certificate to pin, as "
-    "`rlbridge tls init` prints it (implies --tls).")]
+    "--fingerprint", help="TLS, pinning this certificate fingerprint (`rlbridge tls init`).")]
 PskFileOpt = Annotated[str | None, typer.Option(
-    "--psk-file", help="Key file in the server's format (this command's line, else the "
-    "default line); without it $RLBRIDGE_PSK.")]
+    "--psk-file", help="Pre-shared key file (the server's format); else $RLBRIDGE_PSK.")]
 TlsCertOpt = Annotated[str | None, typer.Option(
-    "--tls-cert", help="This client's TLS certificate (PEM), for a server started with "
-    "--tls-client-ca: mutual TLS, its common name is the client's identity (implies --tls; "
-    "needs --tls-key).")]
+    "--tls-cert", help="Mutual TLS: this client's certificate (PEM; with --tls-key).")]
 TlsKeyOpt = Annotated[str | None, typer.Option(
     "--tls-key", help="The key of --tls-cert (PEM).")]
 

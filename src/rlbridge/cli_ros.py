@@ -4,7 +4,8 @@ Each command opens one session (the server options of ``topic`` and ``stats``: `
 ``--port``, ``--tls``, ``--ca``, ``--fingerprint``, ``--psk-file``, else ``$RLBRIDGE_PSK``),
 does one thing and prints JSON, so scripts can read it. Requests, goals and
 parameter values are JSON or YAML flow style (``'{data: true}'``, as ``ros2 service call``
-takes them); YAML needs PyYAML (part of the ``ros2`` extra).
+takes them, parsed by PyYAML as ``ros2`` does: a dependency of every install, so the README's
+commands run on the base one).
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ action_app = typer.Typer(help="Send action goals through a running server.",
                          no_args_is_help=True)
 
 Timeout = Annotated[float, option("--timeout", "Seconds to wait for the answer.")]
+Node = Annotated[str, typer.Argument(metavar="NODE", help="e.g. /rlbridge")]
+Name = Annotated[str, typer.Argument(metavar="NAME", help="Parameter name.")]
 
 
 def parse_document(text: str, what: str) -> Any:
@@ -33,10 +36,8 @@ def parse_document(text: str, what: str) -> Any:
         return json.loads(text)
     except json.JSONDecodeError:
         pass
-    try:
-        import yaml
-    except ImportError:
-        raise fail(f"{what} is not JSON ({text!r}); for YAML install PyYAML") from None
+    import yaml
+
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -59,19 +60,23 @@ def service_list(
     server: ServerTarget = LOCAL_SERVER,
     show_types: Annotated[bool, option("--show-types", "Print types too.")] = False,
 ) -> None:
-    """List the services the server's middleware knows."""
+    """List the services the server's middleware knows (none: a line on stderr, exit 0)."""
     with server.connect("rlbridge-service-list") as bridge:
-        for name, srv_type in bridge.service_list():
-            typer.echo(f"{name} [{srv_type}]" if show_types else name)
+        services = bridge.service_list()
+    for name, srv_type in services:
+        typer.echo(f"{name} [{srv_type}]" if show_types else name)
+    if not services:
+        typer.echo("no services on this server yet", err=True)
 
 
 @service_app.command("call")
 @one_line_errors
 @server_options
 def service_call(
-    service: str,
+    service: Annotated[str, typer.Argument(metavar="SERVICE", help="e.g. /arm/enable")],
     srv_type: Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_srvs/srv/SetBool")],
-    request: Annotated[str, typer.Argument(help="Request fields, JSON or YAML: "
+    request: Annotated[str, typer.Argument(metavar="REQUEST", help="Request fields, JSON or "
+                                                "YAML: "
                                                 "'{data: true}'.")] = "{}",
     timeout: Timeout = 5.0,
     server: ServerTarget = LOCAL_SERVER,
@@ -86,7 +91,7 @@ def service_call(
 @param_app.command("get")
 @one_line_errors
 @server_options
-def param_get(node: str, name: str, timeout: Timeout = 5.0,
+def param_get(node: Node, name: Name, timeout: Timeout = 5.0,
               server: ServerTarget = LOCAL_SERVER) -> None:
     """Print the value of parameter NAME of NODE (JSON)."""
     with server.connect("rlbridge-param-get") as bridge:
@@ -94,13 +99,14 @@ def param_get(node: str, name: str, timeout: Timeout = 5.0,
     typer.echo(json.dumps(list(value) if isinstance(value, bytes) else value))
 
 
-@param_app.command("set")
+@param_app.command("set", context_settings={"ignore_unknown_options": True})
 @one_line_errors
 @server_options
 def param_set(
-    node: str,
-    name: str,
-    value: Annotated[str, typer.Argument(help="JSON or YAML: 2.5, true, text, [1, 2].")],
+    node: Node,
+    name: Name,
+    value: Annotated[str, typer.Argument(metavar="VALUE",
+                                         help="JSON or YAML: 2.5, -1, true, text, [1, 2].")],
     timeout: Timeout = 5.0,
     server: ServerTarget = LOCAL_SERVER,
 ) -> None:
@@ -114,7 +120,7 @@ def param_set(
 @param_app.command("list")
 @one_line_errors
 @server_options
-def param_list(node: str, timeout: Timeout = 5.0, server: ServerTarget = LOCAL_SERVER) -> None:
+def param_list(node: Node, timeout: Timeout = 5.0, server: ServerTarget = LOCAL_SERVER) -> None:
     """List the parameter names of NODE."""
     with server.connect("rlbridge-param-list") as bridge:
         for name in bridge.list_parameters(node, timeout=timeout):
@@ -125,10 +131,11 @@ def param_list(node: str, timeout: Timeout = 5.0, server: ServerTarget = LOCAL_S
 @one_line_errors
 @server_options
 def action_send(
-    action: str,
+    action: Annotated[str, typer.Argument(metavar="ACTION", help="e.g. /fibonacci")],
     action_type: Annotated[str, typer.Argument(metavar="TYPE",
                                                help="e.g. test_msgs/action/Fibonacci")],
-    goal: Annotated[str, typer.Argument(help="Goal fields, JSON or YAML: '{order: 5}'.")]
+    goal: Annotated[str, typer.Argument(metavar="GOAL",
+                                        help="Goal fields, JSON or YAML: '{order: 5}'.")]
     = "{}",
     timeout: Annotated[float, option(
         "--timeout", "Seconds to wait for the goal to be accepted, and then for its result "

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
 import math
 import statistics
 import time
@@ -29,6 +30,9 @@ from rlbridge.cli_options import (
 topic_app = typer.Typer(help="Publish, echo, measure and list topics through a running server.",
                         no_args_is_help=True)
 
+Topic = Annotated[str, typer.Argument(metavar="TOPIC", help="e.g. /cmd_vel")]
+MsgType = Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_msgs/msg/Float64")]
+
 
 def _parse_value(text: str) -> Any:
     """JSON when it parses (numbers, true, objects), the raw text otherwise (strings)."""
@@ -38,31 +42,39 @@ def _parse_value(text: str) -> Any:
         return text
 
 
-@topic_app.command("pub")
+@topic_app.command("pub", context_settings={"ignore_unknown_options": True})
 @one_line_errors
 @server_options
 def topic_pub(
-    topic: str,
-    msg_type: Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_msgs/msg/Float64")],
-    value: Annotated[str, typer.Argument(help="JSON value: 1.5, true, \"text\", {\"x\": 1}")],
+    ctx: typer.Context,
+    topic: Topic,
+    msg_type: MsgType,
+    value: Annotated[str, typer.Argument(
+        metavar="VALUE", help="JSON value: 1.5, -2, true, \"text\", {\"x\": 1}.")],
     field: Field = "data",
-    rate: Annotated[float, typer.Option(help="Publish at this rate (Hz); 0 = once.")] = 0.0,
-    count: Annotated[int, typer.Option(help="Number of messages (with --rate).")] = 1,
+    rate: Annotated[float, typer.Option(
+        help="Messages per second; 0 = one after the other, at once.", min=0.0)] = 0.0,
+    count: Annotated[int, typer.Option(help="Number of messages.", min=1)] = 1,
     transport: TransportOpt = "udp",
     server: ServerTarget = LOCAL_SERVER,
 ) -> None:
-    """Publish VALUE on TOPIC through the bridge.
+    """Publish VALUE on TOPIC through the bridge, --count times.
 
-    Exits 0 only once the server has counted every value; a value it refuses (not the
-    channel's type, over its --max-rate) or a datagram that never arrives makes it exit 1,
-    saying how many of how many the server took.
+    A negative VALUE needs no `--`: `topic pub /x std_msgs/msg/Float64 -5`. Exits 0 only
+    once the server has counted every value; a value it refuses (not the channel's type, over
+    its --max-rate) or a datagram that never arrives makes it exit 1, saying how many of how
+    many the server took.
     """
     from rlbridge.cli_delivery import confirm_delivery
 
+    if (ctx.obj or {}).get("log_level") is None:
+        # What the server refuses comes back as a logged warning too; the one error line of
+        # confirm_delivery says it with the counts, so the default level leaves the log out.
+        logging.getLogger("rlbridge.client").setLevel(logging.ERROR)
     parsed = _parse_value(value)
     with server.connect("rlbridge-topic-pub") as bridge:
         out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport))
-        n = max(1, count) if rate > 0 else 1
+        n = count
         period = 1.0 / rate if rate > 0 else 0.0
         start = time.monotonic()
         for i in range(n):
@@ -81,13 +93,15 @@ def topic_pub(
 @one_line_errors
 @server_options
 def topic_echo(
-    topic: str,
-    msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
+    topic: Topic,
+    msg_type: MsgType,
     field: Field = "data",
-    count: Annotated[int, typer.Option(help="Exit after this many values (0 = never).")] = 0,
+    count: Annotated[int, typer.Option(help="Exit after this many values (0 = never).", min=0)]
+    = 0,
     transport: TransportOpt = "udp",
     timeout: Annotated[float, typer.Option(help="Exit with an error after this many seconds "
-                                                "without a value (0 = wait forever).")] = 0.0,
+                                                "without a value (0 = wait forever).", min=0.0)]
+    = 0.0,
     server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
@@ -132,12 +146,12 @@ def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
 @one_line_errors
 @server_options
 def topic_hz(
-    topic: str,
-    msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
+    topic: Topic,
+    msg_type: MsgType,
     field: Field = "data",
-    window: Annotated[int, typer.Option(help="Messages in the rate window.")] = 10000,
-    duration: Annotated[float, typer.Option(help="Stop after this many seconds (0 = never).")]
-    = 0.0,
+    window: Annotated[int, typer.Option(help="Messages in the rate window.", min=2)] = 10000,
+    duration: Annotated[float, typer.Option(help="Stop after this many seconds (0 = never).",
+                                            min=0.0)] = 0.0,
     transport: TransportOpt = "udp",
     server: ServerTarget = LOCAL_SERVER,
 ) -> None:
@@ -194,7 +208,10 @@ def topic_list(
     show_types: Annotated[bool, option("--show-types", "Print types too.")]
     = False,
 ) -> None:
-    """List the topics the server's middleware knows."""
+    """List the topics the server's middleware knows (none: a line on stderr, exit 0)."""
     with server.connect("rlbridge-topic-list") as bridge:
-        for name, msg_type in bridge.server_stats()["topics"]:
-            typer.echo(f"{name} [{msg_type}]" if show_types else name)
+        topics = bridge.server_stats()["topics"]
+    for name, msg_type in topics:
+        typer.echo(f"{name} [{msg_type}]" if show_types else name)
+    if not topics:
+        typer.echo("no topics on this server yet", err=True)

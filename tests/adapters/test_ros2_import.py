@@ -37,7 +37,28 @@ def test_without_rclpy_the_import_error_says_what_to_install() -> None:
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("ImportError:")
-    assert "pip install 'rlbridge-sdk[ros2]'" in result.stdout
+    assert "pip install -e '" in result.stdout  # this checkout: rlbridge-sdk is not on PyPI
+    assert "[ros2]'" in result.stdout
+
+
+def test_without_rclpy_serve_says_so_in_one_line_naming_rclpy() -> None:
+    """Not nested inside itself, and not naming a module the user never heard of."""
+    result = _run(
+        "import sys\n"
+        "sys.modules['rclpy'] = None\n"
+        "sys.modules['rosidl_generator_py'] = None\n"
+        "from rlbridge.adapters import AdapterUnavailable, load_adapter\n"
+        "try:\n"
+        "    load_adapter('ros2')\n"
+        "except AdapterUnavailable as exc:\n"
+        "    print(exc)\n"
+    )
+    assert result.returncode == 0, result.stderr
+    assert len(result.stdout.splitlines()) == 1, result.stdout
+    line = result.stdout.strip()
+    assert line.startswith("the ros2 adapter needs rclpy, which is not installed: pip install ")
+    assert line.count("rclpy") == 1
+    assert "rosidl" not in line
 
 
 @pytest.mark.ros2

@@ -121,6 +121,7 @@ def test_a_wrong_key_is_logged_once_with_its_reason(
     keyless = _rlbridge("topic", "list", "-p", str(port), env=_env())
     assert keyless.returncode == 1
     assert "requires a pre-shared key and this client gave none" in keyless.stderr
+    assert "--psk-file FILE, or $RLBRIDGE_PSK" in keyless.stderr  # both ways to give one
     assert "nonce" not in keyless.stderr
     _code, err = _stop(proc)
     auth, accounted = _notices(err, "authentication failed")
@@ -129,6 +130,53 @@ def test_a_wrong_key_is_logged_once_with_its_reason(
     assert accounted <= 4, err
     assert "WARNING" in auth[0]
     assert "different keys" in auth[0] or "does not match" in auth[0]
+    # Which machine: the operator's first question.
+    assert re.search(r"for client 'rlbridge-topic-list' from 127\.0\.0\.1:\d+: ", auth[0]), auth[0]
+
+
+def test_an_unresolvable_host_is_one_line_and_nothing_says_listening(cli: Any) -> None:
+    result = cli.run("serve", "--host", "nonsense.invalid", "--insecure")
+    assert result.returncode == 1
+    assert result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.startswith("rlbridge: error: cannot listen on nonsense.invalid: ")
+    assert "listening" not in result.stderr
+    assert "unknown error" not in result.stderr.lower()
+    assert "--host" in result.stderr
+
+
+def test_a_metrics_port_in_use_says_so_and_what_to_do(
+        cli: Any, free_port: Callable[[], int]) -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        taken = holder.getsockname()[1]
+        result = cli.run("serve", "-p", str(free_port()), "--metrics-port", str(taken))
+    assert result.returncode == 1
+    assert result.stderr.strip() == (
+        f"rlbridge: error: cannot serve metrics on 127.0.0.1 port {taken}: address already in "
+        "use; another program (or another rlbridge serve) has it: stop it, or choose another "
+        "--metrics-port (0: any free port)")
+
+
+def test_a_tls_client_that_refuses_the_certificate_is_logged(
+        serve: Callable[..., Served], tmp_path: Any) -> None:
+    """A client pinning another fingerprint checks it after the handshake and hangs up
+    without a word to the server: the server says so (and counts it), naming the address."""
+    made = _rlbridge("tls", "init", str(tmp_path), env=_env())
+    assert made.returncode == 0, made.stderr
+    port, proc, _first = serve("--tls-cert", str(tmp_path / "server.crt"),
+                               "--tls-key", str(tmp_path / "server.key"))
+    plain = _rlbridge("topic", "list", "-p", str(port), env=_env())  # a notice of its own kind
+    assert plain.returncode == 1
+    pinned = _rlbridge("topic", "list", "-p", str(port), "--fingerprint", "ab" * 32,
+                       env=_env())
+    assert pinned.returncode == 1
+    _code, err = _stop(proc)
+    assert "refused a plaintext client from 127.0.0.1:" in err
+    lines = [line for line in err.splitlines() if "TLS client 127.0.0.1:" in line]
+    assert len(lines) == 1, err
+    assert "WARNING" in lines[0]
+    assert "hung up after the TLS handshake, before its hello" in lines[0]
 
 
 def test_malformed_datagrams_are_logged_once_with_the_reason(
@@ -151,7 +199,7 @@ def test_a_refused_channel_is_logged_once(
     for _ in range(3):
         result = _rlbridge("topic", "pub", "/x", "std_msgs/msg/Float65", "1", "-p", str(port),
                            env=_env())
-        assert result.returncode == 1
+        assert result.returncode == 2  # a type name that does not exist: a usage error
     _code, err = _stop(proc)
     refused, accounted = _notices(err, "refused")
     assert 1 <= len(refused) < 3, err

@@ -31,7 +31,8 @@ def test_the_distribution_name_is_the_one_the_code_names() -> None:
     assert name is not None
     assert name.group(1) == DISTRIBUTION != "rlbridge"
     assert 'rlbridge = "rlbridge.cli:main"' in (ROOT / "pyproject.toml").read_text()
-    assert pip_install("ros2") == "pip install 'rlbridge-sdk[ros2]'"
+    # Not on PyPI: the hint names where this copy came from (here the editable checkout).
+    assert pip_install("ros2") == f"pip install -e '{ROOT}[ros2]'"
 
 
 def test_no_text_tells_users_to_install_the_wrong_project() -> None:

@@ -293,8 +293,12 @@ def test_metrics_port_in_use_is_a_clear_error() -> None:
         holder.bind(("127.0.0.1", 0))
         holder.listen()
         taken = holder.getsockname()[1]
-        with pytest.raises(ServerError, match=f"cannot serve metrics on 127.0.0.1:{taken}"):
+        with pytest.raises(ServerError) as refused:
             ServerThread(ServerConfig(port=0, metrics_port=taken)).start()
+    assert str(refused.value) == (
+        f"cannot serve metrics on 127.0.0.1 port {taken}: address already in use; another "
+        "program (or another rlbridge serve) has it: stop it, or choose another --metrics-port "
+        "(0: any free port)")
 
 
 def test_render_escapes_groups_and_keeps_closed_counters() -> None:

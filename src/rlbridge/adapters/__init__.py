@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from rlbridge._version import pip_install
 from rlbridge.adapters.base import (
     BindingError,
     MiddlewareAdapter,
     Publisher,
     QoS,
+    RclpyMissing,
     Subscription,
     ValueSpec,
 )
@@ -39,15 +39,15 @@ def load_adapter(
     if name == "ros2":
         try:
             from rlbridge.adapters.ros2 import Ros2Adapter
+        except RclpyMissing as exc:
+            raise AdapterUnavailable(str(exc)) from None
         except ImportError as exc:
-            raise AdapterUnavailable(
-                f"the ros2 adapter needs rclpy ({exc}); install it with: {pip_install('ros2')}"
-            ) from None
+            raise AdapterUnavailable(str(RclpyMissing(exc))) from None
         return Ros2Adapter(node_name, namespace, parameters=dict(parameters or {}))
     raise AdapterUnavailable(f"unknown adapter '{name}'; choose one of: {', '.join(ADAPTERS)}")
 
 
 __all__ = [
     "ADAPTERS", "AdapterUnavailable", "BindingError", "InProcessBus", "MiddlewareAdapter",
-    "Publisher", "QoS", "Subscription", "ValueSpec", "load_adapter",
+    "Publisher", "QoS", "RclpyMissing", "Subscription", "ValueSpec", "load_adapter",
 ]

@@ -16,6 +16,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
+from rlbridge._version import pip_install
+
 Reliability = Literal["reliable", "best_effort"]
 Durability = Literal["volatile", "transient_local", "match"]
 
@@ -197,3 +199,18 @@ class MiddlewareAdapter(Protocol):
 
     def close(self) -> None:
         """Close every publisher and subscription and release the middleware."""
+
+
+class RclpyMissing(ImportError):
+    """rclpy (or a module it loads, e.g. ``rosidl_generator_py``) does not import: the one
+    line that says so, raised by :mod:`rlbridge.adapters.ros2_rclpy` and passed on as it is
+    by ``load_adapter``."""
+
+    def __init__(self, exc: ImportError) -> None:
+        root = (exc.name or "").split(".")[0]
+        why = "is not installed" if root in _ROS_WHEELS else f"does not import ({exc})"
+        super().__init__(f"the ros2 adapter needs rclpy, which {why}: {pip_install('ros2')}")
+
+
+#: Modules of the ros2 extra whose absence means "rclpy is not installed".
+_ROS_WHEELS = frozenset({"rclpy", "rosidl_generator_py", "rpyutils", "rosidl_parser"})

@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import warnings
 
-from rlbridge._version import pip_install
+from rlbridge.adapters.base import RclpyMissing
 
 try:
     # rosidl_generator_py (imported by rclpy when a message's type support is first loaded)
@@ -38,9 +38,7 @@ try:
     from rclpy.subscription import Subscription as RclpySubscription
     from rclpy.validate_full_topic_name import validate_full_topic_name
 except ImportError as exc:  # pragma: no cover - exercised only where rclpy is missing
-    raise ImportError(
-        f"the ros2 adapter needs rclpy ({exc}); install it with: {pip_install('ros2')}"
-    ) from exc
+    raise RclpyMissing(exc) from exc
 
 __all__ = [
     "Context", "DurabilityPolicy", "ExternalShutdownException", "HistoryPolicy", "InvalidHandle",

@@ -2,8 +2,8 @@
 
 matplotlib is imported here, lazily, with the non-interactive Agg backend selected on the figure
 itself (no ``matplotlib.use``, no pyplot state machine), so writing a plot needs no display and
-changes nothing global. matplotlib is an optional dependency (``pip install 'rlbridge-sdk[plot]'``);
-without it :func:`write_plot` raises :class:`PlotUnavailable` with that advice.
+changes nothing global. matplotlib is an optional dependency (``pip install -e '.[plot]'`` in a
+checkout); without it :func:`write_plot` raises :class:`PlotUnavailable` with that advice.
 """
 
 from __future__ import annotations

@@ -102,7 +102,7 @@ def shell(
 ) -> None:
     """Bring up two namespaces joined by an impaired link, wait, then tear it all down.
 
-    Run programs on either side from another terminal with ``ip netns exec NAME ...``.
+    Run programs on either side from another terminal with `ip netns exec NAME ...`.
     Everything still running in the namespaces is terminated at teardown.
     """
     _require_emulator()

@@ -108,15 +108,13 @@ class Server:
                 require_cipher()  # its sessions seal: refuse now, not at the first client
         except (ValueError, TlsError, NoCipher) as exc:
             raise ServerError(str(exc)) from None
+        await _resolvable(loop, cfg.host)
         exposed = not cfg.loopback and keys is None and tls is None
         if exposed and not cfg.insecure:
             raise ServerError(
                 f"refusing to listen on {cfg.host} without TLS or a key: anyone who can reach "
                 "it could read and write your topics; give --psk-file (or $RLBRIDGE_PSK) or "
                 "--tls-cert and --tls-key, or --insecure to accept that")
-        if exposed:
-            log.warning("listening on %s with --insecure: no TLS, no key; anyone who can reach "
-                        "it can read and write your topics", cfg.host)
         adapter = self._adapter or load_adapter(
             cfg.adapter, node_name=cfg.node_name, namespace=cfg.namespace,
             parameters={"use_tcp": cfg.tcp, "use_udp": cfg.udp, "disable_nagle": cfg.nodelay},
@@ -140,6 +138,9 @@ class Server:
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     loop.add_signal_handler(sig, self._stop.set)
+            if exposed:  # said once it is true, next to the line that says where
+                log.warning("listening on %s with --insecure: no TLS, no key; anyone who can "
+                            "reach it can read and write your topics", cfg.host)
             # After the handlers: whoever sees this line may stop the server with a signal.
             log.info("%s", listening_line(
                 cfg.host, port, tcp_server is not None, udp_transport is not None,
@@ -241,13 +242,23 @@ async def _metrics(registry: SessionRegistry, cfg: ServerConfig) -> MetricsEndpo
     try:
         endpoint = await MetricsEndpoint(registry).start(cfg.metrics_host, cfg.metrics_port)
     except OSError as exc:
-        raise ServerError(f"cannot serve metrics on {cfg.metrics_host}:{cfg.metrics_port}: "
-                          f"{exc}") from None
+        raise ServerError(bind_failure("metrics", cfg.metrics_host, cfg.metrics_port, exc,
+                                       option="--metrics-port")) from None
     if not is_loopback(cfg.metrics_host):
         log.warning("metrics on %s: /metrics and /status ask no key; anyone who can reach "
                     "port %d reads every client's name, topic and counters (docs/security.md)",
                     cfg.metrics_host, endpoint.port)
     return endpoint
+
+
+async def _resolvable(loop: asyncio.AbstractEventLoop, host: str) -> None:
+    """Refuse a ``--host`` that names no address before anything says "listening"."""
+    try:
+        await loop.getaddrinfo(host, None, family=_family(host), flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise ServerError(f"cannot listen on {host}: {exc.strerror or exc}; --host takes an "
+                          "address of this machine, or a name that resolves to one; "
+                          "0.0.0.0 for all") from None
 
 
 def _family(host: str) -> socket.AddressFamily:

@@ -24,6 +24,27 @@ from rlbridge.server.ledger import Ledger
 from rlbridge.server.notices import Notices
 from rlbridge.wire import PacketCodec
 
+#: Every server event counter (``ServerContext.count``), present at 0 from the start: in
+#: ``Stats`` and on /metrics a counter that appeared only at its first increment has no
+#: baseline, so a rate or an alert on it (``increase(rlbridge_udp_bad_mac_total[5m])``) sees
+#: nothing until the second event.
+EVENT_COUNTERS = (
+    # sessions and their handshakes
+    "sessions_opened", "sessions_authenticated", "sessions_timed_out", "handshake_timeouts",
+    "auth_failed", "not_allowed", "topic_not_allowed",
+    # TLS
+    "tls_sessions", "tls_failed", "tls_plaintext_clients",
+    # what arrived and could not be used
+    "malformed", "errors_sent", "tcp_rejected_records", "dropped_unknown_channel",
+    "rate_dropped",
+    # UDP: datagrams outside a session, and sealed datagrams that do not open
+    "udp_no_token", "udp_bad_token", "udp_malformed", "udp_too_large", "udp_not_allowed",
+    "udp_hello_refused", "udp_unexpected_proof", "udp_handshakes_evicted",
+    "udp_unsealed", "udp_bad_mac", "udp_replayed",
+    # services and actions
+    "service_calls", "goals_sent",
+)
+
 
 @dataclass
 class ServerContext:
@@ -35,7 +56,7 @@ class ServerContext:
     loop: asyncio.AbstractEventLoop
     handoff: LoopHandoff
     udp_transport: asyncio.DatagramTransport | None = None
-    counters: dict[str, int] = field(default_factory=dict)
+    counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(EVENT_COUNTERS, 0))
     keys: KeyStore | None = None
     #: TCP connections still in their hello/handshake (no session yet): closed at shutdown.
     handshaking: set[asyncio.BaseTransport] = field(default_factory=set)
@@ -58,5 +79,6 @@ class ServerContext:
         max_workers=32, thread_name_prefix="server-call"))
 
     def count(self, name: str, n: int = 1) -> None:
-        """Add ``n`` to the server counter ``name`` (reported in ``Stats``)."""
+        """Add ``n`` to the server counter ``name`` (reported in ``Stats``; one of
+        :data:`EVENT_COUNTERS`, tests/server/test_event_counters.py checks the source)."""
         self.counters[name] = self.counters.get(name, 0) + n

@@ -49,11 +49,12 @@ class Gate:
         return ConnectError(int(ErrorCode.NOT_ALLOWED),
                             f"client address {host} is not in this server's allow-list")
 
-    def hello(self, hello: Hello, *, udp: bool = False) -> Outcome:
+    def hello(self, hello: Hello, peer: str, *, udp: bool = False) -> Outcome:
         """A session, a refusal, or (keys configured) the handshake to send a challenge for.
 
         A server whose only protection is TLS refuses UDP hellos: a session opened over UDP
-        would have no keys at all (a TCP session's datagrams get theirs over TLS).
+        would have no keys at all (a TCP session's datagrams get theirs over TLS). ``peer``
+        (``host:port``) is for the warnings: the operator needs to know which machine it was.
         """
         ctx = self._registry.ctx
         keys = ctx.keys
@@ -66,19 +67,20 @@ class Gate:
             return self._registry.open(hello)
         key = keys.key_for(hello.name)
         if key is None:
-            return self._refuse(f"no pre-shared key for client name {hello.name!r}", hello)
+            return self._refuse(f"no pre-shared key for client name {hello.name!r}", hello,
+                                peer)
         try:
             return ServerHandshake(key, hello.name, hello.auth, self._random(NONCE_SIZE))
         except RemoteProtocolError as exc:
-            return self._refuse(exc.reason, hello)
+            return self._refuse(exc.reason, hello, peer)
 
-    def finish(self, handshake: ServerHandshake, hello: Hello, proof: AuthProof
+    def finish(self, handshake: ServerHandshake, hello: Hello, proof: AuthProof, peer: str
                ) -> Session | ConnectError:
         """Check the client's proof; open its session with sealed datagrams if right."""
         try:
             keys = handshake.verify(proof)
         except RemoteProtocolError as exc:
-            return self._refuse(exc.reason, hello)
+            return self._refuse(exc.reason, hello, peer)
         result = self._registry.open(hello)
         if isinstance(result, Session):
             result.codec = sealed_codec(keys, server=True)
@@ -88,18 +90,20 @@ class Gate:
             self._registry.ctx.count("sessions_authenticated")
         return result
 
-    def abandoned(self, goodbye: Disconnect) -> None:
-        """The client hung up during the handshake; with AUTH_FAILED it refused our proof."""
+    def abandoned(self, goodbye: Disconnect, hello: Hello, peer: str) -> None:
+        """The client hung up during the handshake; with AUTH_FAILED it refused our proof
+        (its key is not this server's key for its name)."""
         if goodbye.code == ErrorCode.AUTH_FAILED:
             self._registry.ctx.count("auth_failed")
             self._registry.ctx.notices.warn(
-                "authentication", f"authentication failed: {goodbye.reason}")
+                "authentication", f"authentication failed for client {hello.name!r} from "
+                f"{peer}: {goodbye.reason.removeprefix('authentication failed: ')}")
 
-    def _refuse(self, reason: str, hello: Hello) -> ConnectError:
+    def _refuse(self, reason: str, hello: Hello, peer: str) -> ConnectError:
         self._registry.ctx.count("auth_failed")
         if hello.name == PROBE_NAME and not hello.auth:
             return ConnectError(int(ErrorCode.AUTH_FAILED), reason)  # a health probe
         self._registry.ctx.notices.warn(
-            "authentication", f"authentication failed for client {hello.name!r}: "
+            "authentication", f"authentication failed for client {hello.name!r} from {peer}: "
             f"{reason.removeprefix('authentication failed: ')}")
         return ConnectError(int(ErrorCode.AUTH_FAILED), reason)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import socket
 import time
 from collections.abc import Callable
 
@@ -50,6 +51,14 @@ class Notices:
         return True
 
 
+def peer_address(peer: object) -> str:
+    """``host:port`` (``[v6]:port``) of a socket address, for the operator's log lines."""
+    if isinstance(peer, tuple) and len(peer) >= 2:
+        host = str(peer[0])
+        return f"[{host}]:{peer[1]}" if ":" in host else f"{host}:{peer[1]}"
+    return "?" if peer is None else str(peer)
+
+
 def session_level(name: str) -> int:
     """INFO for a session's opening and closing; DEBUG for a health probe's (every few s)."""
     return logging.DEBUG if name == PROBE_NAME else logging.INFO
@@ -66,16 +75,21 @@ def listening_line(host: str, port: int, tcp: bool, udp: bool, adapter: str,
             f"authentication: {authentication}{metrics}")
 
 
-def bind_failure(transport: str, host: str, port: int, exc: OSError) -> str:
-    """Why the server cannot listen, for people: which transport, which port, what to do."""
+def bind_failure(transport: str, host: str, port: int, exc: OSError,
+                 option: str = "--port") -> str:
+    """Why the server cannot listen, for people: which transport (``TCP``, ``UDP``, or
+    ``metrics``), which port, what to do (``option`` is the port's option)."""
     if exc.errno is None and isinstance(exc.__cause__, OSError):
         exc = exc.__cause__  # uvloop: "could not bind to local_addr", the errno is its cause
+    head = (f"cannot serve metrics on {host} port {port}" if transport == "metrics"
+            else f"cannot listen on {host} {transport} port {port}")
+    if isinstance(exc, socket.gaierror):  # a name that does not resolve: errno is EAI_*
+        return f"{head}: {exc.strerror or exc}; see --host"
     reason = os.strerror(exc.errno) if exc.errno else str(exc)
     advice = {
-        errno.EADDRINUSE: f"another program (or another rlbridge serve) has {transport} port "
-                          f"{port}; stop it or choose another --port (0: any free port)",
-        errno.EACCES: "ports below 1024 need root; choose a --port above 1023",
-        errno.EADDRNOTAVAIL: f"{host} is not an address of this machine; see --host",
+        errno.EADDRINUSE: "another program (or another rlbridge serve) has it: stop it, or "
+                          f"choose another {option} (0: any free port)",
+        errno.EACCES: f"ports below 1024 need root: choose a {option} above 1023",
+        errno.EADDRNOTAVAIL: f"{host} is not an address of this machine: see --host",
     }.get(exc.errno or 0)
-    return (f"cannot listen on {host} {transport} port {port}: {reason.lower()}"
-            + (f" ({advice})" if advice else ""))
+    return f"{head}: {reason.lower()}" + (f"; {advice}" if advice else "")

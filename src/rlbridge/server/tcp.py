@@ -10,7 +10,7 @@ from typing import cast
 
 from rlbridge.server.gate import Gate
 from rlbridge.server.guarded import GuardedTransport
-from rlbridge.server.notices import session_level
+from rlbridge.server.notices import peer_address, session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import TcpSink
@@ -71,6 +71,9 @@ class TcpConnection(asyncio.Protocol):
         self._gate = Gate(registry)
         #: The hello and its handshake while a key-requiring server waits for the proof.
         self._pending: tuple[Hello, ServerHandshake] | None = None
+        #: A hello arrived, or the server closed the connection saying why: its end needs no
+        #: further word (else a TLS client that hung up is logged: ServerTls.hung_up).
+        self._explained = False
         self._deadline: asyncio.TimerHandle | None = None
         self._tls: ServerTls | None = None
         self._guarded: GuardedTransport | None = None
@@ -81,7 +84,7 @@ class TcpConnection(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._transport = t = cast(asyncio.Transport, transport)
         ctx = self._registry.ctx
-        self._peer = str(t.get_extra_info("peername"))
+        self._peer = peer_address(t.get_extra_info("peername"))
         sock = t.get_extra_info("socket")
         if sock is not None:
             # Set either way: asyncio and uvloop turn Nagle off on every TCP transport, so
@@ -180,7 +183,7 @@ class TcpConnection(asyncio.Protocol):
             elif isinstance(packet, AuthProof) and self._pending is not None:
                 self._proof(packet)
             elif isinstance(packet, Disconnect) and self._pending is not None:
-                self._gate.abandoned(packet)
+                self._gate.abandoned(packet, self._pending[0], self._peer)
                 self._opened(self._pending[0], None)
                 return
             else:
@@ -190,11 +193,12 @@ class TcpConnection(asyncio.Protocol):
                 return
 
     def _hello(self, hello: Hello) -> None:
+        self._explained = True
         assert self._sink is not None
         assert self._transport is not None
         if self._transport.is_closing():  # refused (allow-list) or closing: no session
             return
-        result = self._gate.hello(hello)
+        result = self._gate.hello(hello, self._peer)
         if isinstance(result, ServerHandshake):
             self._pending = (hello, result)
             self._sink.send(result.challenge)
@@ -204,7 +208,7 @@ class TcpConnection(asyncio.Protocol):
     def _proof(self, proof: AuthProof) -> None:
         assert self._pending is not None
         hello, handshake = self._pending
-        self._opened(hello, self._gate.finish(handshake, hello, proof))
+        self._opened(hello, self._gate.finish(handshake, hello, proof, self._peer))
 
     def _opened(self, hello: Hello, result: Session | ConnectError | None) -> None:
         """Attach the session, or send the refusal (if any) and close."""
@@ -244,6 +248,7 @@ class TcpConnection(asyncio.Protocol):
         Before a session exists the answer is a ConnectError ("no session"); inside a session
         it is an Error with the code, then a Disconnect, so the client's SDK reports the reason.
         """
+        self._explained = True
         self._registry.ctx.notices.warn("malformed",
                                         f"closing TCP connection from {self._peer}: {reason}")
         if self._sink is None or self._transport is None:
@@ -270,6 +275,8 @@ class TcpConnection(asyncio.Protocol):
             self._deadline.cancel()
         if self._transport is not None:
             self._registry.ctx.handshaking.discard(self._transport)
+        if self._tls is not None and not self._explained:
+            self._tls.hung_up()
         if self._session is not None:
             self._session.close("TCP connection lost" if exc else "TCP connection closed",
                                 notify=False)

@@ -6,7 +6,9 @@ A client that does not speak TLS (its first bytes are the rlbridge magic) is ans
 plain protocol, a ``ConnectError`` saying this server needs TLS, so the client's user reads
 why instead of a dropped connection; a handshake that fails (no client certificate, a CA the
 client refuses) is logged with OpenSSL's reason (at most once per interval: the server's
-notices) and counted (``tls_failed``). Either way only this connection closes.
+notices) and counted (``tls_failed``), and so is a client that hangs up after the handshake
+without a hello (a client refusing this server's certificate by its pinned fingerprint checks
+it then, and says nothing to the server). Either way only this connection closes.
 """
 
 from __future__ import annotations
@@ -19,6 +21,10 @@ from rlbridge.server.guarded import GuardedTransport
 from rlbridge.tls import TlsEngine
 from rlbridge.wire import MAGIC, ConnectError, ErrorCode
 
+#: The notice kind of a failed handshake: its own, so a plaintext client's refusal just before
+#: does not hold it back for the interval (each kind is logged once per interval).
+HANDSHAKE = "TLS handshake"
+
 
 class ServerTls:
     """TLS for one accepted connection; :attr:`transport` is what the sinks write to."""
@@ -30,6 +36,7 @@ class ServerTls:
         self._ctx = ctx
         self._peer = peer
         self._first = True
+        self._refused = False
         self.transport = GuardedTransport(raw, self._engine.send)
         #: The verified client certificate's common name (mutual TLS), once known.
         self.identity: str | None = None
@@ -39,8 +46,10 @@ class ServerTls:
         first, self._first = self._first, False
         if first and data.startswith(MAGIC):
             self._ctx.count("tls_plaintext_clients")
-            self._ctx.notices.warn("tls", f"refused a plaintext client from {self._peer}: "
+            self._ctx.notices.warn("plaintext client", f"refused a plaintext client from "
+                                   f"{self._peer}: "
                                    "this server requires TLS")
+            self._refused = True
             self._raw.write(self._ctx.codec.encode_frame(ConnectError(
                 int(ErrorCode.AUTH_FAILED), "this server requires TLS: connect with TLS "
                 "(and the server's CA file or certificate fingerprint)")))
@@ -51,8 +60,10 @@ class ServerTls:
         try:
             plain = engine.receive(data)
         except ssl.SSLError as exc:
+            self._refused = True
             self._ctx.count("tls_failed")
-            self._ctx.notices.warn("tls", f"TLS with {self._peer} failed: {exc.reason or exc}")
+            self._ctx.notices.warn(HANDSHAKE, f"TLS with {self._peer} failed: "
+                                   f"{exc.reason or exc}")
             alert = engine.outgoing()
             if alert:
                 self._raw.write(alert)
@@ -67,3 +78,14 @@ class ServerTls:
         if engine.closed:
             self._raw.close()
         return plain
+
+    def hung_up(self) -> None:
+        """The connection closed before any hello: count and say so, unless it was refused
+        here already or never sent a byte (a port probe)."""
+        if self._refused or self._first:
+            return
+        self._ctx.count("tls_failed")
+        when = ("after the TLS handshake, before its hello: it may not accept this server's "
+                "certificate (a --fingerprint pinned to another, or another --ca)"
+                if self._engine.handshake_done else "during the TLS handshake")
+        self._ctx.notices.warn(HANDSHAKE, f"TLS client {self._peer} hung up {when}")

@@ -9,7 +9,7 @@ from typing import cast
 
 from rlbridge.server.config import UDP_RECEIVE_BUFFER
 from rlbridge.server.gate import Gate
-from rlbridge.server.notices import session_level
+from rlbridge.server.notices import peer_address, session_level
 from rlbridge.server.registry import SessionRegistry
 from rlbridge.server.session import Session
 from rlbridge.server.sinks import UdpSink
@@ -137,7 +137,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             elif isinstance(packet, AuthProof):
                 self._proof(packet, addr)
             elif isinstance(packet, Disconnect) and self._unproven(addr):
-                self._gate.abandoned(packet)
+                self._gate.abandoned(packet, self._pending[addr].hello, peer_address(addr))
                 del self._pending[addr]
             else:
                 ctx.count("udp_no_token")
@@ -162,7 +162,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
         if pending is not None and pending.hello == hello:  # its challenge was lost
             self._send(pending.handshake.challenge, addr)
             return
-        result = self._gate.hello(hello, udp=True)
+        result = self._gate.hello(hello, peer_address(addr), udp=True)
         if isinstance(result, ServerHandshake):
             self._pending.pop(addr, None)
             self._pending[addr] = _Pending(hello, result)
@@ -187,7 +187,7 @@ class UdpEndpoint(asyncio.DatagramProtocol):
             else:
                 self._registry.ctx.count("udp_unexpected_proof")
             return
-        result = self._gate.finish(pending.handshake, pending.hello, proof)
+        result = self._gate.finish(pending.handshake, pending.hello, proof, peer_address(addr))
         if isinstance(result, Session):
             pending.session_id, pending.proof = result.id, proof
         else:

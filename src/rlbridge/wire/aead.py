@@ -35,6 +35,9 @@ from rlbridge.wire.errors import RlbridgeError
 AEAD_ENV = "RLBRIDGE_AEAD"
 LIBSODIUM = "libsodium"
 CRYPTOGRAPHY = "cryptography"
+#: The state when the libsodium extension was not built (``rlbridge --version`` then says what
+#: builds it into the install at hand: rlbridge._version).
+NOT_BUILT = "cryptography (the libsodium extension was not built)"
 
 __all__ = ["AEAD_ENV", "BULK_FROM", "CRYPTOGRAPHY", "IMPLEMENTATIONS", "LIBSODIUM", "NONCE",
            "STATE", "Aead", "CryptographyChaCha", "InvalidTag", "NoCipher",
@@ -143,8 +146,7 @@ def choose(environ: Mapping[str, str],
         from rlbridge.wire._chacha import LIBSODIUM_VERSION
 
         return LIBSODIUM, f"libsodium {LIBSODIUM_VERSION} (C extension)"
-    return CRYPTOGRAPHY, ("cryptography (the libsodium extension was not built: "
-                          "apt install libsodium-dev, then pip install again)")
+    return CRYPTOGRAPHY, NOT_BUILT
 
 
 _CHOSEN, STATE = choose(os.environ, IMPLEMENTATIONS)

@@ -71,7 +71,7 @@ class ServerHandshake:
             raise RemoteProtocolError(
                 ErrorCode.AUTH_FAILED,
                 "this server requires a pre-shared key and this client gave none: give it "
-                f"the server's key (${PSK_ENV}, see docs/security.md)")
+                f"the server's key (--psk-file FILE, or ${PSK_ENV}; docs/security.md)")
         self._key = key
         self._nonces = (client_nonce, server_nonce)
         self._transcript = _transcript(name, client_nonce, server_nonce)
