@@ -15,6 +15,7 @@ from collections.abc import Sequence
 
 from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.csp.ring import EMPTY
+from rlbridge.csp.stamped_ring import DRAIN
 from rlbridge.wire.bundle import VALUE_TAG, Part
 
 
@@ -28,14 +29,16 @@ def take_plain(channels: Sequence[OutgoingChannel], parts: list[Part], max_batch
     through :meth:`OutgoingChannel.take_parts`, which drains the ring.
     """
     taken = 0
+    empty, drain = EMPTY, DRAIN  # locals: no module lookup per channel
     for ch in channels:
-        pair = ch._ring.take_lone()
-        if pair is EMPTY:
+        ring = ch._ring
+        value = ring.take_lone()
+        if value is empty:
             continue
-        if pair is not None:
+        if value is not drain:
             seq = ch._next_seq
             ch._next_seq = seq + 1
-            parts.append((VALUE_TAG, ch.channel_id, seq, pair[0], pair[1]))
+            parts.append((VALUE_TAG, ch.channel_id, seq, ring.taken_stamp, value))
             taken += 1
             if ch._space.waiting:
                 ch._space.ring()

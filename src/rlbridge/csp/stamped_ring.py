@@ -12,20 +12,31 @@ its value.
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Final
 
-from rlbridge.csp.ring import EMPTY, Empty, SpscRing
+from rlbridge.csp.ring import EMPTY, SpscRing
+
+
+class _Drain(enum.Enum):
+    DRAIN = "DRAIN"
+
+
+DRAIN: Final = _Drain.DRAIN
+"""Returned by :meth:`StampedRing.take_lone` when the ring must be drained instead."""
 
 
 class StampedRing(SpscRing[Any]):
     """SpscRing plus a parallel stamp slot list; use only the ``*_stamped`` methods."""
 
-    __slots__ = ("_stamps",)
+    __slots__ = ("_stamps", "taken_stamp")
 
     def __init__(self, capacity: int) -> None:
         super().__init__(capacity)
         self._stamps: list[int] = [0] * capacity
+        #: The stamp of the value :meth:`take_lone` returned last (consumer side only).
+        self.taken_stamp = 0
 
     def push_stamped(self, stamp: int, value: Any) -> bool:
         """Store one pair, displacing the oldest unread pair when full (returns ``full``)."""
@@ -80,16 +91,23 @@ class StampedRing(SpscRing[Any]):
             del values[:cut]
         return stamps, values
 
-    def take_lone(self) -> tuple[int, Any] | Empty | None:
-        """Consumer, the send round's common case: the one unread pair as ``(stamp, value)``;
-        :data:`EMPTY` when none waits; ``None`` when several wait, or the one was overwritten
-        while it was read (then :meth:`drain_stamped` takes what is left)."""
+    def take_lone(self) -> Any:
+        """Consumer, the send round's common case: the one unread value (its stamp is then
+        :attr:`taken_stamp`); :data:`~rlbridge.csp.ring.EMPTY` when none waits; :data:`DRAIN`
+        when several wait, or the one was overwritten while it was read (then
+        :meth:`drain_stamped` takes what is left).
+
+        The stamp goes to an attribute, not into a returned pair: this runs once per channel
+        per round, and a pair would cost the round a tuple (and a boxed int) per value.
+        """
         tail = self._tail
         waiting = self._head - tail
         if waiting != 1:
-            return EMPTY if not waiting else None
+            return EMPTY if not waiting else DRAIN
         i = tail % self._cap
-        pair = (self._stamps[i], self._slots[i])
+        stamp = self._stamps[i]
+        value = self._slots[i]
         if self._settle(tail, 1):
-            return None
-        return pair
+            return DRAIN
+        self.taken_stamp = stamp
+        return value
