@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import itertools
 import threading
-import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
@@ -39,6 +38,7 @@ from rlbridge.adapters.base import (
     Subscription,
     ValueSpec,
 )
+from waiting import wait_until
 
 FLOAT64 = "std_msgs/msg/Float64"
 INT8 = "std_msgs/msg/Int8"
@@ -120,12 +120,13 @@ class AdapterContract:
         self, pub: Publisher, sink: Collector, probe: Any, *, interval: float = 0.02
     ) -> None:
         """Publish ``probe`` until the subscriber sees one (bounded by :attr:`timeout`)."""
-        deadline = time.monotonic() + self.timeout
-        while time.monotonic() < deadline:
+
+        def arrived() -> bool:
             pub.publish([probe])
-            if sink.wait_for_count(1, interval):
-                return
-        pytest.fail(f"no value arrived within {self.timeout} s (discovery never matched?)")
+            return sink.wait_for_count(1, interval)
+
+        wait_until(arrived, "a value to arrive (discovery never matched?)",
+                   timeout=self.timeout, interval=0.0)
 
     def expect_after_probes(
         self, sink: Collector, probe: Any, expected: list[Any]
@@ -421,12 +422,13 @@ class AdapterContract:
         self.expect_after_probes(sinks[2], probe, whole)
 
     def _sync_all(self, pub: Publisher, sinks: list[Collector], probe: Any) -> None:
-        deadline = time.monotonic() + self.timeout
-        while time.monotonic() < deadline:
+
+        def arrived() -> bool:
             pub.publish([probe])
-            if all(s.wait_for_count(1, 0.02) for s in sinks):
-                return
-        pytest.fail("not every subscriber got a probe (discovery never matched?)")
+            return all(s.wait_for_count(1, 0.02) for s in sinks)
+
+        wait_until(arrived, "a probe at every subscriber (discovery never matched?)",
+                   timeout=self.timeout, interval=0.0)
 
     def test_batches_keep_their_order(
         self, adapter: MiddlewareAdapter, topic: Callable[[str], str]
