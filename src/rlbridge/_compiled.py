@@ -33,7 +33,6 @@ import importlib.abc
 import importlib.machinery
 import importlib.util
 import json
-import logging
 import os
 import sys
 from collections.abc import Mapping, Sequence
@@ -162,6 +161,8 @@ def _select() -> str:
     if not compiled and why != NOT_BUILT and not installed:
         sys.meta_path.insert(0, _PythonFiles(_PACKAGE_DIR, MODULES))
         if REBUILD in why:  # sources edited since the build (decide's last reason)
+            import logging  # only here: it imports threading, which rlbridge.wire must not
+
             logging.getLogger("rlbridge").warning(
                 "%s", edited_notice(_PACKAGE_DIR, edited(_PACKAGE_DIR)))
     return why

@@ -21,6 +21,7 @@ This check fails on a tag without such a test, on a marker that names no tagged 
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from collections.abc import Iterator
 
@@ -89,6 +90,7 @@ def parity_tests(source: str) -> dict[str, list[tuple[str, bool]]]:
     return found
 
 
+@functools.cache
 def _package_tags() -> dict[str, list[str]]:
     found: dict[str, list[str]] = {}
     for module, path in modules(PACKAGE).items():
@@ -96,6 +98,7 @@ def _package_tags() -> dict[str, list[str]]:
     return found
 
 
+@functools.cache
 def _test_markers() -> dict[str, list[tuple[str, bool]]]:
     found: dict[str, list[tuple[str, bool]]] = {}
     for path in sorted(TESTS.rglob("*.py")):
@@ -105,6 +108,7 @@ def _test_markers() -> dict[str, list[tuple[str, bool]]]:
     return found
 
 
+@functools.cache
 def _defined_names() -> set[str]:
     """Every function's and class's qualified name in the package (``Class.method``, ...)."""
     names: set[str] = set()
