@@ -60,7 +60,6 @@ MODULES: tuple[str, ...] = (
     "rlbridge.csp.outgoing",
     "rlbridge.csp.plain_round",
     "rlbridge.csp.bell",
-    "rlbridge.csp.inline_round",
     "rlbridge.csp.sender",
     "rlbridge.csp.receiver",
     # both: the codec, bundles, sequence numbers and clocks
