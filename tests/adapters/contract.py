@@ -79,15 +79,16 @@ class Collector:
         with self._cond:
             return [v for batch in self._batches for v in batch]
 
-    def wait_until(self, predicate: Callable[[list[Any]], bool], timeout: float) -> bool:
-        """Wait (bounded) until ``predicate(values)`` holds; returns whether it did."""
+    def wait_values(self, predicate: Callable[[list[Any]], bool], timeout: float) -> bool:
+        """Wait (bounded, woken by each batch: no polling) until ``predicate(values)`` holds;
+        returns whether it did. (Polling waits: ``waiting.wait_until``.)"""
         with self._cond:
             return self._cond.wait_for(
                 lambda: predicate([v for b in self._batches for v in b]), timeout
             )
 
     def wait_for_count(self, count: int, timeout: float) -> bool:
-        return self.wait_until(lambda values: len(values) >= count, timeout)
+        return self.wait_values(lambda values: len(values) >= count, timeout)
 
 
 class AdapterContract:
@@ -136,7 +137,7 @@ class AdapterContract:
         def done(values: list[Any]) -> bool:
             return len(values) >= len(expected) and values[len(values) - len(expected):] == expected
 
-        if not sink.wait_until(done, self.timeout):
+        if not sink.wait_values(done, self.timeout):
             pytest.fail(f"expected {expected!r} after probes, got {sink.values!r}")
         received = sink.values
         head = received[: len(received) - len(expected)]

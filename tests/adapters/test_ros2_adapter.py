@@ -137,7 +137,7 @@ def test_adapters_coexist_and_talk_across_contexts(
     pub = first.create_publisher(unique_topic("x"), FLOAT64, "data", QoS(depth=100))
     _sync(pub, sink, -1.0)
     pub.publish([1.0, 2.0])
-    assert sink.wait_until(lambda v: v[-2:] == [1.0, 2.0], TIMEOUT)
+    assert sink.wait_values(lambda v: v[-2:] == [1.0, 2.0], TIMEOUT)
     first.close()
     assert second.topics()  # the other adapter is unaffected
 
@@ -177,7 +177,7 @@ def test_a_bad_value_publishes_nothing_of_its_batch(
         assert info.value.code == "BAD_VALUE"
         assert INT8 in info.value.reason
     pub.publish([5])
-    assert sink.wait_until(lambda v: v[-1:] == [5], TIMEOUT)
+    assert sink.wait_values(lambda v: v[-1:] == [5], TIMEOUT)
     assert set(sink.values) == {0, 5}
     assert pub.published == len(sink.values)
 
@@ -205,7 +205,7 @@ def test_a_burst_arrives_in_order_in_few_batches(
     _sync(pub, sink, 0)
     values = [i % 100 + 1 for i in range(600)]
     pub.publish(values)
-    assert sink.wait_until(lambda v: len(v) >= 1 + len(values), TIMEOUT)
+    assert sink.wait_values(lambda v: len(v) >= 1 + len(values), TIMEOUT)
     assert sink.values[1:] == values
     assert len(sink.batches) - 1 < len(values) // 2, f"{len(sink.batches)} batches"
     assert (sub.delivered, sub.batches, sub.errors) == (len(sink.values), len(sink.batches), 0)
@@ -229,7 +229,7 @@ def test_a_raising_callback_does_not_stop_delivery(
         _sync(pub, good, -1.0)
         for v in (1.0, 2.0, 3.0):
             pub.publish([v])
-            assert good.wait_until(lambda got, v=v: got[-1:] == [v], TIMEOUT)
+            assert good.wait_values(lambda got, v=v: got[-1:] == [v], TIMEOUT)
     wait_until(lambda: failing.lost >= len(good.values), "the failing subscriber's losses",
                timeout=TIMEOUT)
     assert failing.errors == len(calls) >= 2  # it kept being called after failing

@@ -136,7 +136,7 @@ def test_peer_publisher_to_adapter(
     handle = peer.call("pub", topic=topic, type=msg_type, field=field)
     _sync_into_adapter(peer, handle, sink, probe)
     peer.call("publish", handle=handle, values=values)
-    assert sink.wait_until(_tail_is(values), TIMEOUT), sink.values
+    assert sink.wait_values(_tail_is(values), TIMEOUT), sink.values
     received = sink.values
     assert all(v == probe for v in received[: len(received) - len(values)])
     sub.close()
