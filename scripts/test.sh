@@ -5,9 +5,46 @@
 # and a graph across releases, the README's examples after a plain `pip install .` on each
 # Python). Works on a fresh machine with only Python 3.11, pip and apt: a Python that is not
 # there is a loud MISSING line and its legs are skipped, except with CI=true, where it fails.
-# Extra args go to the full suite's pytest.
+# Extra args go to the full suite's pytest. `bash scripts/test.sh --quick`: the fast lane below.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+# --quick: the edit-test loop (README, "Run the tests"). No apt, no ROS, no matrix, no mypy:
+# lint, then the tests a change most often breaks (the codec, rings and channels, a live
+# server over loopback, the CLI's basics), without the slow kinds (markers in pyproject.toml),
+# in under two minutes on a 2-core machine. Uses .venv as it is; makes it (pure Python, no ROS
+# extras) only if it is missing. Extra args go to pytest. The full run below is what CI runs.
+if [ "${1:-}" = "--quick" ]; then
+  shift
+  if [ ! -x .venv/bin/python ]; then
+    python3 -m venv .venv
+    RLBRIDGE_PURE_PYTHON=1 .venv/bin/python -m pip install -q -e ".[test]"
+  fi
+  quick=(
+    tests/architecture tests/wire
+    tests/csp/test_ring.py tests/csp/test_ring_stamped.py tests/csp/test_channel.py
+    tests/csp/test_doorbell.py
+    tests/csp/test_send_round.py tests/csp/test_policies.py tests/csp/test_pacing.py
+    tests/server/test_server_udp.py tests/server/test_server_tcp.py
+    tests/server/test_server_routing.py tests/server/test_bundles.py
+    tests/server/test_value_path_parity.py tests/server/test_udp_sink.py
+    tests/server/test_admission.py tests/server/test_flow_credit.py tests/server/test_stats.py
+    tests/server/test_policies_server.py tests/server/test_lifetime.py
+    tests/client/test_client_bridge.py tests/client/test_receiver_parity.py
+    tests/client/test_incoming_deliver.py tests/client/test_receive_datagrams.py
+    tests/client/test_send_thread.py tests/client/test_send_inline.py
+    tests/csp/test_idle.py
+    tests/security/test_bad_input.py tests/packaging/test_compiled_edited.py
+    tests/cli/test_options.py tests/cli/test_messages.py tests/cli/test_exit_codes.py
+  )
+  .venv/bin/ruff check src tests scripts benchmarks examples setup.py
+  start=$SECONDS
+  rc=0
+  .venv/bin/python -m pytest -q -p no:cacheprovider -m "not slow and not ros2 and not netem" \
+    "${quick[@]}" "$@" || rc=$?
+  echo "quick lane: exit $rc, wall time $((SECONDS - start)) s (the full run: bash scripts/test.sh)"
+  exit "$rc"
+fi
 
 # System tools for the network-emulator and stress tests. Without root they are skipped,
 # and the tests that need them skip with the reason printed.

@@ -45,11 +45,10 @@ from rlbridge.wire import (
     PacketCodec,
     Stats,
 )
+from waiting import WAIT, wait_until
 
 P = TypeVar("P")
 
-#: Generous bound for any single wait on a loaded 2-core machine; tests finish far sooner.
-WAIT = 10.0
 
 #: Heartbeat and watchdog of the default test server: a heartbeat fast enough that link
 #: changes show up quickly, a watchdog slow enough that a busy CI machine never trips it.
@@ -279,22 +278,9 @@ def bridge(server: ServerThread) -> Iterator[Callable[..., Bridge]]:
         b.close()
 
 
-def wait_until(predicate: Callable[[], object], timeout: float = WAIT, *,
-               interval: float = 0.01, what: str = "condition") -> Any:
-    """Poll ``predicate`` until it returns something truthy; fail after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while True:
-        result = predicate()
-        if result:
-            return result
-        if time.monotonic() >= deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
-
-
 @pytest.fixture(name="wait_until")
 def wait_until_fixture() -> Callable[..., Any]:
-    """The :func:`wait_until` polling helper (a bounded loop with a deadline)."""
+    """:func:`waiting.wait_until`, the one polling helper (a bounded loop with a deadline)."""
     return wait_until
 
 

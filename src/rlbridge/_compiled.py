@@ -13,7 +13,11 @@ module decides which, once, when ``rlbridge`` is imported. They run as Python wh
 * ``RLBRIDGE_PURE_PYTHON`` is set (not ``0``) in the environment now;
 * one is missing, or a source changed since the build (an editable checkout edited after
   ``pip install -e .``: the build recorded each source's SHA-256 in ``_compiled_sources.json``),
-  so an edit is never shadowed by a stale extension.
+  so an edit is never shadowed by a stale extension. That last case is the one nobody asked
+  for, so it says so: one warning on the ``rlbridge`` logger at import, naming the first
+  edited module and the command that compiles again (:func:`edited_notice`). A log record,
+  not a :mod:`warnings` warning: a test run with ``-W error`` in an edited checkout should
+  still run, only slower.
 
 To run them as Python, a finder placed first on ``sys.meta_path`` loads these modules from
 their ``.py`` files: process-wide by nature, like the import system it steers; it is installed
@@ -56,7 +60,6 @@ MODULES: tuple[str, ...] = (
     "rlbridge.csp.outgoing",
     "rlbridge.csp.plain_round",
     "rlbridge.csp.bell",
-    "rlbridge.csp.inline_round",
     "rlbridge.csp.sender",
     "rlbridge.csp.receiver",
     # both: the codec, bundles, sequence numbers and clocks
@@ -68,6 +71,8 @@ MODULES: tuple[str, ...] = (
 )
 #: What setup.py records next to the compiled modules: ``{module: sha256 of its source}``.
 SOURCES_FILE = "_compiled_sources.json"
+#: The command that compiles the value path again (run in the checkout).
+REBUILD = "pip install -e ."
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 #: :func:`decide`'s answer when no module was compiled for this interpreter.
@@ -109,15 +114,29 @@ def decide(package_dir: Path, environ: Mapping[str, str],
     if len(built) < len(modules):
         return False, (f"pure Python ({len(modules) - len(built)} of the {len(modules)} "
                        "compiled modules are missing)")
+    changed = edited(package_dir, modules)
+    if changed:
+        return False, (f"pure Python ({len(changed)} source(s) changed since they were "
+                       f"compiled, e.g. {changed[0]}: {REBUILD} compiles them again)")
+    return True, f"compiled (mypyc, {len(modules)} modules)"
+
+
+def edited(package_dir: Path, modules: Sequence[str] = MODULES) -> list[str]:
+    """The modules whose source is not what setup.py compiled (all, with no record)."""
     try:
         recorded = json.loads((package_dir / SOURCES_FILE).read_text())
     except (OSError, ValueError):
         recorded = {}
-    changed = [m for m in modules if recorded.get(m) != digest(source_of(m, package_dir))]
-    if changed:
-        return False, (f"pure Python ({len(changed)} source(s) changed since they were "
-                       f"compiled, e.g. {changed[0]}: pip install -e . compiles them again)")
-    return True, f"compiled (mypyc, {len(modules)} modules)"
+    return [m for m in modules if recorded.get(m) != digest(source_of(m, package_dir))]
+
+
+def edited_notice(package_dir: Path, changed: Sequence[str]) -> str:
+    """The one warning of an edited checkout: what runs, the first edit, how to compile."""
+    root = package_dir.parent.parent  # src/rlbridge -> the checkout
+    where = f" in {root}" if (root / "setup.py").exists() else ""
+    more = f" (and {len(changed) - 1} more)" if len(changed) > 1 else ""
+    return (f"{changed[0]}{more} was edited since it was compiled, so the value path runs as "
+            f"pure Python (slower); `{REBUILD}`{where} compiles it again")
 
 
 class _PythonFiles(importlib.abc.MetaPathFinder):
@@ -140,6 +159,11 @@ def _select() -> str:
     installed = any(isinstance(f, _PythonFiles) for f in sys.meta_path)
     if not compiled and why != NOT_BUILT and not installed:
         sys.meta_path.insert(0, _PythonFiles(_PACKAGE_DIR, MODULES))
+        if REBUILD in why:  # sources edited since the build (decide's last reason)
+            import logging  # only here: it imports threading, which rlbridge.wire must not
+
+            logging.getLogger("rlbridge").warning(
+                "%s", edited_notice(_PACKAGE_DIR, edited(_PACKAGE_DIR)))
     return why
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import itertools
 import threading
-import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
@@ -39,6 +38,7 @@ from rlbridge.adapters.base import (
     Subscription,
     ValueSpec,
 )
+from waiting import wait_until
 
 FLOAT64 = "std_msgs/msg/Float64"
 INT8 = "std_msgs/msg/Int8"
@@ -79,15 +79,16 @@ class Collector:
         with self._cond:
             return [v for batch in self._batches for v in batch]
 
-    def wait_until(self, predicate: Callable[[list[Any]], bool], timeout: float) -> bool:
-        """Wait (bounded) until ``predicate(values)`` holds; returns whether it did."""
+    def wait_values(self, predicate: Callable[[list[Any]], bool], timeout: float) -> bool:
+        """Wait (bounded, woken by each batch: no polling) until ``predicate(values)`` holds;
+        returns whether it did. (Polling waits: ``waiting.wait_until``.)"""
         with self._cond:
             return self._cond.wait_for(
                 lambda: predicate([v for b in self._batches for v in b]), timeout
             )
 
     def wait_for_count(self, count: int, timeout: float) -> bool:
-        return self.wait_until(lambda values: len(values) >= count, timeout)
+        return self.wait_values(lambda values: len(values) >= count, timeout)
 
 
 class AdapterContract:
@@ -120,12 +121,13 @@ class AdapterContract:
         self, pub: Publisher, sink: Collector, probe: Any, *, interval: float = 0.02
     ) -> None:
         """Publish ``probe`` until the subscriber sees one (bounded by :attr:`timeout`)."""
-        deadline = time.monotonic() + self.timeout
-        while time.monotonic() < deadline:
+
+        def arrived() -> bool:
             pub.publish([probe])
-            if sink.wait_for_count(1, interval):
-                return
-        pytest.fail(f"no value arrived within {self.timeout} s (discovery never matched?)")
+            return sink.wait_for_count(1, interval)
+
+        wait_until(arrived, "a value to arrive (discovery never matched?)",
+                   timeout=self.timeout, interval=0.0)
 
     def expect_after_probes(
         self, sink: Collector, probe: Any, expected: list[Any]
@@ -135,7 +137,7 @@ class AdapterContract:
         def done(values: list[Any]) -> bool:
             return len(values) >= len(expected) and values[len(values) - len(expected):] == expected
 
-        if not sink.wait_until(done, self.timeout):
+        if not sink.wait_values(done, self.timeout):
             pytest.fail(f"expected {expected!r} after probes, got {sink.values!r}")
         received = sink.values
         head = received[: len(received) - len(expected)]
@@ -421,12 +423,13 @@ class AdapterContract:
         self.expect_after_probes(sinks[2], probe, whole)
 
     def _sync_all(self, pub: Publisher, sinks: list[Collector], probe: Any) -> None:
-        deadline = time.monotonic() + self.timeout
-        while time.monotonic() < deadline:
+
+        def arrived() -> bool:
             pub.publish([probe])
-            if all(s.wait_for_count(1, 0.02) for s in sinks):
-                return
-        pytest.fail("not every subscriber got a probe (discovery never matched?)")
+            return all(s.wait_for_count(1, 0.02) for s in sinks)
+
+        wait_until(arrived, "a probe at every subscriber (discovery never matched?)",
+                   timeout=self.timeout, interval=0.0)
 
     def test_batches_keep_their_order(
         self, adapter: MiddlewareAdapter, topic: Callable[[str], str]

@@ -10,7 +10,6 @@ sees when the provider fails: ``SERVICE_FAILED`` where the middleware has an err
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -18,6 +17,7 @@ import pytest
 from contract import Collector
 
 from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS, ServiceReply
+from waiting import wait_until
 
 SET_BOOL = "std_srvs/srv/SetBool"
 TRIGGER = "std_srvs/srv/Trigger"
@@ -139,10 +139,8 @@ class ServiceContract:
 
     def wait_served(self, adapter: MiddlewareAdapter, name: str) -> None:
         """Until the middleware lists ``name`` (discovery), bounded."""
-        deadline = time.monotonic() + self.timeout
-        while not any(n == name for n, _ in adapter.services()):
-            assert time.monotonic() < deadline, f"{name} never listed"
-            time.sleep(0.02)
+        wait_until(lambda: any(n == name for n, _ in adapter.services()), f"{name} listed",
+                   timeout=self.timeout, interval=0.02)
 
     # -- durability
 

@@ -6,7 +6,6 @@ import contextlib
 import logging
 import os
 import threading
-import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
@@ -14,6 +13,7 @@ import pytest
 from contract import Collector
 
 from rlbridge.adapters.base import BindingError, MiddlewareAdapter, QoS
+from waiting import wait_until
 
 ros2 = pytest.importorskip(
     "rlbridge.adapters.ros2",
@@ -48,12 +48,12 @@ def make(ros_env: int) -> Iterator[Callable[..., Any]]:
 
 
 def _sync(pub: Any, sink: Collector, probe: Any) -> None:
-    deadline = time.monotonic() + TIMEOUT
-    while time.monotonic() < deadline:
+
+    def arrived() -> bool:
         pub.publish([probe])
-        if sink.wait_for_count(1, 0.02):
-            return
-    pytest.fail("no probe arrived")
+        return sink.wait_for_count(1, 0.02)
+
+    wait_until(arrived, "a probe to arrive", timeout=TIMEOUT, interval=0.0)
 
 
 def test_is_a_middleware_adapter(make: Callable[..., Any]) -> None:
@@ -137,7 +137,7 @@ def test_adapters_coexist_and_talk_across_contexts(
     pub = first.create_publisher(unique_topic("x"), FLOAT64, "data", QoS(depth=100))
     _sync(pub, sink, -1.0)
     pub.publish([1.0, 2.0])
-    assert sink.wait_until(lambda v: v[-2:] == [1.0, 2.0], TIMEOUT)
+    assert sink.wait_values(lambda v: v[-2:] == [1.0, 2.0], TIMEOUT)
     first.close()
     assert second.topics()  # the other adapter is unaffected
 
@@ -177,7 +177,7 @@ def test_a_bad_value_publishes_nothing_of_its_batch(
         assert info.value.code == "BAD_VALUE"
         assert INT8 in info.value.reason
     pub.publish([5])
-    assert sink.wait_until(lambda v: v[-1:] == [5], TIMEOUT)
+    assert sink.wait_values(lambda v: v[-1:] == [5], TIMEOUT)
     assert set(sink.values) == {0, 5}
     assert pub.published == len(sink.values)
 
@@ -205,7 +205,7 @@ def test_a_burst_arrives_in_order_in_few_batches(
     _sync(pub, sink, 0)
     values = [i % 100 + 1 for i in range(600)]
     pub.publish(values)
-    assert sink.wait_until(lambda v: len(v) >= 1 + len(values), TIMEOUT)
+    assert sink.wait_values(lambda v: len(v) >= 1 + len(values), TIMEOUT)
     assert sink.values[1:] == values
     assert len(sink.batches) - 1 < len(values) // 2, f"{len(sink.batches)} batches"
     assert (sub.delivered, sub.batches, sub.errors) == (len(sink.values), len(sink.batches), 0)
@@ -229,10 +229,9 @@ def test_a_raising_callback_does_not_stop_delivery(
         _sync(pub, good, -1.0)
         for v in (1.0, 2.0, 3.0):
             pub.publish([v])
-            assert good.wait_until(lambda got, v=v: got[-1:] == [v], TIMEOUT)
-    deadline = time.monotonic() + TIMEOUT
-    while failing.lost < len(good.values) and time.monotonic() < deadline:
-        time.sleep(0.01)
+            assert good.wait_values(lambda got, v=v: got[-1:] == [v], TIMEOUT)
+    wait_until(lambda: failing.lost >= len(good.values), "the failing subscriber's losses",
+               timeout=TIMEOUT)
     assert failing.errors == len(calls) >= 2  # it kept being called after failing
     assert failing.lost == sum(calls) == len(good.values)  # taken, not handed on: lost
     assert "subscriber bug" in caplog.text
@@ -253,11 +252,13 @@ def test_close_from_inside_a_callback(
 
     holder["sub"] = adapter.subscribe(unique_topic("c"), FLOAT64, "data", QoS(), close_self)
     pub = adapter.create_publisher(unique_topic("c"), FLOAT64, "data", QoS())
-    deadline = time.monotonic() + TIMEOUT
-    while not closed.is_set() and time.monotonic() < deadline:
+
+    def closed_itself() -> bool:
         pub.publish([1.0])
-        closed.wait(0.02)
-    assert closed.is_set()
+        return closed.wait(0.02)
+
+    wait_until(closed_itself, "the callback to close its subscription", timeout=TIMEOUT,
+               interval=0.0)
     assert holder["sub"].batches == 1
 
     done = threading.Event()
@@ -268,16 +269,17 @@ def test_close_from_inside_a_callback(
 
     adapter.subscribe(unique_topic("c2"), FLOAT64, "data", QoS(), close_adapter)
     pub2 = adapter.create_publisher(unique_topic("c2"), FLOAT64, "data", QoS())
-    while not done.is_set() and time.monotonic() < deadline + TIMEOUT:
+
+    def closed_adapter() -> bool:
         # The callback's close() stops pub2 a moment before it sets ``done``.
         with contextlib.suppress(RuntimeError):
             pub2.publish([1.0])
-        done.wait(0.02)
-    assert done.is_set()
-    deadline = time.monotonic() + TIMEOUT
-    while _executor_threads() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not _executor_threads()
+        return done.wait(0.02)
+
+    wait_until(closed_adapter, "the callback to close the adapter", timeout=TIMEOUT,
+               interval=0.0)
+    wait_until(lambda: not _executor_threads(), "the executor threads to end",
+               timeout=TIMEOUT)
 
 
 def test_adapters_come_and_go_without_leaking(ros_env: int) -> None:

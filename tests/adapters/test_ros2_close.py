@@ -20,6 +20,7 @@ import pytest
 from contract import Collector
 
 from rlbridge.adapters.base import BindingError, QoS
+from waiting import wait_until
 
 ros2 = pytest.importorskip(
     "rlbridge.adapters.ros2",
@@ -75,17 +76,17 @@ class _Gate(callback_groups.MutuallyExclusiveCallbackGroup):  # type: ignore[mis
 def _wait_until_joining(thread: threading.Thread) -> None:
     """Wait until ``thread`` blocks in ``Thread.join`` (close() waiting for the executor)."""
     join = threading.Thread.join.__code__
-    deadline = time.monotonic() + TIMEOUT
-    while time.monotonic() < deadline:
+
+    def joining() -> bool:
         frame = sys._current_frames().get(thread.ident or -1)
         while frame is not None:
             if frame.f_code is join:
-                return
+                return True
             frame = frame.f_back
-        if not thread.is_alive():
-            return
-        time.sleep(0.005)
-    pytest.fail("close() never got to joining the executor thread")
+        return not thread.is_alive()
+
+    wait_until(joining, "close() to get to joining the executor thread", timeout=TIMEOUT,
+               interval=0.005)
 
 
 def test_close_while_the_executor_rebuilds_its_wait_set(

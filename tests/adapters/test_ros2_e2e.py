@@ -30,6 +30,7 @@ from ros_peers import env_for
 from localhost import rlbridge_command
 from rlbridge.csp.bridge import Bridge
 from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
+from waiting import wait_until
 
 if TYPE_CHECKING:
     from ros_peers import PeerProcess
@@ -179,12 +180,15 @@ def test_rclpy_publisher_to_sdk(
                        blocking=True, buffer_size=1024)
     handle = peer.call("pub", topic=topic, type=msg_type, field=field)
     got: list[Any] = []
-    deadline = time.monotonic() + TIMEOUT
-    while not got:  # discovery: the first probe that arrives proves the path exists
-        assert time.monotonic() < deadline, "the rclpy publisher never reached the SDK"
+
+    def probe_arrived() -> bool:  # discovery: the first probe that arrives proves the path
         peer.call("publish", handle=handle, values=[probe])
         with contextlib.suppress(TimeoutError):
             got.append(ch.read(0.1))
+        return bool(got)
+
+    wait_until(probe_arrived, "the rclpy publisher to reach the SDK", timeout=TIMEOUT,
+               interval=0.0)
     peer.call("publish", handle=handle, values=values)
     assert _read_until(ch, _tail_is(values), got), got
     probe_seen = got[0]
@@ -208,10 +212,9 @@ def test_sdk_publisher_to_rclpy_subscriber(
     reliability = "best_effort" if transport == "udp" else "reliable"
     handle = peer.call("sub", topic=topic, type=msg_type, field=field, reliability=reliability)
     out = sdk.publish(topic, msg_type, field, transport=transport)  # type: ignore[arg-type]
-    deadline = time.monotonic() + TIMEOUT
-    while not peer.wait_messages(handle, bool, 0.1):
-        assert time.monotonic() < deadline, "the SDK's publisher never reached the rclpy node"
-        out.write(probe)
+    wait_until(lambda: peer.wait_messages(handle, bool, 0.1),
+               "the SDK's publisher to reach the rclpy node", timeout=TIMEOUT, interval=0.0,
+               between=lambda: out.write(probe))
     for value in values:
         out.write(value)
     expected = values if seen is None else seen
@@ -230,12 +233,14 @@ def test_whole_message_in_and_field_out_on_one_topic(
     out = sdk.publish(topic, twist, "linear.x", transport="tcp")
     handle = peer.call("sub", topic=topic, type=twist, field=None)
     got: list[Any] = []
-    deadline = time.monotonic() + TIMEOUT
-    while not (got and peer.messages(handle)):
-        assert time.monotonic() < deadline, "the binding never reached the rclpy node"
+
+    def write_and_read() -> None:
         out.write(0.0)
         with contextlib.suppress(TimeoutError):
             got.append(whole.read(0.1))
+
+    wait_until(lambda: got and peer.messages(handle), "the binding to reach the rclpy node",
+               timeout=TIMEOUT, interval=0.0, between=write_and_read)
     out.write(0.5)
     expected = {"linear": {**ZERO3, "x": 0.5}, "angular": ZERO3}
     assert _read_until(whole, _tail_is([expected]), got), got
@@ -246,10 +251,8 @@ def test_whole_message_in_and_field_out_on_one_topic(
 
 
 def _wait_graph_type(sdk: Bridge, topic: str, msg_type: str) -> None:
-    deadline = time.monotonic() + TIMEOUT
-    while [topic, msg_type] not in [list(t) for t in sdk.server_stats()["topics"]]:
-        assert time.monotonic() < deadline, f"{topic} never showed up in the server's graph"
-        time.sleep(0.05)
+    wait_until(lambda: [topic, msg_type] in [list(t) for t in sdk.server_stats()["topics"]],
+               f"{topic} in the server's graph", timeout=TIMEOUT, interval=0.05)
 
 
 def test_binding_errors_over_the_wire_leave_the_session_working(
@@ -289,12 +292,14 @@ def test_binding_errors_over_the_wire_leave_the_session_working(
     echo = sdk.subscribe(ours, "std_msgs/msg/Float64", "data", transport="tcp", blocking=True,
                          buffer_size=64)
     got: list[Any] = []
-    deadline = time.monotonic() + TIMEOUT
-    while 42.0 not in got:
-        assert time.monotonic() < deadline, f"no round trip after the errors: {got}"
+
+    def round_trip() -> None:
         held.write(42.0)
         with contextlib.suppress(TimeoutError):
             got.append(echo.read(0.1))
+
+    wait_until(lambda: 42.0 in got, "a round trip after the errors", timeout=TIMEOUT,
+               interval=0.0, between=round_trip)
     sdk.unsubscribe(echo)
     sdk.unsubscribe(held)
 
@@ -310,10 +315,9 @@ def test_sdk_qos_reaches_the_ros_graph(
                        reliability="reliable")
     out = sdk.publish(topic, "std_msgs/msg/Float64", transport="udp", reliability="reliable",
                       depth=5)
-    deadline = time.monotonic() + TIMEOUT
-    while not peer.wait_messages(handle, bool, 0.1):
-        assert time.monotonic() < deadline, "a reliable SDK publisher never reached rclpy"
-        out.write(1.5)
+    wait_until(lambda: peer.wait_messages(handle, bool, 0.1),
+               "a reliable SDK publisher to reach rclpy", timeout=TIMEOUT, interval=0.0,
+               between=lambda: out.write(1.5))
     assert peer.wait_messages(handle, lambda got: 1.5 in got, TIMEOUT), peer.messages(handle)
     sdk.unsubscribe(out)
     peer.call("close", handle=handle)

@@ -25,6 +25,7 @@ import pytest
 from contract import Collector
 
 from rlbridge.adapters.base import BindingError, QoS
+from waiting import wait_until
 
 if TYPE_CHECKING:
     from ros_peers import PeerProcess
@@ -95,21 +96,23 @@ def _probe_for(adapter: Any, msg_type: str, field: str | None, probe: Any) -> An
 
 
 def _sync_into_adapter(peer: PeerProcess, handle: int, sink: Collector, probe: Any) -> None:
-    deadline = time.monotonic() + TIMEOUT
-    while time.monotonic() < deadline:
+
+    def arrived() -> bool:
         peer.call("publish", handle=handle, values=[probe])
-        if sink.wait_for_count(1, 0.05):
-            return
-    pytest.fail("the peer's publisher never reached the adapter (discovery?)")
+        return sink.wait_for_count(1, 0.05)
+
+    wait_until(arrived, "the peer's publisher to reach the adapter (discovery?)",
+               timeout=TIMEOUT, interval=0.0)
 
 
 def _sync_into_peer(peer: PeerProcess, handle: int, pub: Any, probe: Any) -> None:
-    deadline = time.monotonic() + TIMEOUT
-    while time.monotonic() < deadline:
+
+    def arrived() -> bool:
         pub.publish([probe])
-        if peer.wait_messages(handle, bool, 0.05):
-            return
-    pytest.fail("the adapter's publisher never reached the peer (discovery?)")
+        return peer.wait_messages(handle, bool, 0.05)
+
+    wait_until(arrived, "the adapter's publisher to reach the peer (discovery?)",
+               timeout=TIMEOUT, interval=0.0)
 
 
 def _tail_is(expected: list[Any]) -> Callable[[list[Any]], bool]:
@@ -133,7 +136,7 @@ def test_peer_publisher_to_adapter(
     handle = peer.call("pub", topic=topic, type=msg_type, field=field)
     _sync_into_adapter(peer, handle, sink, probe)
     peer.call("publish", handle=handle, values=values)
-    assert sink.wait_until(_tail_is(values), TIMEOUT), sink.values
+    assert sink.wait_values(_tail_is(values), TIMEOUT), sink.values
     received = sink.values
     assert all(v == probe for v in received[: len(received) - len(values)])
     sub.close()
@@ -180,10 +183,8 @@ def test_type_clash_with_a_topic_of_another_process(
 ) -> None:
     topic = unique_topic("theirs")
     handle = peer.call("pub", topic=topic, type="std_msgs/msg/Float64")
-    deadline = time.monotonic() + TIMEOUT
-    while (topic, "std_msgs/msg/Float64") not in adapter.topics():
-        assert time.monotonic() < deadline, "the peer's topic never showed up in the graph"
-        time.sleep(0.02)
+    wait_until(lambda: (topic, "std_msgs/msg/Float64") in adapter.topics(),
+               "the peer's topic in the graph", timeout=TIMEOUT, interval=0.02)
     with pytest.raises(BindingError) as info:
         adapter.subscribe(topic, "std_msgs/msg/Int32", "data", QoS(), Collector())
     assert info.value.code == "TYPE_CLASH"
@@ -336,10 +337,9 @@ def test_stalled_reader_does_not_block_publish(
         f"worst batch of 100 {worst * 1e3:.1f} ms"
     )
     assert pub.published - before == 3000
-    deadline = time.monotonic() + 3 * TIMEOUT
-    while not peer.wait_messages(handle, lambda v: bool(v) and v[-1] == -7, 0.2):
-        assert time.monotonic() < deadline, "the resumed reader never got a new value"
-        pub.publish([-7])
+    wait_until(lambda: peer.wait_messages(handle, lambda v: bool(v) and v[-1] == -7, 0.2),
+               "the resumed reader to get a new value", timeout=3 * TIMEOUT, interval=0.0,
+               between=lambda: pub.publish([-7]))
     pub.close()
     peer.call("close", handle=handle)
 

@@ -10,7 +10,6 @@ only in the ROS graph, with no rlbridge link of their own (docs/ros2.md).
 from __future__ import annotations
 
 import secrets
-import time
 from collections.abc import Iterator
 from contextlib import suppress
 
@@ -19,6 +18,7 @@ from reach_netns import remove_namespace, require_netns, ros_env, start_server
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.netem import netns
+from waiting import wait_until
 
 pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(180)]
 
@@ -65,13 +65,16 @@ def test_a_value_crosses_from_one_server_to_the_other(
         inbox = reader.subscribe("/h16a/shared", "std_msgs/msg/Float64", transport="tcp",
                                  blocking=True)
         out = writer.publish("/h16a/shared", "std_msgs/msg/Float64", transport="tcp")
-        deadline = time.monotonic() + 60
-        got = None
-        while got is None and time.monotonic() < deadline:  # discovery across the "LAN"
+
+        def arrived() -> float | None:  # discovery across the "LAN"
             out.write(42.5)
             with suppress(TimeoutError):
-                got = inbox.read(timeout=0.2)
-        assert got == 42.5
+                got: float = inbox.read(timeout=0.2)
+                return got
+            return None
+
+        assert wait_until(arrived, "a value across the two servers", timeout=60,
+                          interval=0.0) == 42.5
         topics = dict(reader.server_stats()["topics"])
         assert topics["/h16a/shared"] == "std_msgs/msg/Float64"
     finally:

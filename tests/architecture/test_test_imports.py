@@ -44,3 +44,11 @@ def test_module_names_are_unique_across_test_directories() -> None:
             seen[path.stem].append(str(path.relative_to(TESTS)))
     clashes = {name: paths for name, paths in seen.items() if len(paths) > 1}
     assert not clashes, f"one module name in two test directories (rename one): {clashes}"
+
+
+def test_one_wait_until_helper() -> None:
+    """Tests wait the one way (tests/waiting.py): no module defines its own ``wait_until``."""
+    own = [str(p.relative_to(TESTS)) for p in _python_files() if p.name != "waiting.py"
+           and any(isinstance(node, ast.FunctionDef) and node.name == "wait_until"
+                   for node in ast.parse(p.read_text(), filename=str(p)).body)]
+    assert not own, f"define no wait_until of your own, import it from waiting: {own}"

@@ -23,8 +23,8 @@ from link_helpers import WAIT, wait_for
 
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
+from rlbridge.csp.connection import Connection
 from rlbridge.csp.errors import RealTimeWarning
-from rlbridge.csp.inline_round import InlineRounds
 from rlbridge.csp.process import Code
 from rlbridge.csp.sender import SendLoop
 from rlbridge.server import ServerThread
@@ -334,11 +334,10 @@ def test_a_full_socket_buffer_hands_the_round_over_and_loses_nothing(
 def test_a_handed_over_round_of_an_ended_session_is_counted() -> None:
     """The hand-over is for the packer (session) it was taken for; a new session's round
     counts it as a failed round instead of sending old sequence numbers."""
-    # SendLoop's inline part alone (no connection); real packers: the compiled module
-    # (rlbridge/_compiled.py) checks the types of what it is given.
-    loop = InlineRounds()
-    loop._init_inline()
-    loop.send_errors = 0
+    # A send loop of a connection never opened (its thread never started); real packers: the
+    # compiled module (rlbridge/_compiled.py) checks the types of what it is given.
+    conn = Connection("127.0.0.1", 9, name="handoff", nodelay=True, control="tcp", timeout=5.0)
+    loop = SendLoop(conn, rate_hz=None, max_batch=64)
     old, new = (DatagramPacker(PacketCodec(), 1, 1400, lambda _: None) for _ in range(2))
     loop._handoff = (old, [("part",)])
     parts: list[Any] = []
@@ -350,3 +349,5 @@ def test_a_handed_over_round_of_an_ended_session_is_counted() -> None:
     loop._take_handoff(new, parts)
     assert parts == [("part",)]
     assert loop.send_errors == 1
+    conn._wake_r.close()
+    conn._wake_w.close()

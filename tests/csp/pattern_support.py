@@ -7,32 +7,18 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import pytest
-
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
+from waiting import WAIT, wait_until
 
 F64 = "std_msgs/msg/Float64"
-WAIT = 10.0  # generous bound for anything that should take milliseconds
-
-
-def wait_until(predicate: Callable[[], bool], what: str, timeout: float = WAIT) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.005)
+__all__ = ["F64", "WAIT", "collect", "drain", "publish_until", "wait_until"]
 
 
 def publish_until(peer: Bridge, topic: str, value: float, seen: Callable[[], bool]) -> None:
     """Publish ``value`` every 10 ms until the loop has seen it (UDP may drop one)."""
     out = peer.publish(topic, F64, transport="udp")
-    deadline = time.monotonic() + WAIT
-    while not seen():
-        if time.monotonic() > deadline:
-            pytest.fail(f"the loop never saw {value} on {topic}")
-        out.write(value)
-        time.sleep(0.01)
+    wait_until(seen, f"the loop to see {value} on {topic}", between=lambda: out.write(value))
 
 
 def collect(channel: IncomingChannel, count: int) -> list[Any]:

@@ -21,6 +21,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -37,6 +38,7 @@ from rlbridge.netem import (
 )
 from rlbridge.netem.netns import create_namespace, delete_namespace, list_namespaces
 from rlbridge.netem.probe import measure_overhead, summarize, udp_ping_pong
+from waiting import wait_until
 
 pytestmark = [pytest.mark.netem, pytest.mark.timeout(60)]
 
@@ -128,6 +130,12 @@ def test_one_direction_only(udp_pair: UdpPair) -> None:
     assert stats.a_to_b.delivered == stats.b_to_a.delivered == 40
 
 
+def _stats_when(link: EmulatedLink, done: Callable[[Any], bool]) -> Any:
+    """The link's counters if ``done`` says they are complete, else None (ask again)."""
+    stats = link.stats()
+    return stats if done(stats) else None
+
+
 def test_seeded_loss_is_counted_by_relay_and_seen_by_receiver(udp_pair: UdpPair) -> None:
     count, seed = 400, 7
     with EmulatedLink(loss_pct=10.0, seed=seed, direction="a_to_b") as link:
@@ -135,9 +143,8 @@ def test_seeded_loss_is_counted_by_relay_and_seen_by_receiver(udp_pair: UdpPair)
         b.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 4 << 20)
         for seq in range(count):
             a.sendto(struct.pack("!I", seq), b.getsockname())
-        deadline = time.monotonic() + 10.0
-        while (stats := link.stats()).a_to_b.received < count and time.monotonic() < deadline:
-            time.sleep(0.01)
+        stats = wait_until(lambda: _stats_when(link, lambda s: s.a_to_b.received >= count),
+                           f"the relay to take all {count} datagrams")
         b.setblocking(False)
         received = set()
         with contextlib.suppress(BlockingIOError):
@@ -164,13 +171,15 @@ def test_flood_every_packet_is_accounted_for(udp_pair: UdpPair) -> None:
         b.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 16 << 20)
         for _ in range(count):
             a.sendto(bytes(64), b.getsockname())
-        deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline:
+
+        def accounted() -> tuple[Any, int] | None:
             stats = link.stats()
             dropped_a, _ = link.kernel_drops()
-            if stats.a_to_b.received + dropped_a >= count and stats.a_to_b.in_flight == 0:
-                break
-            time.sleep(0.05)
+            done = stats.a_to_b.received + dropped_a >= count and stats.a_to_b.in_flight == 0
+            return (stats, dropped_a) if done else None
+
+        stats, dropped_a = wait_until(accounted, "every packet to be accounted for",
+                                      interval=0.05)
     assert stats.a_to_b.received + dropped_a == count
     assert stats.a_to_b.delivered == stats.a_to_b.received
 

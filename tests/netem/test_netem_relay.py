@@ -21,6 +21,7 @@ from rlbridge.netem import control
 from rlbridge.netem.impairment import DropReason, Impairment, PathModel
 from rlbridge.netem.relay import Relay
 from rlbridge.netem.stats import DirectionCounters
+from waiting import wait_until
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -108,6 +109,14 @@ def test_delays_one_direction_and_keeps_order(make_relay: MakeRelay) -> None:
     assert reply.stats.a_to_b.in_flight == 0
 
 
+def _stats_once(h: Harness, done: Callable[[control.StatsReply], bool]
+                ) -> control.StatsReply | None:
+    """The relay's counters if ``done`` says they are complete, else None (ask again)."""
+    reply = h.request(control.GetStats())
+    assert isinstance(reply, control.StatsReply)
+    return reply if done(reply) else None
+
+
 def test_loss_is_counted_and_matches_the_model(make_relay: MakeRelay) -> None:
     imp = Impairment(loss_pct=30.0)
     h = make_relay(imp, Impairment())
@@ -119,13 +128,8 @@ def test_loss_is_counted_and_matches_the_model(make_relay: MakeRelay) -> None:
     expected_lost = {
         seq for seq in range(200) if not isinstance(expected_model.admit(0.0, 4), float)
     }
-    deadline = time.monotonic() + 5.0
-    while True:
-        reply = h.request(control.GetStats())
-        assert isinstance(reply, control.StatsReply)
-        if reply.stats.a_to_b.received == 200 or time.monotonic() > deadline:
-            break
-        time.sleep(0.01)
+    reply = wait_until(lambda: _stats_once(h, lambda r: r.stats.a_to_b.received == 200),
+                       "the relay to take all 200 datagrams")
     assert reply.stats.a_to_b.dropped_loss == len(expected_lost)
     h.app_b.setblocking(False)
     got = set()
@@ -186,14 +190,8 @@ def test_write_errors_are_counted(make_relay: MakeRelay) -> None:
     h.app_b.shutdown(socket.SHUT_RDWR)  # B's "TUN" can no longer take packets
     os.set_blocking(h.app_a.fileno(), True)
     h.app_a.send(b"x")
-    deadline = time.monotonic() + 5.0
-    while time.monotonic() < deadline:
-        reply = h.request(control.GetStats())
-        assert isinstance(reply, control.StatsReply)
-        if reply.stats.a_to_b.received:
-            break
-        time.sleep(0.01)
-    assert isinstance(reply, control.StatsReply)
+    reply = wait_until(lambda: _stats_once(h, lambda r: r.stats.a_to_b.received > 0),
+                       "the relay to take the datagram")
     stats = reply.stats.a_to_b
     assert stats.received == 1
     assert stats.delivered + stats.write_errors == 1

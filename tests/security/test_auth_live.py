@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import socket
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from rlbridge.wire import (
     Value,
 )
 from rlbridge.wire.auth import SealedCodec
+from waiting import wait_until
 
 F64 = "std_msgs/msg/Float64"
 KEY = bytes(range(32))
@@ -87,9 +87,7 @@ def test_wrong_key_is_refused_and_counted(psk_server: ServerThread, control: Any
     assert "could not prove it knows the pre-shared key" in str(exc.value)
     assert isinstance(exc.value, ConnectionFailed)  # the session did not open
     # The client refused first and told the server why: it counts the failure too.
-    deadline = time.monotonic() + WAIT
-    while counters(psk_server).get("auth_failed", 0) < 1 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: counters(psk_server).get("auth_failed", 0) >= 1, "the server to count it")
     assert counters(psk_server)["auth_failed"] == 1
     assert len(psk_server.server.registry or []) == 0
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import datetime
 import socket
 import ssl
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from rlbridge.server import ServerThread
 from rlbridge.tls.certs import Issued, init_server, issue, make_ca
 from rlbridge.wire import PROTOCOL_VERSION, ConnectError, Hello, PacketCodec, Value
 from rlbridge.wire.seal import SealedCodec
+from waiting import wait_until
 
 F64 = "std_msgs/msg/Float64"
 WAIT = 10.0
@@ -32,13 +32,6 @@ def write(issued: Issued, directory: Path, stem: str) -> tuple[Path, Path]:
     cert, key = directory / f"{stem}.crt", directory / f"{stem}.key"
     issued.write(cert, key)
     return cert, key
-
-
-def wait_until(predicate: Callable[[], object]) -> None:
-    deadline = time.monotonic() + WAIT
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
 
 
 def counters(srv: ServerThread) -> dict[str, int]:
@@ -280,16 +273,16 @@ def test_a_protected_session_reconnects_with_fresh_keys(
         second = ServerThread(config.model_copy(update={"port": port})).start()
         try:
             wait_until(lambda: bridge.reconnects >= 1 and bridge.state == "connected")
-            deadline = time.monotonic() + WAIT
-            got = None
-            while got != 9.0:  # values flow again over the new session's TCP and UDP
-                assert time.monotonic() < deadline, "no value after the reconnect"
+
+            def flows_again() -> bool:  # values flow over the new session's TCP and UDP
                 out.write(9.0)
                 bridge.send(wait=True)
                 try:
-                    got = inp.read(timeout=0.2)
+                    return inp.read(timeout=0.2) == 9.0
                 except TimeoutError:
-                    continue
+                    return False
+
+            wait_until(flows_again, "a value after the reconnect")
         finally:
             bridge.close()
             second.stop()

@@ -30,6 +30,7 @@ from rlbridge.wire import (
     TopicConnect,
     Value,
 )
+from waiting import wait_until
 
 STR = "std_msgs/msg/String"
 F64 = "std_msgs/msg/Float64"
@@ -112,19 +113,23 @@ def _publish_burst(raw_tcp: Callable[..., Any], topic: str) -> list[str]:
 
 def _wait_server(srv: ServerThread, pred: Callable[[dict[str, Any]], bool]) -> dict[str, Any]:
     """Poll the server's own per-channel counters (through the session objects)."""
-    deadline = time.monotonic() + WAIT
-    while True:
+    seen: list[dict[str, Any]] = [{}]
+
+    def counters() -> dict[str, Any] | None:
         registry = srv.server.registry
         assert registry is not None
         sessions = [s for s in list(registry) if s.outbound]
         chans = [o for s in sessions for o in list(s.outbound.values())]
-        counters: dict[str, Any] = {}
-        if chans:
-            counters = chans[0].health(-1)
-            if pred(counters):
-                return counters
-        assert time.monotonic() < deadline, f"server counters stuck at {counters}"
-        time.sleep(0.02)
+        if not chans:
+            return None
+        seen[0] = chans[0].health(-1)
+        return seen[0] if pred(seen[0]) else None
+
+    try:
+        found: dict[str, Any] = wait_until(counters, "the server's counters", interval=0.02)
+    except AssertionError:
+        raise AssertionError(f"server counters stuck at {seen[0]}") from None
+    return found
 
 
 def test_latest_tcp_channel_skips_the_backlog_of_a_stalled_reader(

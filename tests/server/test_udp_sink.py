@@ -7,6 +7,8 @@ import socket
 from collections.abc import Iterator
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from rlbridge.server.sinks import UdpSink
 from rlbridge.wire import Batch, Error, Packet, PacketCodec, Value
@@ -130,3 +132,55 @@ def test_corked_values_are_byte_for_byte_the_packers(rx: socket.socket,
     assert sink.datagrams == len(expected) - sum(
         not isinstance(p, Value | Batch) for r in rounds for p in r)
     assert sink.dropped == 0
+
+
+scalars = st.one_of(st.floats(allow_nan=False), st.integers(-(2**63), 2**63 - 1),
+                    st.booleans(), st.text(max_size=20))
+
+
+@st.composite
+def sink_packets(draw: st.DrawFn) -> Packet:
+    kind = draw(st.integers(0, 5))
+    channel, seq = draw(st.integers(0, 300)), draw(st.integers(0, 2**40))
+    if kind == 0:
+        return Error(draw(st.integers(1, 9)), "why", channel)
+    if kind == 1:
+        vals = draw(st.lists(scalars, min_size=1, max_size=4))
+        return Batch(channel, seq, [draw(st.integers(0, 2**62))] * len(vals), vals)
+    return Value(channel, seq, draw(st.integers(0, 2**62)), draw(scalars))
+
+
+@pytest.mark.parity("rlbridge.server.sinks.UdpSink.send")
+@settings(deadline=None, max_examples=60, suppress_health_check=[HealthCheck.too_slow])
+@given(rounds=st.lists(st.lists(sink_packets(), max_size=12), min_size=1, max_size=3),
+       sealed=st.booleans(), budget=st.sampled_from([256, 1400]))
+def test_any_rounds_leave_as_the_codecs_and_the_packers_datagrams(
+        rounds: list[list[Packet]], sealed: bool, budget: int) -> None:
+    """The sink's own encodings (a header packed once, numbers corked unencoded) against
+    the codec's ``encode_datagram`` and the packer's ``add``, for any loop iterations."""
+    codec = _codec(sealed)
+    expected = _reference(_codec(sealed), TOKEN, budget, rounds)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", 0))
+        rx.settimeout(10.0)
+
+        async def send_all() -> None:
+            transport = await _transport()
+            try:
+                sink = UdpSink(transport, codec, TOKEN, rx.getsockname(), budget,
+                               asyncio.get_running_loop())
+                sink.bundles = True
+                for packets in rounds:
+                    for p in packets:
+                        assert sink.send(p, data=isinstance(p, Value | Batch))
+                    await asyncio.sleep(0)  # the iteration ends: the corked values leave
+                    await asyncio.sleep(0)
+            finally:
+                transport.close()
+
+        asyncio.run(send_all())
+        got = [rx.recv(65536) for _ in expected]
+        rx.setblocking(False)
+        with pytest.raises(BlockingIOError):  # and nothing more
+            rx.recv(65536)
+    assert got == expected

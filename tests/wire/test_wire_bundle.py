@@ -100,6 +100,7 @@ def as_tuple(packet: Value | Batch) -> tuple[Any, ...]:
     return (BATCH_TAG, packet.channel, packet.first_seq, packet.stamps, packet.values)
 
 
+@pytest.mark.parity("rlbridge.wire.bundle.DatagramPacker.send_parts")
 @PROPS
 @given(st.lists(parts(), min_size=1, max_size=30), st.integers(200, 1500), st.booleans())
 def test_a_round_in_one_call_is_byte_for_byte_the_bundle_of_its_parts(

@@ -1,4 +1,9 @@
-"""``rlbridge bench ...``: thin typer commands over the benchmark modules."""
+"""``rlbridge bench ...``: thin typer commands over the benchmark modules.
+
+A report goes to stdout and nowhere else unless ``--out FILE`` asks: run from a checkout, a
+default file would rewrite committed pages; run anywhere else, it would create one in the
+user's directory.
+"""
 
 from __future__ import annotations
 
@@ -8,10 +13,13 @@ from typing import Annotated
 
 import typer
 
-bench_app = typer.Typer(help="Measure rlbridge next to a baseline from the same run.",
+bench_app = typer.Typer(help="Measure rlbridge next to a baseline from the same run. The report "
+                        "goes to stdout; --out FILE also writes it into FILE.",
                         no_args_is_help=True)
 
-Out = Annotated[Path, typer.Option("--out", help="Markdown file the figures are written to.")]
+Out = Annotated[Path | None, typer.Option(
+    "--out", help="Also write the report into this markdown file (its own section replaced or "
+    "appended, the rest kept). Default: stdout only, no file written.")]
 
 
 @bench_app.command("ros2")
@@ -25,7 +33,7 @@ def ros2(
     = "latency,throughput",
     only: Annotated[str, typer.Option(help="Rows: rclpy, in-tcp, in-udp, out-tcp, out-udp.")]
     = "",
-    out: Out = Path("docs/ros2.md"),
+    out: Out = None,
 ) -> None:
     """Values/s and latency through the ROS 2 adapter, next to rclpy node -> node (same run)."""
     from rlbridge.bench import ros2 as r2
@@ -52,8 +60,9 @@ def _command(ctx: typer.Context) -> list[str]:
     return args
 
 
-def _run(name: str, measure: Callable[[], str], out: Path) -> None:
-    """Run, print the markdown, write its section of ``out``; a failed run is one line."""
+def _run(name: str, measure: Callable[[], str], out: Path | None) -> None:
+    """Run, print the markdown (and write its section of ``out`` if given); a failed run is
+    one line."""
     from rlbridge.bench.common import BenchError, write_section
 
     try:
@@ -62,7 +71,8 @@ def _run(name: str, measure: Callable[[], str], out: Path) -> None:
         typer.echo(f"rlbridge bench {name}: error: {exc}", err=True)
         raise typer.Exit(1) from None
     typer.echo(text)
-    write_section(out, name, text)
+    if out is not None:
+        write_section(out, name, text)
 
 
 def _keys(only: str) -> tuple[str, ...]:
@@ -84,7 +94,7 @@ def throughput(
                                       "rlb-tcp-slow-flow, "
                                       "rlb-tcp-slow-noflow, rlb-tcp-send, rlb-tcp-send-spin, "
                                       "rlb-tcp-send-wait, rlb-tcp-send-wait-spin.")] = "",
-    out: Out = Path("docs/benchmarks.md"),
+    out: Out = None,
 ) -> None:
     """Values/s publisher -> server -> subscriber (TCP, UDP), next to UDP/ZeroMQ/Zenoh."""
     from rlbridge.bench import throughput as tp
@@ -103,7 +113,7 @@ def feedback(
     seconds: Annotated[float, typer.Option(help="Flood length per run.")] = 2.0,
     repeats: Repeats = 5,
     only: Annotated[str, typer.Option(help=_ONLY + "flood, flood-adapt.")] = "",
-    out: Out = Path("docs/benchmarks.md"),
+    out: Out = None,
 ) -> None:
     """How soon a UDP flood's first-hop loss shows in the publisher's health() (target 1 s)."""
     from rlbridge.bench import feedback as fb
@@ -125,7 +135,7 @@ def latency(
     = "1000,100",
     only: Annotated[str, typer.Option(help=_ONLY + "udp, zmq, rlb-udp, rlb-udp-inline, "
                                       "rlb-tcp-nodelay, rlb-tcp-nagle.")] = "",
-    out: Out = Path("docs/benchmarks.md"),
+    out: Out = None,
     transport: Annotated[str | None, typer.Option(
         help="tcp (Nagle), tcpn (nodelay both ends), udp or all: measure across the emulated "
              "link (root) instead of loopback.")] = None,
@@ -190,7 +200,7 @@ def cpu(
     rate: Annotated[float, typer.Option(help="Values/s per channel.")] = 1000.0,
     seconds: Annotated[float, typer.Option(help="Length of each run.")] = 10.0,
     repeats: Repeats = 3,
-    out: Out = Path("docs/benchmarks.md"),
+    out: Out = None,
 ) -> None:
     """CPU per value of one SDK client with many UDP channels: SDK and server; bundled or
     not, send() per tick or the SDK's send loop."""
@@ -231,7 +241,7 @@ def load(
     slow_topics: Annotated[int, typer.Option(help="Topics the slow consumer subscribes.")]
     = 100,
     udp_receive_buffer: ServerRcvbuf = 32 << 20,
-    out: Out = Path("docs/load.md"),
+    out: Out = None,
 ) -> None:
     """100 clients x 10 channels x 100 Hz on one server, and a consumer that stops reading."""
     from rlbridge.bench import load as ld
@@ -246,7 +256,7 @@ def load(
 
 
 def _latency_stages(ctx: typer.Context, strategies: tuple[str, ...], seconds: float,
-                    repeats: int, rate_hz: float, out: Path) -> None:
+                    repeats: int, rate_hz: float, out: Path | None) -> None:
     from rlbridge.bench import latency_stages as st
     from rlbridge.bench.common import LoopbackLink, progress
 

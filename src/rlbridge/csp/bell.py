@@ -1,10 +1,10 @@
-"""The send thread's doorbell: one waiter, woken through a lock instead of a condition.
+"""The send thread's doorbell: one waiter, so one lock that is the gate.
 
-Why not :class:`~rlbridge.csp.channel.Doorbell`: that is a ``threading.Condition``. Every
-ring takes its lock and runs ``notify_all`` in Python; every wait allocates a waiter lock,
-queues it, and takes the condition's lock again after waking: several microseconds of
-Python per wake-up, paid at every ``Bridge.send()`` by the control loop and again by the send
-thread. The send thread is this bell's only waiter, so a binary semaphore does the job: a
+Why not :class:`~rlbridge.csp.doorbell.Doorbell`: that one serves any number of waiters, so
+every ring takes its lock and releases each listed waiter's gate, and every wait allocates a
+gate, lists it under the lock and takes the lock again to leave: a few Python-level lock
+operations per wake-up, paid at every ``Bridge.send()`` by the control loop and again by the
+send thread. The send thread is this bell's only waiter, so a binary semaphore does the job: a
 ``threading.Lock`` that is *held* while no ring is pending. :meth:`SendBell.ring` releases
 it (one C call; the futex wake happens only when the thread sleeps on it) and
 :meth:`SendBell.wait_for` acquires it, with a timeout.

@@ -213,6 +213,7 @@ class Receiver:
         """A bundle's parts, each as if it had come alone: ``_gather`` inlined for a
         ``Value`` that starts or continues its channel's run (nearly every part), and a
         ``Batch``'s lists given away (the packet is dropped after this)."""
+        # inlines: Receiver._gather
         runs = self._runs
         for part in parts:
             if isinstance(part, Value):
@@ -259,6 +260,7 @@ class Receiver:
     def _stream(self, packets: list[Packet | Malformed]) -> None:
         """One TCP read's packets, in order. A ``Value`` that continues its channel's run
         (nearly every one) joins it right here, without ``_dispatch`` and ``_gather``."""
+        # inlines: Receiver._dispatch, Receiver._gather
         link = self._conn.link
         assert link is not None
         now = time.monotonic_ns()

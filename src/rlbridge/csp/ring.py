@@ -182,44 +182,56 @@ class SpscRing(Generic[T]):
         return count
 
     # -- consumer ---------------------------------------------------------------------
+    # Every way of taking values (here, and StampedRing's pairs) is the same seqlock step:
+    # _unread (skip what the producer lapped), copy the slots, _settle (the claim check,
+    # then the tail). The step exists once, in these two methods.
 
-    def pop(self) -> T | Empty:
-        """Take the oldest unread value, or return :data:`EMPTY`."""
-        cap = self._cap
-        tail = self._tail
-        while True:
-            head = self._head
-            if head == tail:
-                return EMPTY
-            lost = head - cap - tail
-            if lost > 0:  # the producer lapped us: skip what it overwrote
-                self._skipped += lost
-                tail += lost
-                self._tail = tail
-            value = self._slots[tail % cap]
-            lost = self._claim - cap - tail
-            if lost <= 0:
-                self._tail = tail + 1
-                return value  # type: ignore[return-value]  # slot holds a T once written
-            # The slot was being overwritten while we read it (seqlock check failed).
-            self._skipped += lost
-            tail += lost
-            self._tail = tail
-
-    def drain_into(self, out: list[T], max_items: int | None = None) -> int:
-        """Append up to ``max_items`` unread values to ``out``; return how many."""
-        cap = self._cap
+    def _unread(self, max_items: int | None) -> tuple[int, int]:
+        """Consumer, before copying: ``(sequence of the oldest value still stored, how many
+        of them to copy)``; what the producer lapped is counted as overwritten."""
         tail = self._tail
         head = self._head
-        lost = head - cap - tail
-        if lost > 0:
+        lost = head - self._cap - tail
+        if lost > 0:  # the producer lapped us: skip what it overwrote
             self._skipped += lost
             tail += lost
         count = head - tail
-        if max_items is not None:
-            count = min(count, max_items)
+        if max_items is not None and count > max_items:
+            count = max(max_items, 0)
+        return tail, count
+
+    def _settle(self, tail: int, count: int) -> int:
+        """Consumer, after copying ``count`` slots from sequence ``tail``: the seqlock check.
+
+        Returns how many of the copied values, from the first, the producer was overwriting
+        meanwhile (the caller discards them: they may be torn); the tail moves past all of
+        them, and the discarded ones are counted as overwritten.
+        """
+        lost = self._claim - self._cap - tail
+        if lost <= 0:
+            self._tail = tail + count
+            return 0
+        self._skipped += lost
+        self._tail = tail + max(lost, count)
+        return min(lost, count)
+
+    def pop(self) -> T | Empty:
+        """Take the oldest unread value, or return :data:`EMPTY`."""
+        while True:
+            tail, count = self._unread(1)
+            if not count:
+                return EMPTY
+            value = self._slots[tail % self._cap]
+            if not self._settle(tail, 1):
+                return value  # type: ignore[return-value]  # slot holds a T once written
+            # The slot was being overwritten while we read it: skipped, try the next one.
+
+    def drain_into(self, out: list[T], max_items: int | None = None) -> int:
+        """Append up to ``max_items`` unread values to ``out``; return how many."""
+        tail, count = self._unread(max_items)
         start = len(out)
-        if count > 0:
+        if count:
+            cap = self._cap
             slots = self._slots
             first = tail % cap
             stop = first + count
@@ -228,14 +240,10 @@ class SpscRing(Generic[T]):
             else:  # wraps around the end of the slot list
                 out.extend(slots[first:])  # type: ignore[arg-type]
                 out.extend(slots[: stop - cap])  # type: ignore[arg-type]
-        lost = self._claim - cap - tail  # values below claim - cap were overwritten
-        if lost > 0:
-            del out[start : start + min(lost, count)]
-            self._skipped += lost
-            self._tail = tail + max(lost, count)
-            return max(count - lost, 0)
-        self._tail = tail + count
-        return count
+        cut = self._settle(tail, count)
+        if cut:
+            del out[start : start + cut]
+        return count - cut
 
     def pop_many(self, max_items: int | None = None) -> list[T]:
         """Return up to ``max_items`` unread values as a new list (batch consumers)."""

@@ -7,6 +7,13 @@ connection's state, so they need its type; importing ``connection`` for it made 
 circle. They depend on this description instead, imports run one way (``connection`` ->
 parts -> ``session_owner``), and mypy checks that ``Connection`` fits wherever it hands itself
 over. A part that needs more of the connection adds the member here.
+
+Why a mirror and not ``from rlbridge.csp.connection import Connection`` (even under
+``TYPE_CHECKING``): ``connection`` imports every part that uses this (the handshake, the receive
+thread, the pending requests, the service calls and through them the actions and TLS), so the
+import would close a circle (tests/architecture/test_import_cycles.py counts type-only imports).
+The mirror can go once building a session's parts moves out of ``Connection`` into a module
+above both (issue 26's ``client/session/``).
 """
 
 from __future__ import annotations

@@ -96,6 +96,8 @@ class Inbound:
         reading), else now. The common case (the next sequence number, no credit, fresh, a
         value of the channel's type as it is) costs no Python call but the publish.
         """
+        # inlines: Inbound._admit, Inbound._track_age
+        # inlines: SequenceTracker.accept, InterarrivalJitter.add
         tracker = self.tracker
         seq = packet.seq
         if seq == tracker.highest + 1:  # in order: what SequenceTracker.accept does for it
@@ -261,6 +263,7 @@ class Outbound:
             self._pump()
             return
         if n == 1 and self._history is None:  # _emit's common case, without the call
+            # inlines: Outbound._emit, Outbound._send_run
             seq = self._seq
             self._seq = seq + 1
             self.values_out += 1

@@ -187,6 +187,7 @@ class UdpSink:
         return False
 
     def send(self, packet: Packet, *, data: bool = False) -> bool:
+        # inlines: PacketCodec.encode_datagram, DatagramPacker.add
         if self._transport.is_closing():
             self._dropped += data
             return False

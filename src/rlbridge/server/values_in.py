@@ -26,6 +26,7 @@ __all__ = ["bundle", "value_packet"]
 
 def bundle(session: SessionOwner, packet: Bundle, via: PacketSink | None) -> None:
     """Each part of a bundle as if it had come alone: one bad part loses only itself."""
+    # inlines: value_packet
     inbound = session.inbound
     wall = time.time_ns()
     fast = session.rate is None

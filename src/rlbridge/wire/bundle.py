@@ -159,6 +159,7 @@ class DatagramPacker:
         ``send`` replaces the packer's own for this datagram (a sender that must not wait);
         what it raises leaves ``parts`` as they were and counts no datagram.
         """
+        # inlines: DatagramPacker.add, DatagramPacker.flush
         n = len(parts)
         if not (n and self.bundles):
             return False
