@@ -1,0 +1,28 @@
+/* What rlb_pub and rlb_sub share: arguments, the key file and the real-time set-up. */
+#ifndef RLB_EXAMPLES_COMMON_H
+#define RLB_EXAMPLES_COMMON_H
+
+#include <pthread.h>
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "rlbridge.h"
+
+typedef struct args {
+    const char *host, *topic, *psk_file;
+    uint16_t port;
+    unsigned long count;
+    double number; /* RATE_HZ for rlb_pub, TIMEOUT_S for rlb_sub */
+    bool tcp;
+} args;
+
+/* Parses HOST PORT TOPIC COUNT NUMBER [--tcp] [--psk-file FILE]; exits 2 with usage. */
+void parse_args(int argc, char **argv, const char *usage, args *a);
+/* Fills cfg from a (and loads the key); exits 1 with one line if the key file is unusable. */
+void config_from(const args *a, const char *prog, const char *name, rlb_config *cfg,
+                 uint8_t key[RLB_MAX_KEY]);
+/* Starts fn as the loop thread: SCHED_FIFO (priority 80) when permitted, else normal.
+ * Locks memory first (mlockall) when permitted. Returns whether it got SCHED_FIFO. */
+bool start_rt_thread(pthread_t *t, void *(*fn)(void *), void *arg);
+
+#endif
