@@ -1,0 +1,179 @@
+"""The C client's example programs against a real ``rlbridge serve`` on loopback (issue 28).
+
+``rlb_pub`` publishes ``0 .. COUNT-1`` from a periodic loop; ``rlb_sub`` prints what it reads.
+Against the Python SDK on the other end, and against each other through the server, over UDP
+and TCP, with and without a pre-shared key: every value arrives, in order, none lost (the
+readers keep every value: a blocking SDK channel with room for all, ``rlb_sub``'s ring of
+COUNT). Then the server is killed and started again under a running ``rlb_sub``.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import pytest
+from c_programs import CProcess
+
+from rlbridge import Bridge
+
+COUNT = 200
+RATE_HZ = 400  # paced so that loopback keeps up on a loaded machine
+WAIT = 30.0
+FLOAT64 = "std_msgs/msg/Float64"
+
+Server = Callable[..., tuple[int, subprocess.Popen[str]]]
+
+
+@pytest.fixture(params=["plain", "psk"])
+def keyed(request: pytest.FixtureRequest, tmp_path: Path,
+          monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
+    """``[]`` or ``["--psk-file", FILE]``: the server's key file, given to the C programs too;
+    the SDK takes the same key from ``$RLBRIDGE_PSK``."""
+    if request.param == "plain":
+        monkeypatch.delenv("RLBRIDGE_PSK", raising=False)
+        yield []
+        return
+    key = os.urandom(32).hex()
+    path = tmp_path / "keys"
+    path.write_text(f"# test key\n{key}\n")
+    monkeypatch.setenv("RLBRIDGE_PSK", key)
+    yield ["--psk-file", str(path)]
+
+
+Transport = Literal["udp", "tcp"]
+
+
+@pytest.fixture(params=["udp", "tcp"])
+def transport(request: pytest.FixtureRequest) -> Transport:
+    return "tcp" if request.param == "tcp" else "udp"
+
+
+def _flag(transport: Transport) -> list[str]:
+    return ["--tcp"] if transport == "tcp" else []
+
+
+def _sub(c_build: Path, c_processes: list[CProcess], port: int, topic: str, count: int,
+         *extra: str, timeout_s: float = WAIT) -> CProcess:
+    proc = CProcess(str(c_build / "rlb_sub"), "127.0.0.1", str(port), topic, str(count),
+                    str(timeout_s), *extra)
+    c_processes.append(proc)
+    proc.wait_err("subscribed to")  # bound: from here on every value reaches it
+    return proc
+
+
+def _pub(c_build: Path, port: int, topic: str, count: int, *extra: str
+         ) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(c_build / "rlb_pub"), "127.0.0.1", str(port), topic, str(count),
+                           str(RATE_HZ), *extra],
+                          capture_output=True, text=True, timeout=120, check=False)
+
+
+def _connect(port: int, **kwargs: Any) -> Bridge:
+    return Bridge.connect("127.0.0.1", port, timeout=10.0, **kwargs)
+
+
+def test_rlb_pub_to_sdk_subscriber(c_build: Path, cli_server: Server, keyed: list[str],
+                                   transport: Transport) -> None:
+    port, _ = cli_server(*keyed)
+    topic = f"/c_pub_{transport}"
+    with _connect(port) as bridge:
+        channel = bridge.subscribe(topic, FLOAT64, transport=transport, blocking=True,
+                                   buffer_size=COUNT)
+        pub = _pub(c_build, port, topic, COUNT, *_flag(transport), *keyed)
+        assert pub.returncode == 0, pub.stderr
+        got = [channel.read(timeout=WAIT) for _ in range(COUNT)]
+    assert got == [float(i) for i in range(COUNT)]
+
+
+def test_sdk_publisher_to_rlb_sub(c_build: Path, cli_server: Server, keyed: list[str],
+                                  transport: Transport, c_processes: list[CProcess]) -> None:
+    port, _ = cli_server(*keyed)
+    topic = f"/c_sub_{transport}"
+    sub = _sub(c_build, c_processes, port, topic, COUNT, *_flag(transport), *keyed)
+    with _connect(port) as bridge:
+        channel = bridge.publish(topic, FLOAT64, transport=transport)
+        for i in range(COUNT):
+            channel.write(float(i))
+            time.sleep(1 / RATE_HZ)
+        assert sub.finish(timeout=WAIT + 10) == 0, sub.err
+    assert sub.values() == [float(i) for i in range(COUNT)]
+    assert "0 lost" in sub.err[-1]
+
+
+def test_rlb_pub_to_rlb_sub_through_the_server(c_build: Path, cli_server: Server,
+                                               keyed: list[str], transport: Transport,
+                                               c_processes: list[CProcess]) -> None:
+    port, _ = cli_server(*keyed)
+    topic = f"/c_both_{transport}"
+    sub = _sub(c_build, c_processes, port, topic, COUNT, *_flag(transport), *keyed)
+    pub = _pub(c_build, port, topic, COUNT, *_flag(transport), *keyed)
+    assert pub.returncode == 0, pub.stderr
+    assert sub.finish(timeout=WAIT + 10) == 0, sub.err
+    assert sub.values() == [float(i) for i in range(COUNT)]
+
+
+def test_no_server_is_exit_1_with_one_line(c_build: Path, free_port: Callable[[], int]) -> None:
+    pub = _pub(c_build, free_port(), "/nobody", 1)
+    assert pub.returncode == 1
+    assert pub.stderr.count("\n") == 1
+    assert "cannot connect" in pub.stderr
+
+
+def test_a_wrong_key_is_refused(c_build: Path, cli_server: Server, tmp_path: Path) -> None:
+    (tmp_path / "server").write_text(os.urandom(32).hex() + "\n")
+    (tmp_path / "client").write_text("rlb_pub " + os.urandom(32).hex() + "\n")
+    port, _ = cli_server("--psk-file", str(tmp_path / "server"))
+    for extra in (["--psk-file", str(tmp_path / "client")], []):  # wrong key, and none
+        pub = _pub(c_build, port, "/refused", 1, *extra)
+        assert pub.returncode == 1
+        assert "authentication failed" in pub.stderr
+
+
+def _serve(cli: Any, port: int) -> subprocess.Popen[str]:
+    """``rlbridge serve`` on ``port``, returned once a session can be opened."""
+    proc: subprocess.Popen[str] = cli.popen("serve", "--port", str(port), "--log-level",
+                                            "warning")
+    deadline = time.monotonic() + WAIT
+    while True:
+        try:
+            Bridge.connect("127.0.0.1", port, timeout=1.0, reconnect=False).close()
+            return proc
+        except Exception:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
+def _publish(port: int, topic: str, values: range) -> None:
+    with _connect(port, reconnect=False) as bridge:
+        channel = bridge.publish(topic, FLOAT64, transport="udp")
+        for v in values:
+            channel.write(float(v))
+            time.sleep(1 / RATE_HZ)
+        bridge.send(wait=True)  # handed to the socket before the goodbye
+
+
+@pytest.mark.parametrize("transport", ["udp", "tcp"])
+def test_server_restart_under_rlb_sub(c_build: Path, cli: Any, free_port: Callable[[], int],
+                                      c_processes: list[CProcess], transport: Transport,
+                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("RLBRIDGE_PSK", raising=False)
+    port = free_port()
+    server = _serve(cli, port)
+    topic = f"/c_restart_{transport}"
+    sub = _sub(c_build, c_processes, port, topic, 20, *_flag(transport), timeout_s=90)
+    _publish(port, topic, range(10))
+    sub.wait_out(10)
+    server.kill()  # no goodbye: the kernel resets the connection
+    server.communicate(timeout=WAIT)
+    sub.wait_err("link lost")
+    _serve(cli, port)  # same port; nobody tells rlb_sub
+    sub.wait_err("connected", count=2)  # the client found it and bound its channel again
+    _publish(port, topic, range(10, 20))
+    assert sub.finish(timeout=WAIT + 10) == 0, sub.err
+    assert sub.values() == [float(i) for i in range(20)]
