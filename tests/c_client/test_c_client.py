@@ -4,7 +4,9 @@
 Against the Python SDK on the other end, and against each other through the server, over UDP
 and TCP, with and without a pre-shared key: every value arrives, in order, none lost (the
 readers keep every value: a blocking SDK channel with room for all, ``rlb_sub``'s ring of
-COUNT). Then the server is killed and started again under a running ``rlb_sub``.
+COUNT over UDP; over TCP a ring of 64 with credit flow control, so COUNT values arrive only
+if the client grants credit as it reads). Then the server is killed and started again under
+a running ``rlb_sub``.
 """
 
 from __future__ import annotations
@@ -112,6 +114,18 @@ def test_rlb_pub_to_rlb_sub_through_the_server(c_build: Path, cli_server: Server
     topic = f"/c_both_{transport}"
     sub = _sub(c_build, c_processes, port, topic, COUNT, *_flag(transport), *keyed)
     pub = _pub(c_build, port, topic, COUNT, *_flag(transport), *keyed)
+    assert pub.returncode == 0, pub.stderr
+    assert sub.finish(timeout=WAIT + 10) == 0, sub.err
+    assert sub.values() == [float(i) for i in range(COUNT)]
+
+
+def test_rlb_sub_single_threaded(c_build: Path, cli_server: Server, transport: Transport,
+                                 c_processes: list[CProcess]) -> None:
+    """``--spin``: no I/O thread; the reading thread runs ``rlb_spin_once`` itself."""
+    port, _ = cli_server()
+    topic = f"/c_spin_{transport}"
+    sub = _sub(c_build, c_processes, port, topic, COUNT, *_flag(transport), "--spin")
+    pub = _pub(c_build, port, topic, COUNT, *_flag(transport))
     assert pub.returncode == 0, pub.stderr
     assert sub.finish(timeout=WAIT + 10) == 0, sub.err
     assert sub.values() == [float(i) for i in range(COUNT)]

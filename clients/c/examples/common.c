@@ -14,6 +14,8 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
     for (int i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--tcp") == 0) {
             a->tcp = true;
+        } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
+            a->spin = true;
         } else if (strcmp(argv[i], "--psk-file") == 0 && i + 1 < argc) {
             a->psk_file = argv[++i];
         } else if (argv[i][0] == '-' && argv[i][1] == '-') {

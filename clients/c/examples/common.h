@@ -14,9 +14,10 @@ typedef struct args {
     unsigned long count;
     double number; /* RATE_HZ for rlb_pub, TIMEOUT_S for rlb_sub */
     bool tcp;
+    bool spin; /* rlb_sub --spin: no I/O thread, rlb_spin_once from the reading thread */
 } args;
 
-/* Parses HOST PORT TOPIC COUNT NUMBER [--tcp] [--psk-file FILE]; exits 2 with usage. */
+/* Parses HOST PORT TOPIC COUNT NUMBER [--tcp] [--psk-file FILE] [--spin]; exits 2 with usage. */
 void parse_args(int argc, char **argv, const char *usage, args *a);
 /* Fills cfg from a (and loads the key); exits 1 with one line if the key file is unusable. */
 void config_from(const args *a, const char *prog, const char *name, rlb_config *cfg,

@@ -1,10 +1,12 @@
 /*
- * rlb_sub HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE]
+ * rlb_sub HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin]
  *
  * Prints every value of std_msgs/msg/Float64 field data on TOPIC, one per line, and exits 0
- * once COUNT values arrived, 1 on timeout. The channel keeps every value (RLB_QUEUE, a ring
- * of COUNT values; on TCP flow-controlled), so none is overwritten. Link changes go to
- * stderr ("link lost", "connected"); the client reconnects by itself.
+ * once COUNT values arrived, 1 on timeout. The channel keeps every value (RLB_QUEUE): over
+ * UDP in a ring of COUNT values; over TCP in a ring of 64 with credit flow control, so the
+ * server sends no more than the ring has room for. Link changes go to stderr ("link lost",
+ * "connected"); the client reconnects by itself. --spin: no I/O thread, the reading thread
+ * runs the I/O itself (rlb_spin_once, what a single-threaded target does).
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -28,7 +30,7 @@ static void on_event(void *ctx, const rlb_event *ev) {
 
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE]", &a);
+    parse_args(argc, argv, "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin]", &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_sub", "rlb_sub", &cfg, key);
@@ -45,7 +47,7 @@ int main(int argc, char **argv) {
     rlb_channel_opts_init(&o, a.topic, "std_msgs/msg/Float64", "data");
     o.transport = a.tcp ? RLB_TCP : RLB_UDP;
     o.mode = RLB_QUEUE;
-    o.capacity = a.count < 64 ? 64 : a.count > (1u << 20) ? (1u << 20) : (uint32_t)a.count;
+    o.capacity = a.tcp || a.count < 64 ? 64 : a.count > (1u << 20) ? (1u << 20) : (uint32_t)a.count;
     rlb_channel *ch;
     if ((rc = rlb_subscribe(c, &o, &ch)) != RLB_OK) {
         fprintf(stderr, "rlb_sub: bad channel %s: %s\n", a.topic, rlb_status_text(rc));
@@ -59,7 +61,7 @@ int main(int argc, char **argv) {
         return 1;
     }
     fprintf(stderr, "rlb_sub: subscribed to %s over %s\n", a.topic, a.tcp ? "tcp" : "udp");
-    rlb_start(c);
+    if (!a.spin) rlb_start(c); /* else rlb_read_wait runs rlb_spin_once itself */
     struct timespec t0, now;
     clock_gettime(CLOCK_MONOTONIC, &t0);
     unsigned long got = 0;
