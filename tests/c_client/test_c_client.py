@@ -131,6 +131,35 @@ def test_rlb_sub_single_threaded(c_build: Path, cli_server: Server, transport: T
     assert sub.values() == [float(i) for i in range(COUNT)]
 
 
+def test_whole_messages_both_ways_and_a_refused_value(c_build: Path, cli_server: Server) -> None:
+    """``rlb_twist``: Twist maps built with ``rlb_msg_*`` reach an SDK whole-message reader;
+    read back whole and through a field; a map with an unknown field is the channel's error."""
+    port, _ = cli_server()
+    with _connect(port) as bridge:
+        seen = bridge.subscribe("/c_twist", "geometry_msgs/msg/Twist", None, transport="tcp",
+                                blocking=True, buffer_size=16)
+        twist = subprocess.run([str(c_build / "rlb_twist"), "127.0.0.1", str(port), "/c_twist",
+                                "10"], capture_output=True, text=True, timeout=120, check=False)
+        assert twist.returncode == 0, twist.stderr
+        maps = [seen.read(timeout=WAIT) for _ in range(10)]
+    assert [(m["linear"]["x"], m["angular"]["z"]) for m in maps] == [
+        (float(i), -float(i)) for i in range(10)]
+    lines = twist.stdout.splitlines()
+    read_back = [[float(x) for x in line.split()] for line in lines[:10]]
+    assert read_back == [[i, -i, -i] for i in range(10)]  # linear.x, angular.z, the field
+    assert lines[10] == "error 13"  # BAD_VALUE, surfaced on the publishing channel
+
+
+def test_a_refused_binding_is_exit_1_with_the_reason(c_build: Path, cli_server: Server) -> None:
+    port, _ = cli_server()
+    with _connect(port) as bridge:
+        bridge.subscribe("/c_clash", "std_msgs/msg/Int32")  # the topic's type is Int32 now
+        pub = _pub(c_build, port, "/c_clash", 1)
+    assert pub.returncode == 1
+    assert pub.stderr.count("\n") == 1
+    assert "refused by the server (server: code 11" in pub.stderr  # TYPE_CLASH
+
+
 def test_no_server_is_exit_1_with_one_line(c_build: Path, free_port: Callable[[], int]) -> None:
     pub = _pub(c_build, free_port(), "/nobody", 1)
     assert pub.returncode == 1

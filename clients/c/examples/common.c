@@ -9,10 +9,10 @@
 
 void parse_args(int argc, char **argv, const char *usage, args *a) {
     memset(a, 0, sizeof *a);
-    int pos = 0;
+    int pos = 0, want = strstr(usage, "RATE_HZ") || strstr(usage, "TIMEOUT_S") ? 5 : 4;
     const char *p[5] = {0};
     for (int i = 1; i < argc; i++) {
-        if (strcmp(argv[i], "--tcp") == 0) {
+        if (strcmp(argv[i], "--tcp") == 0 && strstr(usage, "--tcp")) {
             a->tcp = true;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
             a->spin = true;
@@ -21,14 +21,14 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
         } else if (argv[i][0] == '-' && argv[i][1] == '-') {
             fprintf(stderr, "%s: unknown option %s\nusage: %s %s\n", argv[0], argv[i], argv[0], usage);
             exit(2);
-        } else if (pos < 5) {
+        } else if (pos < want) {
             p[pos++] = argv[i];
         } else {
             pos++;
         }
     }
     char *end;
-    if (pos != 5) {
+    if (pos != want) {
         fprintf(stderr, "usage: %s %s\n", argv[0], usage);
         exit(2);
     }
@@ -45,6 +45,7 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
         fprintf(stderr, "%s: COUNT must be a positive integer, not %s\n", argv[0], p[3]);
         exit(2);
     }
+    if (want == 4) return;
     a->number = strtod(p[4], &end);
     if (*end || !(a->number > 0)) {
         fprintf(stderr, "%s: %s must be a positive number, not %s\n", argv[0],

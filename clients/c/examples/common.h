@@ -17,7 +17,8 @@ typedef struct args {
     bool spin; /* rlb_sub --spin: no I/O thread, rlb_spin_once from the reading thread */
 } args;
 
-/* Parses HOST PORT TOPIC COUNT NUMBER [--tcp] [--psk-file FILE] [--spin]; exits 2 with usage. */
+/* Parses HOST PORT TOPIC COUNT [NUMBER] [--tcp] [--psk-file FILE] [--spin] (the options the
+ * usage names; NUMBER when the usage has RATE_HZ or TIMEOUT_S); exits 2 with the usage. */
 void parse_args(int argc, char **argv, const char *usage, args *a);
 /* Fills cfg from a (and loads the key); exits 1 with one line if the key file is unusable. */
 void config_from(const args *a, const char *prog, const char *name, rlb_config *cfg,

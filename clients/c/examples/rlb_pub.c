@@ -36,12 +36,21 @@ static void *run(void *arg) {
     return NULL;
 }
 
+/* Keeps the server's last reason (a refused binding or session) for the one error line. */
+static void on_event(void *ctx, const rlb_event *ev) {
+    if (ev->kind == RLB_EV_TOPIC_ERROR || ev->kind == RLB_EV_DISCONNECT || ev->kind == RLB_EV_ERROR)
+        snprintf(ctx, 256, " (server: code %d, %s)", ev->code, ev->reason);
+}
+
 int main(int argc, char **argv) {
     args a;
     parse_args(argc, argv, "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE]", &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_pub", "rlb_pub", &cfg, key);
+    char reason[256] = "";
+    cfg.on_event = on_event;
+    cfg.event_ctx = reason;
     rlb_client *c;
     rlb_status rc = rlb_client_new(&cfg, &c);
     if (rc != RLB_OK) {
@@ -59,8 +68,8 @@ int main(int argc, char **argv) {
         return 1;
     }
     if ((rc = rlb_connect(c)) != RLB_OK) {
-        fprintf(stderr, "rlb_pub: cannot connect to %s:%u: %s\n", a.host, (unsigned)a.port,
-                rlb_status_text(rc));
+        fprintf(stderr, "rlb_pub: cannot connect to %s:%u: %s%s\n", a.host, (unsigned)a.port,
+                rlb_status_text(rc), reason);
         rlb_close(c);
         return 1;
     }
