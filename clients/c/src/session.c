@@ -697,33 +697,80 @@ static bool replay_ok(rlb_conn *k, uint64_t ctr) {
     return true;
 }
 
+/* One received datagram: header, token, seal, then the body (protocol.md 3, 16.3). */
+static void udp_datagram(rlb_client *c, uint8_t *d, size_t n) {
+    rlb_conn *k = c->conn;
+    if (n < UDP_HDR || d[0] != 'R' || d[1] != 'B' || d[2] != RLB_PROTOCOL_VERSION) {
+        malformed(k);
+        return;
+    }
+    uint64_t token = 0;
+    for (int j = 0; j < 8; j++) token = token << 8 | d[4 + j];
+    if (token != k->token) return;
+    const uint8_t *body = d + UDP_HDR;
+    size_t len = n - UDP_HDR;
+    if (k->sealed) {
+        if (!(d[3] & F_SEALED) || n < 36) return;
+        uint64_t ctr = 0;
+        for (int j = 0; j < 8; j++) ctr = ctr << 8 | d[12 + j];
+        len = n - 36;
+        if (!rlb_open(k->keys.ks2c, ctr, d, 20, d + 20, len, d + 20 + len)) return;
+        if (!replay_ok(k, ctr)) return;
+        body = d + 20;
+    }
+    on_packet(c, body, len, false);
+}
+
 static void udp_read(rlb_client *c) {
     rlb_conn *k = c->conn;
     for (int i = 0; i < 256 && k->udp >= 0 && k->up; i++) {
         ssize_t n = recv(k->udp, k->dg_rx, RX_DGRAM, MSG_DONTWAIT);
         if (n < 0) return;
-        uint8_t *d = k->dg_rx;
-        if (n < UDP_HDR || d[0] != 'R' || d[1] != 'B' || d[2] != RLB_PROTOCOL_VERSION) {
-            malformed(k);
-            continue;
-        }
-        uint64_t token = 0;
-        for (int j = 0; j < 8; j++) token = token << 8 | d[4 + j];
-        if (token != k->token) continue;
-        const uint8_t *body = d + UDP_HDR;
-        size_t len = (size_t)n - UDP_HDR;
-        if (k->sealed) {
-            if (!(d[3] & F_SEALED) || n < 36) continue;
-            uint64_t ctr = 0;
-            for (int j = 0; j < 8; j++) ctr = ctr << 8 | d[12 + j];
-            len = (size_t)n - 36;
-            if (!rlb_open(k->keys.ks2c, ctr, d, 20, d + 20, len, d + 20 + len)) continue;
-            if (!replay_ok(k, ctr)) continue;
-            body = d + 20;
-        }
-        on_packet(c, body, len, false);
+        udp_datagram(c, k->dg_rx, (size_t)n);
     }
 }
+
+/* -- test and fuzz entry points: bytes as if received, no socket -------------------------- */
+
+void rlb_debug_bind_all(rlb_client *c, uint64_t token) {
+    c->conn->token = token;
+    for (uint32_t i = 0; i < c->n_channels; i++) c->channels[i]->bind = BIND_ACKED;
+}
+
+void rlb_debug_feed_datagram(rlb_client *c, const uint8_t *d, size_t n) {
+    if (n > RX_DGRAM) return;
+    memcpy(c->conn->dg_rx, d, n);
+    udp_datagram(c, c->conn->dg_rx, n);
+}
+
+void rlb_debug_feed_stream(rlb_client *c, const uint8_t *bytes, size_t n) {
+    rlb_conn *k = c->conn;
+    while (n > 0) {
+        if (k->in_off > 0) {
+            memmove(k->in, k->in + k->in_off, k->in_len - k->in_off);
+            k->in_len -= k->in_off;
+            k->in_off = 0;
+        }
+        size_t room = k->cap - k->in_len, take = n < room ? n : room;
+        memcpy(k->in + k->in_len, bytes, take);
+        k->in_len += take;
+        bytes += take;
+        n -= take;
+        for (;;) {
+            size_t len;
+            bool bad;
+            const uint8_t *f = next_frame(k, &len, &bad);
+            if (bad) { /* the framing is lost: a real connection would end here */
+                k->in_off = k->in_len = k->skip = 0;
+                break;
+            }
+            if (f == NULL) break;
+            on_packet(c, f, len, false);
+        }
+    }
+}
+
+uint64_t rlb_debug_malformed(const rlb_client *c) { return c->conn->malformed; }
 
 /* -- opening a session ------------------------------------------------------------------- */
 
