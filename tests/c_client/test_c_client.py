@@ -150,6 +150,23 @@ def test_whole_messages_both_ways_and_a_refused_value(c_build: Path, cli_server:
     assert lines[10] == "error 13"  # BAD_VALUE, surfaced on the publishing channel
 
 
+def test_arrays_through_ros2(c_build: Path, cli_server: Server, tmp_path: Path,
+                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """``rlb_array``: Float64MultiArray ``data`` (a ROS sequence) out and back through a
+    server on the ROS 2 adapter, arrays in fixed-size slots both ways."""
+    if os.environ.get("RLBRIDGE_TEST_REQUIRE_ROS2") != "1":
+        pytest.importorskip("rclpy", reason="rclpy is not installed: no ROS 2 adapter here")
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # discovery stays here
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(1 + (os.getpid() + 37) % 100))
+    monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path))
+    port, _ = cli_server("--adapter", "ros2")
+    arrays = subprocess.run([str(c_build / "rlb_array"), "127.0.0.1", str(port), "/c_arrays",
+                             "10"], capture_output=True, text=True, timeout=120, check=False)
+    assert arrays.returncode == 0, arrays.stderr
+    got = [[float(x) for x in line.split()] for line in arrays.stdout.splitlines()]
+    assert got == [[i, i / 2, -i] for i in range(10)]
+
+
 def test_a_refused_binding_is_exit_1_with_the_reason(c_build: Path, cli_server: Server) -> None:
     port, _ = cli_server()
     with _connect(port) as bridge:
