@@ -92,6 +92,24 @@ def test_rlb_pub_to_sdk_subscriber(c_build: Path, cli_server: Server, keyed: lis
     assert got == [float(i) for i in range(COUNT)]
 
 
+def test_one_datagram_per_round_for_all_udp_channels(c_build: Path, cli_server: Server) -> None:
+    """``rlb_pub --channels 4``: each round's values of the four channels travel in one
+    ``Bundle`` datagram (protocol.md 6.16), so the server counts far fewer packets than values;
+    every value still arrives, in order, on each topic."""
+    port, _ = cli_server()
+    with _connect(port) as bridge:
+        channels = [bridge.subscribe(f"/c_bundle_{k}", FLOAT64, blocking=True,
+                                     buffer_size=COUNT) for k in range(4)]
+        before = bridge.server_stats()["server"]["packets_in"]
+        pub = _pub(c_build, port, "/c_bundle", COUNT, "--channels", "4")
+        assert pub.returncode == 0, pub.stderr
+        for channel in channels:
+            assert [channel.read(timeout=WAIT) for _ in range(COUNT)] == [
+                float(i) for i in range(COUNT)]
+        packets = bridge.server_stats()["server"]["packets_in"] - before
+    assert packets < 4 * COUNT / 2  # one per value would be 4 * COUNT
+
+
 def test_sdk_publisher_to_rlb_sub(c_build: Path, cli_server: Server, keyed: list[str],
                                   transport: Transport, c_processes: list[CProcess]) -> None:
     port, _ = cli_server(*keyed)

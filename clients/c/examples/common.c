@@ -9,11 +9,20 @@
 
 void parse_args(int argc, char **argv, const char *usage, args *a) {
     memset(a, 0, sizeof *a);
+    a->channels = 1;
     int pos = 0, want = strstr(usage, "RATE_HZ") || strstr(usage, "TIMEOUT_S") ? 5 : 4;
     const char *p[5] = {0};
     for (int i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--tcp") == 0 && strstr(usage, "--tcp")) {
             a->tcp = true;
+        } else if (strcmp(argv[i], "--channels") == 0 && strstr(usage, "--channels") && i + 1 < argc) {
+            char *end;
+            unsigned long n = strtoul(argv[++i], &end, 10);
+            if (*end || n < 1 || n > 256) {
+                fprintf(stderr, "%s: --channels takes 1..256, not %s\n", argv[0], argv[i]);
+                exit(2);
+            }
+            a->channels = (unsigned)n;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
             a->spin = true;
         } else if (strcmp(argv[i], "--psk-file") == 0 && i + 1 < argc) {
