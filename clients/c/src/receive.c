@@ -26,7 +26,9 @@ static bool values(rlb_client *c, mp_cur *m, uint64_t tag) {
     uint64_t id, seq;
     if (!mp_u64(m, &id) || !mp_u64(m, &seq)) return false;
     rlb_channel *ch = conn_channel(c, id);
-    bool ours = ch != NULL && ch->dir == DIR_SUBSCRIBE && ch->bind == BIND_ACKED;
+    /* BIND_SENT too: over UDP a value can overtake the TopicAck that travels over TCP */
+    bool ours = ch != NULL && ch->dir == DIR_SUBSCRIBE &&
+                (ch->bind == BIND_ACKED || ch->bind == BIND_SENT);
     if (tag == T_VALUE) {
         int64_t stamp;
         if (!mp_i64(m, &stamp)) return false;
