@@ -195,6 +195,18 @@ def test_a_refused_binding_is_exit_1_with_the_reason(c_build: Path, cli_server: 
     assert "refused by the server (server: code 11" in pub.stderr  # TYPE_CLASH
 
 
+def test_udp_only_sessions(c_build: Path, cli_server: Server, keyed: list[str],
+                           c_processes: list[CProcess]) -> None:
+    """``--udp-only`` against a server without TCP (protocol.md 8.2): the handshake (with a
+    key: challenge and proof) over token-0 datagrams, bindings repeated until answered."""
+    port, _ = cli_server("--no-tcp", *keyed)
+    sub = _sub(c_build, c_processes, port, "/c_udp_only", COUNT, "--udp-only", *keyed)
+    pub = _pub(c_build, port, "/c_udp_only", COUNT, "--udp-only", *keyed)
+    assert pub.returncode == 0, pub.stderr
+    assert sub.finish(timeout=WAIT + 10) == 0, sub.err
+    assert sub.values() == [float(i) for i in range(COUNT)]
+
+
 def test_no_server_is_exit_1_with_one_line(c_build: Path, free_port: Callable[[], int]) -> None:
     pub = _pub(c_build, free_port(), "/nobody", 1)
     assert pub.returncode == 1
@@ -206,10 +218,11 @@ def test_a_wrong_key_is_refused(c_build: Path, cli_server: Server, tmp_path: Pat
     (tmp_path / "server").write_text(os.urandom(32).hex() + "\n")
     (tmp_path / "client").write_text("rlb_pub " + os.urandom(32).hex() + "\n")
     port, _ = cli_server("--psk-file", str(tmp_path / "server"))
-    for extra in (["--psk-file", str(tmp_path / "client")], []):  # wrong key, and none
+    wrong = ["--psk-file", str(tmp_path / "client")]
+    for extra in (wrong, [], [*wrong, "--udp-only"], ["--udp-only"]):  # wrong key, and none
         pub = _pub(c_build, port, "/refused", 1, *extra)
-        assert pub.returncode == 1
-        assert "authentication failed" in pub.stderr
+        assert pub.returncode == 1, extra
+        assert "authentication failed" in pub.stderr, extra
 
 
 def _serve(cli: Any, port: int) -> subprocess.Popen[str]:
@@ -236,18 +249,19 @@ def _publish(port: int, topic: str, values: range) -> None:
         bridge.send(wait=True)  # handed to the socket before the goodbye
 
 
-@pytest.mark.parametrize("transport", ["udp", "tcp"])
+@pytest.mark.parametrize("how", ["udp", "tcp", "udp-only"])
 def test_server_restart_under_rlb_sub(c_build: Path, cli: Any, free_port: Callable[[], int],
-                                      c_processes: list[CProcess], transport: Transport,
+                                      c_processes: list[CProcess], how: str,
                                       monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("RLBRIDGE_PSK", raising=False)
     port = free_port()
     server = _serve(cli, port)
-    topic = f"/c_restart_{transport}"
-    sub = _sub(c_build, c_processes, port, topic, 20, *_flag(transport), timeout_s=90)
+    topic = f"/c_restart_{how.replace('-', '_')}"
+    flags = {"udp": [], "tcp": ["--tcp"], "udp-only": ["--udp-only"]}[how]
+    sub = _sub(c_build, c_processes, port, topic, 20, *flags, timeout_s=90)
     _publish(port, topic, range(10))
     sub.wait_out(10)
-    server.kill()  # no goodbye: the kernel resets the connection
+    server.kill()  # no goodbye: TCP is reset; a UDP-only client notices the silence
     server.communicate(timeout=WAIT)
     sub.wait_err("link lost")
     _serve(cli, port)  # same port; nobody tells rlb_sub

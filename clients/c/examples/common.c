@@ -23,6 +23,8 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
                 exit(2);
             }
             a->channels = (unsigned)n;
+        } else if (strcmp(argv[i], "--udp-only") == 0 && strstr(usage, "--udp-only")) {
+            a->udp_only = true;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
             a->spin = true;
         } else if (strcmp(argv[i], "--psk-file") == 0 && i + 1 < argc) {
@@ -69,6 +71,11 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
     cfg->host = a->host;
     cfg->port = a->port;
     cfg->name = name;
+    if (a->udp_only) cfg->control = RLB_UDP;
+    if (a->udp_only && a->tcp) {
+        fprintf(stderr, "%s: --tcp needs a TCP session: not with --udp-only\n", prog);
+        exit(2);
+    }
     if (a->psk_file) {
         size_t len = 0;
         rlb_status rc = rlb_load_psk_file(a->psk_file, name, key, &len);

@@ -1,11 +1,12 @@
 /*
- * rlb_pub HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N]
+ * rlb_pub HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]
  *
  * A periodic loop (SCHED_FIFO when permitted, memory locked) publishes std_msgs/msg/Float64
  * field data values 0, 1, ..., COUNT-1 at RATE_HZ, then waits until the I/O side has sent
  * them all and exits 0; 1 with one line on stderr when it cannot connect. --channels N: the
  * same values on N channels, topics TOPIC_0 .. TOPIC_{N-1} (over UDP, one datagram per round
- * carries them all).
+ * carries them all). --udp-only: a UDP-only session (protocol.md 8.2), for a server without
+ * TCP.
  * The loop thread makes no system call but its sleep (clock_nanosleep) and clock reads.
  */
 #include <stdio.h>
@@ -56,7 +57,7 @@ static void on_event(void *ctx, const rlb_event *ev) {
 
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N]", &a);
+    parse_args(argc, argv, "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]", &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_pub", "rlb_pub", &cfg, key);

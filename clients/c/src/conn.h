@@ -59,6 +59,8 @@ const uint8_t *tcp_next_frame(rlb_conn *k, size_t *len, bool *bad);
 size_t udp_body_at(const rlb_conn *k);
 size_t udp_body_cap(const rlb_conn *k);
 void udp_send(rlb_conn *k, size_t body_len);
+void udp_send_as(rlb_conn *k, size_t body_len, uint64_t token, bool sealed);
+bool udp_replay_ok(rlb_conn *k, uint64_t ctr);
 void udp_datagram(rlb_client *c, uint8_t *d, size_t n);
 void udp_read(rlb_client *c);
 
@@ -69,6 +71,8 @@ void send_udp_round(rlb_client *c);
 void send_tcp_round(rlb_client *c);
 void send_credits(rlb_client *c);
 bool send_topic_connect(rlb_conn *k, rlb_channel *ch);
+void ctl_begin(rlb_conn *k, wbuf *w);
+bool ctl_end(rlb_conn *k, const wbuf *w);
 
 /* receive.c */
 void conn_malformed(rlb_conn *k);
@@ -79,5 +83,9 @@ void conn_lost(rlb_client *c, const char *why);
 void conn_close_sockets(rlb_conn *k);
 size_t conn_pending_bytes(const rlb_conn *k);
 rlb_channel *conn_channel(rlb_client *c, uint64_t id);
+
+/* handshake.c: blocking, within the deadline */
+rlb_status handshake_tcp(rlb_client *c, int64_t deadline);
+rlb_status handshake_udp(rlb_client *c, int64_t deadline);
 
 #endif

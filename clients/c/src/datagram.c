@@ -13,13 +13,16 @@ size_t udp_body_cap(const rlb_conn *k) {
 }
 
 /* Sends the body already written at udp_body_at(k) in dg_tx. */
-void udp_send(rlb_conn *k, size_t body_len) {
+void udp_send(rlb_conn *k, size_t body_len) { udp_send_as(k, body_len, k->token, k->sealed); }
+
+/* The handshake's datagrams: token 0, flags 0, never sealed (protocol.md 3, 16.1). */
+void udp_send_as(rlb_conn *k, size_t body_len, uint64_t token, bool sealed) {
     uint8_t *d = k->dg_tx;
     d[0] = 'R', d[1] = 'B', d[2] = RLB_PROTOCOL_VERSION;
-    d[3] = F_BUNDLES | (k->sealed ? F_SEALED : 0);
-    for (int i = 0; i < 8; i++) d[4 + i] = (uint8_t)(k->token >> (56 - 8 * i));
+    d[3] = token == 0 ? 0 : F_BUNDLES | (sealed ? F_SEALED : 0);
+    for (int i = 0; i < 8; i++) d[4 + i] = (uint8_t)(token >> (56 - 8 * i));
     size_t len = UDP_HDR + body_len;
-    if (k->sealed) {
+    if (sealed) {
         uint64_t ctr = ++k->dgram_tx;
         for (int i = 0; i < 8; i++) d[12 + i] = (uint8_t)(ctr >> (56 - 8 * i));
         rlb_seal(k->keys.kc2s, ctr, d, 20, d + 20, body_len, d + 20 + body_len);
@@ -30,7 +33,7 @@ void udp_send(rlb_conn *k, size_t body_len) {
 
 /* -- UDP input ----------------------------------------------------------------------------- */
 
-static bool replay_ok(rlb_conn *k, uint64_t ctr) {
+bool udp_replay_ok(rlb_conn *k, uint64_t ctr) {
     if (ctr == 0) return false;
     if (ctr > k->replay_top) {
         uint64_t shift = ctr - k->replay_top;
@@ -73,7 +76,7 @@ void udp_datagram(rlb_client *c, uint8_t *d, size_t n) {
         for (int j = 0; j < 8; j++) ctr = ctr << 8 | d[12 + j];
         len = n - 36;
         if (!rlb_open(k->keys.ks2c, ctr, d, 20, d + 20, len, d + 20 + len)) return;
-        if (!replay_ok(k, ctr)) return;
+        if (!udp_replay_ok(k, ctr)) return;
         body = d + 20;
     }
     conn_packet(c, body, len, false);

@@ -177,9 +177,22 @@ void send_credits(rlb_client *c) {
     }
 }
 
+/* A control packet: a TCP frame on a TCP session, a datagram on a UDP-only one. */
+void ctl_begin(rlb_conn *k, wbuf *w) {
+    if (k->tcp >= 0) tcp_frame_begin(k, w);
+    else wb_init(w, k->dg_tx + udp_body_at(k), udp_body_cap(k));
+}
+
+bool ctl_end(rlb_conn *k, const wbuf *w) {
+    if (k->tcp >= 0) return tcp_frame_end(k, w);
+    if (w->overflow) return false;
+    udp_send(k, w->len);
+    return true;
+}
+
 bool send_topic_connect(rlb_conn *k, rlb_channel *ch) {
     wbuf w;
-    tcp_frame_begin(k, &w);
+    ctl_begin(k, &w);
     bool pub = ch->dir == DIR_PUBLISH;
     uint64_t buffer = 1;
     if (!pub && ch->mode == RLB_QUEUE) { /* first credit: the ring's free room */
@@ -207,6 +220,6 @@ bool send_topic_connect(rlb_conn *k, rlb_channel *ch) {
     wb_bool(&w, ch->flow);
     wb_bool(&w, pub);      /* loss_report: the server's first-hop counts, publish only */
     wb_str(&w, "volatile", 8);
-    return tcp_frame_end(k, &w);
+    return ctl_end(k, &w);
 }
 

@@ -84,12 +84,17 @@ static rlb_status open_sockets(rlb_client *c, int64_t deadline) {
     hints.ai_socktype = SOCK_STREAM;
     if (getaddrinfo(c->cfg.host, port, &hints, &res) != 0 || res == NULL) return RLB_E_CONNECT;
     rlb_status rc = RLB_E_CONNECT;
+    bool tcp = c->cfg.control == RLB_TCP;
     for (struct addrinfo *a = res; a != NULL && rc != RLB_OK; a = a->ai_next) {
-        k->tcp = socket(a->ai_family, SOCK_STREAM | SOCK_CLOEXEC, 0);
+        k->tcp = tcp ? socket(a->ai_family, SOCK_STREAM | SOCK_CLOEXEC, 0) : -1;
         k->udp = socket(a->ai_family, SOCK_DGRAM | SOCK_CLOEXEC, 0);
-        if (k->tcp < 0 || k->udp < 0 || set_nonblock(k->tcp) < 0 || set_nonblock(k->udp) < 0 ||
-            connect(k->udp, a->ai_addr, a->ai_addrlen) < 0) {
+        if ((tcp && (k->tcp < 0 || set_nonblock(k->tcp) < 0)) || k->udp < 0 ||
+            set_nonblock(k->udp) < 0 || connect(k->udp, a->ai_addr, a->ai_addrlen) < 0) {
             conn_close_sockets(k);
+            continue;
+        }
+        if (!tcp) { /* a UDP-only session (protocol.md 8.2) */
+            rc = RLB_OK;
             continue;
         }
         if (connect(k->tcp, a->ai_addr, a->ai_addrlen) < 0 && errno != EINPROGRESS) {
@@ -111,106 +116,6 @@ static rlb_status open_sockets(rlb_client *c, int64_t deadline) {
     }
     freeaddrinfo(res);
     return rc;
-}
-
-/* Waits for the next TCP frame of the handshake; NULL on timeout or a broken connection. */
-static const uint8_t *handshake_frame(rlb_conn *k, int64_t deadline, size_t *len) {
-    for (;;) {
-        bool bad;
-        const uint8_t *f = tcp_next_frame(k, len, &bad);
-        if (f != NULL) return f;
-        if (bad) return NULL;
-        int64_t left = (deadline - rlb_mono_ns()) / 1000000;
-        if (left <= 0) return NULL;
-        struct pollfd p = {k->tcp, POLLIN, 0};
-        if (poll(&p, 1, (int)left) < 0 && errno != EINTR) return NULL;
-        if (!tcp_read(k) && k->in_len - k->in_off < 8) return NULL;
-    }
-}
-
-static rlb_status handshake(rlb_client *c, int64_t deadline) {
-    rlb_conn *k = c->conn;
-    uint8_t nc[16], t[300], proof[32];
-    size_t tlen = 0;
-    bool keyed = c->psk_len > 0;
-    if (keyed) randombytes_buf(nc, sizeof nc);
-    wbuf w;
-    tcp_frame_begin(k, &w);
-    wb_array(&w, 4);
-    wb_u64(&w, T_HELLO);
-    wb_u64(&w, RLB_PROTOCOL_VERSION);
-    wb_str(&w, c->name, strlen(c->name));
-    wb_bin(&w, nc, keyed ? 16 : 0);
-    tcp_frame_end(k, &w);
-    if (!tcp_flush_blocking(k, deadline)) return RLB_E_CONNECT;
-    for (;;) {
-        size_t len;
-        const uint8_t *f = handshake_frame(k, deadline, &len);
-        if (f == NULL) return RLB_E_CONNECT;
-        mp_cur m;
-        uint32_t n;
-        uint64_t tag;
-        mp_init(&m, f, len);
-        if (!mp_array(&m, &n) || !mp_u64(&m, &tag)) return RLB_E_CONNECT;
-        if (tag == T_CONNERR) {
-            uint64_t code = 0;
-            const char *reason = "";
-            uint32_t rl = 0;
-            char text[256];
-            if (mp_u64(&m, &code)) mp_str(&m, &reason, &rl);
-            snprintf(text, sizeof text, "%.*s", (int)(rl < 255 ? rl : 255), reason);
-            rlb_emit(c, RLB_EV_DISCONNECT, (int)code, 0, text);
-            return code == 21 ? RLB_E_AUTH : RLB_E_REFUSED;
-        }
-        if (tag == T_CHALLENGE) {
-            const uint8_t *ns, *ps;
-            uint32_t nl, pl;
-            if (!keyed || !mp_bin(&m, &ns, &nl) || nl != 16 || !mp_bin(&m, &ps, &pl) || pl != 32)
-                return RLB_E_AUTH;
-            tlen = rlb_transcript(c->name, nc, ns, t, sizeof t);
-            rlb_proof(c->psk, c->psk_len, "server-proof", t, tlen, proof);
-            if (sodium_memcmp(proof, ps, 32) != 0) { /* a server without our key */
-                tcp_frame_begin(k, &w);
-                wb_array(&w, 3);
-                wb_u64(&w, T_DISCONNECT);
-                wb_u64(&w, 21);
-                wb_str(&w, "server proof wrong", 18);
-                tcp_frame_end(k, &w);
-                tcp_flush_blocking(k, deadline);
-                return RLB_E_AUTH;
-            }
-            rlb_derive(c->psk, c->psk_len, nc, ns, t, tlen, &k->keys);
-            rlb_proof(c->psk, c->psk_len, "client-proof", t, tlen, proof);
-            tcp_frame_begin(k, &w);
-            wb_array(&w, 2);
-            wb_u64(&w, T_PROOF);
-            wb_bin(&w, proof, 32);
-            tcp_frame_end(k, &w);
-            if (!tcp_flush_blocking(k, deadline)) return RLB_E_CONNECT;
-            /* From the ConnectAck on the server sends records: what follows is one. */
-            size_t rest = k->in_len - k->in_off;
-            if (rest > RECORD_MAX + 32) return RLB_E_CONNECT;
-            memcpy(k->rec, k->in + k->in_off, rest);
-            k->rec_len = rest;
-            k->in_off = k->in_len = 0;
-            k->sealed = true;
-            if (!tcp_open_records(k)) return RLB_E_AUTH;
-            continue;
-        }
-        if (tag == T_ACK) {
-            uint64_t session, token, hb, to;
-            uint32_t nl;
-            if (keyed && !k->sealed) return RLB_E_AUTH; /* no downgrade (16.1) */
-            if (!mp_u64(&m, &session) || !mp_u64(&m, &token) || !mp_u64(&m, &hb) ||
-                !mp_u64(&m, &to) || !mp_array(&m, &nl) || token == 0 || hb == 0)
-                return RLB_E_CONNECT;
-            k->token = token;
-            k->hb_ms = (uint32_t)hb;
-            k->timeout_ms = (uint32_t)to;
-            return RLB_OK;
-        }
-        /* anything else before the ack is ignored */
-    }
 }
 
 static void reset_bindings(rlb_client *c) {
@@ -237,7 +142,8 @@ rlb_status conn_open(rlb_client *c) {
     k->peer_sent = k->peer_wall = 0;
     reset_bindings(c);
     rlb_status rc = open_sockets(c, deadline);
-    if (rc == RLB_OK) rc = handshake(c, deadline);
+    if (rc == RLB_OK)
+        rc = c->cfg.control == RLB_UDP ? handshake_udp(c, deadline) : handshake_tcp(c, deadline);
     if (rc != RLB_OK) {
         conn_close_sockets(k);
         return rc;
@@ -245,14 +151,19 @@ rlb_status conn_open(rlb_client *c) {
     k->up = true;
     k->last_rx = k->last_hb = rlb_mono_ns();
     send_udp_heartbeat(k, k->last_hb); /* registers our UDP address (protocol.md 8.3) */
-    for (uint32_t i = 0; i < c->n_channels; i++) {
-        if (!send_topic_connect(k, c->channels[i])) {
-            conn_close_sockets(k);
-            return RLB_E_NOMEM; /* more bindings than the TCP buffer holds */
-        }
-        c->channels[i]->bind = BIND_SENT;
-    }
+    int64_t resend = 0;
+    for (uint32_t i = 0; i < c->n_channels; i++) c->channels[i]->bind = BIND_SENT;
     for (;;) {
+        if (rlb_mono_ns() >= resend) { /* once over TCP; over UDP until answered (9) */
+            for (uint32_t i = 0; i < c->n_channels; i++) {
+                if (c->channels[i]->bind != BIND_SENT) continue;
+                if (!send_topic_connect(k, c->channels[i])) {
+                    conn_close_sockets(k);
+                    return RLB_E_NOMEM; /* more bindings than the TCP buffer holds */
+                }
+            }
+            resend = k->tcp >= 0 ? INT64_MAX : rlb_mono_ns() + 250000000;
+        }
         bool pending = false, refused = false;
         for (uint32_t i = 0; i < c->n_channels; i++) {
             pending |= c->channels[i]->bind == BIND_SENT;
@@ -368,7 +279,7 @@ rlb_status conn_spin(rlb_client *c, uint32_t timeout_ms) {
         k->last_hb = now;
         /* Not amid a TCP stream: a heartbeat segment there would put the peer's kernel into
          * delayed-ACK mode (protocol.md 11); the UDP heartbeat and the data prove liveness. */
-        if (!k->tcp_data) send_tcp_heartbeat(k, now);
+        if (!k->tcp_data && k->tcp >= 0) send_tcp_heartbeat(k, now);
         k->tcp_data = false;
         send_udp_heartbeat(k, now);
     }
@@ -397,10 +308,10 @@ void conn_goodbye(rlb_client *c) {
     bool any_udp = false;
     for (uint32_t i = 0; i < c->n_channels; i++)
         any_udp |= c->channels[i]->dir == DIR_PUBLISH && c->channels[i]->transport == RLB_UDP;
-    if (any_udp) {
+    if (any_udp || k->tcp < 0) {
         udp_send(k, w.len);
         int64_t end = rlb_mono_ns() + 500000000; /* the server closes TCP once it read it */
-        for (;;) {
+        for (; k->tcp >= 0;) {
             int64_t left = (end - rlb_mono_ns()) / 1000000;
             struct pollfd p = {k->tcp, POLLIN, 0};
             if (left <= 0 || poll(&p, 1, (int)left) <= 0) break;
@@ -416,6 +327,6 @@ void conn_goodbye(rlb_client *c) {
         tcp_frame_end(k, &w);
         tcp_flush_blocking(k, rlb_mono_ns() + 500000000);
     }
-    shutdown(k->tcp, SHUT_WR);
+    if (k->tcp >= 0) shutdown(k->tcp, SHUT_WR);
     conn_close_sockets(k);
 }
