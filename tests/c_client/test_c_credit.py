@@ -87,7 +87,8 @@ def test_rlb_pub_sends_only_what_the_credit_allows(c_build: Path) -> None:
                 assert isinstance(peer.read(30), Hello)
                 peer.send(ConnectAck(1, 0x1234, 200, 30000, Limits(1 << 20, 256, 4096)))
                 bind = peer.read(30)
-                assert isinstance(bind, TopicConnect) and bind.flow  # on for TCP by default
+                assert isinstance(bind, TopicConnect)
+                assert bind.flow  # on for TCP publish channels by default
                 peer.send(TopicAck(bind.channel, bind.msg_type, 0.0, None, credit=5))
                 got: list[tuple[int, float]] = []
                 while len(got) < 5:
