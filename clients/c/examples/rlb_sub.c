@@ -69,7 +69,7 @@ int main(int argc, char **argv) {
     int code = 0;
     while (got < a.count) {
         clock_gettime(CLOCK_MONOTONIC, &now);
-        double left = a.number - (double)(now.tv_sec - t0.tv_sec) - (now.tv_nsec - t0.tv_nsec) / 1e9;
+        double left = a.number - (double)(now.tv_sec - t0.tv_sec) - (double)(now.tv_nsec - t0.tv_nsec) / 1e9;
         if (left <= 0) {
             fprintf(stderr, "rlb_sub: timed out after %g s with %lu of %lu values\n", a.number, got, a.count);
             code = 1;

@@ -42,7 +42,7 @@ struct rlb_conn {
     uint32_t backoff_ms;
     bool closed;
     size_t rr; /* round-robin start among UDP channels */
-    uint64_t conn_malformed;
+    uint64_t malformed;
 };
 
 

@@ -7,7 +7,7 @@
 
 /* -- packets we receive -------------------------------------------------------------------- */
 
-void conn_malformed(rlb_conn *k) { k->conn_malformed++; }
+void conn_malformed(rlb_conn *k) { k->malformed++; }
 
 static void deliver(rlb_channel *ch, uint64_t seq, int64_t stamp, const uint8_t *v, size_t len) {
     if (ch->has_highest && seq <= ch->highest) {
@@ -61,10 +61,13 @@ static void on_error(rlb_client *c, mp_cur *m, bool topic) {
     uint32_t rlen = 0;
     char text[256];
     if (topic) { /* TopicError [6, channel, code, reason] */
-        if (!mp_u64(m, &id) || !mp_u64(m, &code)) return conn_malformed(c->conn);
+        if (!mp_u64(m, &id) || !mp_u64(m, &code)) {
+            conn_malformed(c->conn);
+            return;
+        }
         mp_str(m, &reason, &rlen);
     } else {     /* Error [12, code, reason, channel|nil, values] */
-        if (!mp_u64(m, &code)) return conn_malformed(c->conn);
+        if (!mp_u64(m, &code)) { conn_malformed(c->conn); return; }
         if (mp_str(m, &reason, &rlen) && !mp_nil(m)) mp_u64(m, &id);
     }
     snprintf(text, sizeof text, "%.*s", (int)(rlen < 255 ? rlen : 255), reason);
@@ -80,7 +83,7 @@ static void on_error(rlb_client *c, mp_cur *m, bool topic) {
 static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     rlb_conn *k = c->conn;
     int64_t now = rlb_mono_ns();
-    if (in_bundle && tag != T_VALUE && tag != T_BATCH) return conn_malformed(k);
+    if (in_bundle && tag != T_VALUE && tag != T_BATCH) { conn_malformed(k); return; }
     switch (tag) {
     case T_VALUE:
     case T_BATCH:
@@ -90,7 +93,7 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
         uint64_t id, credit = UINT64_MAX;
         const char *type;
         uint32_t tl;
-        if (!mp_u64(m, &id) || !mp_str(m, &type, &tl)) return conn_malformed(k);
+        if (!mp_u64(m, &id) || !mp_str(m, &type, &tl)) { conn_malformed(k); return; }
         if (mp_skip(m) && mp_skip(m) && !mp_nil(m)) mp_u64(m, &credit); /* initial, schema */
         rlb_channel *ch = conn_channel(c, id);
         if (ch == NULL || ch->bind != BIND_SENT) break;
@@ -103,7 +106,7 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     case T_ERROR: on_error(c, m, false); break;
     case T_HEARTBEAT: {
         int64_t sent_ns = 0, echo = 0, wall = 0;
-        if (!mp_i64(m, &sent_ns)) return conn_malformed(k);
+        if (!mp_i64(m, &sent_ns)) { conn_malformed(k); return; }
         uint32_t left = 0;
         (void)left;
         if (mp_i64(m, &echo) && mp_i64(m, &wall)) {
@@ -127,17 +130,17 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     }
     case T_BUNDLE: {
         uint32_t n;
-        if (!mp_array(m, &n)) return conn_malformed(k);
+        if (!mp_array(m, &n)) { conn_malformed(k); return; }
         for (uint32_t i = 0; i < n; i++) {
             const uint8_t *part = m->p;
-            if (!mp_skip(m)) return conn_malformed(k);
+            if (!mp_skip(m)) { conn_malformed(k); return; }
             conn_packet(c, part, (size_t)(m->p - part), true);
         }
         break;
     }
     case T_CREDIT: {
         uint64_t id, limit;
-        if (!mp_u64(m, &id) || !mp_u64(m, &limit)) return conn_malformed(k);
+        if (!mp_u64(m, &id) || !mp_u64(m, &limit)) { conn_malformed(k); return; }
         rlb_channel *ch = conn_channel(c, id);
         if (ch && ch->dir == DIR_PUBLISH && ch->flow && (ch->credit == UINT64_MAX || limit > ch->credit))
             ch->credit = limit;
@@ -145,14 +148,16 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     }
     case T_LOSS: {
         uint32_t n, f;
-        if (!mp_array(m, &n)) return conn_malformed(k);
+        if (!mp_array(m, &n)) { conn_malformed(k); return; }
         for (uint32_t i = 0; i < n; i++) {
             uint64_t id, received, lost;
             if (!mp_array(m, &f) || f < 4 || !mp_u64(m, &id) || !mp_u64(m, &received) ||
-                !mp_u64(m, &lost))
-                return conn_malformed(k);
+                !mp_u64(m, &lost)) {
+                conn_malformed(k);
+                return;
+            }
             for (uint32_t j = 3; j < f; j++)
-                if (!mp_skip(m)) return conn_malformed(k);
+                if (!mp_skip(m)) { conn_malformed(k); return; }
             rlb_channel *ch = conn_channel(c, id);
             if (ch && ch->dir == DIR_PUBLISH) {
                 atomic_store_explicit(&ch->n_srv_received, received, memory_order_relaxed);
@@ -171,7 +176,7 @@ void conn_packet(rlb_client *c, const uint8_t *body, size_t len, bool in_bundle)
     uint32_t n;
     uint64_t tag;
     mp_init(&m, body, len);
-    if (!mp_array(&m, &n) || n < 1 || !mp_u64(&m, &tag)) return conn_malformed(c->conn);
+    if (!mp_array(&m, &n) || n < 1 || !mp_u64(&m, &tag)) { conn_malformed(c->conn); return; }
     if (!in_bundle) c->conn->last_rx = rlb_mono_ns();
     dispatch(c, &m, tag, in_bundle);
 }
@@ -216,5 +221,5 @@ void rlb_debug_feed_stream(rlb_client *c, const uint8_t *bytes, size_t n) {
     }
 }
 
-uint64_t rlb_debug_malformed(const rlb_client *c) { return c->conn->conn_malformed; }
+uint64_t rlb_debug_malformed(const rlb_client *c) { return c->conn->malformed; }
 
