@@ -15,7 +15,8 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
     for (int i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--tcp") == 0 && strstr(usage, "--tcp")) {
             a->tcp = true;
-        } else if (strcmp(argv[i], "--channels") == 0 && strstr(usage, "--channels") && i + 1 < argc) {
+        } else if (strcmp(argv[i], "--channels") == 0 && strstr(usage, "--channels") &&
+                   i + 1 < argc) {
             char *end;
             unsigned long n = strtoul(argv[++i], &end, 10);
             if (*end || n < 1 || n > 256) {
@@ -30,7 +31,8 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
         } else if (strcmp(argv[i], "--psk-file") == 0 && i + 1 < argc) {
             a->psk_file = argv[++i];
         } else if (argv[i][0] == '-' && argv[i][1] == '-') {
-            fprintf(stderr, "%s: unknown option %s\nusage: %s %s\n", argv[0], argv[i], argv[0], usage);
+            fprintf(stderr, "%s: unknown option %s\nusage: %s %s\n", argv[0], argv[i], argv[0],
+                    usage);
             exit(2);
         } else if (pos < want) {
             p[pos++] = argv[i];

@@ -57,7 +57,9 @@ static void on_event(void *ctx, const rlb_event *ev) {
 
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]", &a);
+    parse_args(argc, argv,
+               "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]",
+               &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_pub", "rlb_pub", &cfg, key);
@@ -106,7 +108,8 @@ int main(int argc, char **argv) {
         rlb_channel_stats_get(l.ch[k], &st);
         sent += st.values;
     }
-    fprintf(stderr, "rlb_pub: %lu values written on %u channel(s) (%s), %llu sent, ring full %lu times\n",
+    fprintf(stderr,
+            "rlb_pub: %lu values written on %u channel(s) (%s), %llu sent, ring full %lu times\n",
             a.count, l.n, fifo ? "SCHED_FIFO" : "SCHED_OTHER", sent, l.full);
     rlb_close(c);
     if (rc != RLB_OK) {

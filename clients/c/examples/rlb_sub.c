@@ -31,7 +31,8 @@ static void on_event(void *ctx, const rlb_event *ev) {
 
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only]", &a);
+    parse_args(argc, argv,
+               "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only]", &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_sub", "rlb_sub", &cfg, key);
@@ -69,9 +70,11 @@ int main(int argc, char **argv) {
     int code = 0;
     while (got < a.count) {
         clock_gettime(CLOCK_MONOTONIC, &now);
-        double left = a.number - (double)(now.tv_sec - t0.tv_sec) - (double)(now.tv_nsec - t0.tv_nsec) / 1e9;
+        double left = a.number - (double)(now.tv_sec - t0.tv_sec) -
+                      (double)(now.tv_nsec - t0.tv_nsec) / 1e9;
         if (left <= 0) {
-            fprintf(stderr, "rlb_sub: timed out after %g s with %lu of %lu values\n", a.number, got, a.count);
+            fprintf(stderr, "rlb_sub: timed out after %g s with %lu of %lu values\n", a.number,
+                    got, a.count);
             code = 1;
             break;
         }
@@ -85,7 +88,8 @@ int main(int argc, char **argv) {
     }
     rlb_channel_stats st;
     rlb_channel_stats_get(ch, &st);
-    fprintf(stderr, "rlb_sub: %lu values, %llu lost, %llu duplicates, %llu dropped, %llu sessions\n",
+    fprintf(stderr,
+            "rlb_sub: %lu values, %llu lost, %llu duplicates, %llu dropped, %llu sessions\n",
             got, (unsigned long long)st.lost, (unsigned long long)st.duplicates,
             (unsigned long long)st.dropped, (unsigned long long)rlb_sessions(c));
     rlb_close(c);

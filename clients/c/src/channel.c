@@ -126,7 +126,8 @@ static rlb_status declare(rlb_client *c, const rlb_channel_opts *o, int dir, rlb
     if (o->topic[0] != '/' || strlen(o->topic) > 256 || o->msg_type[0] == '\0' ||
         strlen(o->msg_type) > 128 || (o->field && (o->field[0] == '\0' || strlen(o->field) > 128)))
         return RLB_E_INVAL;
-    if (o->value_bytes < 1 || o->value_bytes > 65536 || (o->mode != RLB_LATEST && o->mode != RLB_QUEUE) ||
+    if (o->value_bytes < 1 || o->value_bytes > 65536 ||
+        (o->mode != RLB_LATEST && o->mode != RLB_QUEUE) ||
         (o->transport != RLB_UDP && o->transport != RLB_TCP) || o->flow < -1 || o->flow > 1)
         return RLB_E_INVAL;
     if (!latest_sub(o, dir) && (o->capacity < 1 || o->capacity > (1u << 24))) return RLB_E_INVAL;

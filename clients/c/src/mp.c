@@ -297,8 +297,14 @@ void wb_bool(wbuf *w, bool v) {
     else msgpack_pack_false(&pk);
 }
 void wb_nil(wbuf *w) { PACKER(w); msgpack_pack_nil(&pk); }
-void wb_str(wbuf *w, const char *s, size_t len) { PACKER(w); msgpack_pack_str_with_body(&pk, s, len); }
-void wb_bin(wbuf *w, const uint8_t *b, size_t len) { PACKER(w); msgpack_pack_bin_with_body(&pk, b, len); }
+void wb_str(wbuf *w, const char *s, size_t len) {
+    PACKER(w);
+    msgpack_pack_str_with_body(&pk, s, len);
+}
+void wb_bin(wbuf *w, const uint8_t *b, size_t len) {
+    PACKER(w);
+    msgpack_pack_bin_with_body(&pk, b, len);
+}
 void wb_raw(wbuf *w, const void *b, size_t len) { wb_write(w, b, len); }
 
 /* -- the public map builder and accessors ------------------------------------------------ */
@@ -317,7 +323,11 @@ void rlb_msg_init(rlb_msg *m, void *buf, size_t cap) {
     (m)->overflow = w.overflow
 
 void rlb_msg_map(rlb_msg *m, uint32_t pairs) { MSGBUF(m); wb_map(&w, pairs); MSGDONE(m); }
-void rlb_msg_key(rlb_msg *m, const char *key) { MSGBUF(m); wb_str(&w, key, strlen(key)); MSGDONE(m); }
+void rlb_msg_key(rlb_msg *m, const char *key) {
+    MSGBUF(m);
+    wb_str(&w, key, strlen(key));
+    MSGDONE(m);
+}
 void rlb_msg_f64(rlb_msg *m, double v) { MSGBUF(m); wb_f64(&w, v); MSGDONE(m); }
 void rlb_msg_i64(rlb_msg *m, int64_t v) { MSGBUF(m); wb_i64(&w, v); MSGDONE(m); }
 void rlb_msg_bool(rlb_msg *m, bool v) { MSGBUF(m); wb_bool(&w, v); MSGDONE(m); }

@@ -142,7 +142,8 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
         uint64_t id, limit;
         if (!mp_u64(m, &id) || !mp_u64(m, &limit)) { conn_malformed(k); return; }
         rlb_channel *ch = conn_channel(c, id);
-        if (ch && ch->dir == DIR_PUBLISH && ch->flow && (ch->credit == UINT64_MAX || limit > ch->credit))
+        bool more = ch && ch->dir == DIR_PUBLISH && ch->flow; /* cumulative: only raises */
+        if (more && (ch->credit == UINT64_MAX || limit > ch->credit))
             ch->credit = limit;
         break;
     }

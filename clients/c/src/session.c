@@ -176,7 +176,13 @@ rlb_status conn_open(rlb_client *c) {
             }
             break;
         }
-        int64_t left = (deadline - rlb_mono_ns()) / 1000000;
+        int64_t now = rlb_mono_ns(), left = (deadline - now) / 1000000;
+        /* a slow binding (a ROS type to load) must not starve the server's watchdog */
+        if (now >= k->last_hb + (int64_t)k->hb_ms * 1000000) {
+            k->last_hb = now;
+            if (k->tcp >= 0) send_tcp_heartbeat(k, now);
+            send_udp_heartbeat(k, now);
+        }
         if (left <= 0 || !spin_io(c, (int)(left < 50 ? left : 50)) || !k->up) {
             conn_close_sockets(k);
             return RLB_E_CONNECT;
@@ -198,6 +204,14 @@ static uint64_t next_random(rlb_client *c) { /* xorshift64: jitter of the backof
     return c->rng;
 }
 
+/* The next attempt: the backoff, +-20 % jitter so that clients of one server spread out. */
+static void schedule_retry(rlb_client *c) {
+    rlb_conn *k = c->conn;
+    uint32_t b = k->backoff_ms ? k->backoff_ms : 1;
+    uint64_t jitter = next_random(c) % (b / 5 * 2 + 1);
+    k->retry_at = rlb_mono_ns() + (int64_t)(b - b / 5 + jitter) * 1000000;
+}
+
 void conn_lost(rlb_client *c, const char *why) {
     rlb_conn *k = c->conn;
     (void)why;
@@ -209,8 +223,7 @@ void conn_lost(rlb_client *c, const char *why) {
         k->closed = true;
         return;
     }
-    uint32_t b = k->backoff_ms ? k->backoff_ms : 1;
-    k->retry_at = rlb_mono_ns() + (int64_t)(b - b / 5 + next_random(c) % (b / 5 * 2 + 1)) * 1000000;
+    schedule_retry(c);
 }
 
 /* Receives (waiting up to timeout_ms) and dispatches; false when the session broke. */
@@ -261,8 +274,7 @@ rlb_status conn_spin(rlb_client *c, uint32_t timeout_ms) {
             rlb_set_link(c, RLB_LINK_LOST);
             uint32_t b = k->backoff_ms * 2;
             k->backoff_ms = b > c->cfg.backoff_max_ms ? c->cfg.backoff_max_ms : b;
-            b = k->backoff_ms;
-            k->retry_at = rlb_mono_ns() + (int64_t)(b - b / 5 + next_random(c) % (b / 5 * 2 + 1)) * 1000000;
+            schedule_retry(c);
         }
         return RLB_OK;
     }
