@@ -208,6 +208,9 @@ int rlb_read_raw(rlb_channel *ch, void *buf, size_t cap, size_t *len);
 int64_t rlb_read_stamp(const rlb_channel *ch);
 
 rlb_link rlb_link_state(const rlb_client *c);
+/** Smoothed round-trip time to the server from the heartbeat echo (protocol.md 11), ns;
+ *  -1 before the first sample. */
+int64_t rlb_rtt_ns(const rlb_client *c);
 /** Times a session was opened (1 after rlb_connect, +1 per reconnect). */
 uint64_t rlb_sessions(const rlb_client *c);
 void rlb_channel_stats_get(const rlb_channel *ch, rlb_channel_stats *out);

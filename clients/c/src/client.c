@@ -170,6 +170,7 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     c->cfg.psk = NULL;
     atomic_init(&c->link, RLB_LINK_CONNECTING);
     atomic_init(&c->sessions, 0);
+    atomic_init(&c->rtt_ns, -1);
     atomic_init(&c->stop, false);
     pthread_mutex_init(&c->wait_mu, NULL);
     pthread_condattr_t ca;
@@ -207,6 +208,10 @@ void rlb_set_link(rlb_client *c, rlb_link link) {
 
 rlb_link rlb_link_state(const rlb_client *c) {
     return (rlb_link)atomic_load_explicit(&((rlb_client *)c)->link, memory_order_relaxed);
+}
+
+int64_t rlb_rtt_ns(const rlb_client *c) {
+    return atomic_load_explicit(&((rlb_client *)c)->rtt_ns, memory_order_relaxed);
 }
 
 uint64_t rlb_sessions(const rlb_client *c) {

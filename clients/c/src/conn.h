@@ -38,6 +38,7 @@ struct rlb_conn {
     int64_t last_rx, last_hb;
     bool tcp_data; /* values went over TCP this heartbeat period: no TCP heartbeat (sec. 11) */
     int64_t peer_sent, peer_rx, peer_wall, peer_wall_rx;
+    int64_t srtt, rttvar; /* RFC 6298 smoothing of the heartbeat echo (protocol.md 11) */
     int64_t retry_at;
     uint32_t backoff_ms;
     bool closed;

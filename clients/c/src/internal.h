@@ -152,6 +152,7 @@ struct rlb_client {
     rlb_conn *conn;
     _Atomic int link;
     _Atomic uint64_t sessions;
+    _Atomic int64_t rtt_ns; /* smoothed round trip, -1 before the first sample */
     _Atomic bool stop;
     bool started, connected_once;
     pthread_t thread;

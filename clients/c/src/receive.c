@@ -107,11 +107,22 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     case T_HEARTBEAT: {
         int64_t sent_ns = 0, echo = 0, wall = 0;
         if (!mp_i64(m, &sent_ns)) { conn_malformed(k); return; }
-        uint32_t left = 0;
-        (void)left;
-        if (mp_i64(m, &echo) && mp_i64(m, &wall)) {
+        bool has_echo = mp_i64(m, &echo);
+        if (has_echo && mp_i64(m, &wall)) {
             k->peer_wall = wall;
             k->peer_wall_rx = rlb_wall_ns();
+        }
+        if (has_echo && echo > 0 && echo <= now) { /* our sent_ns, aged by the peer (11) */
+            int64_t sample = now - echo;
+            if (k->srtt == 0) {
+                k->srtt = sample;
+                k->rttvar = sample / 2;
+            } else {
+                int64_t d = k->srtt > sample ? k->srtt - sample : sample - k->srtt;
+                k->rttvar += (d - k->rttvar) / 4;
+                k->srtt += (sample - k->srtt) / 8;
+            }
+            atomic_store_explicit(&c->rtt_ns, k->srtt, memory_order_relaxed);
         }
         k->peer_sent = sent_ns;
         k->peer_rx = now;

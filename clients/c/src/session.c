@@ -139,7 +139,7 @@ rlb_status conn_open(rlb_client *c) {
     k->out_len = k->wire_off = k->wire_len = k->in_off = k->in_len = k->rec_len = k->skip = 0;
     k->dgram_tx = k->rec_tx = k->rec_rx = k->replay_top = 0;
     memset(k->replay_bits, 0, sizeof k->replay_bits);
-    k->peer_sent = k->peer_wall = 0;
+    k->peer_sent = k->peer_wall = k->srtt = k->rttvar = 0;
     reset_bindings(c);
     rlb_status rc = open_sockets(c, deadline);
     if (rc == RLB_OK)

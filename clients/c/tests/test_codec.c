@@ -270,6 +270,19 @@ static void received_packets_of_section_14(void **state) {
     assert_int_equal(rlb_read_f64(ch[1], &v), RLB_NEW); /* only the seq-15 value */
     assert_true(v == 1.0);
     assert_int_equal(rlb_read_f64(ch[1], &v), 0);
+    /* a heartbeat echoing our clock 5 ms ago: one RTT sample of at least 5 ms */
+    assert_int_equal(rlb_rtt_ns(c), -1);
+    wbuf w;
+    wb_init(&w, d + 8, sizeof d - 8);
+    wb_array(&w, 3);
+    wb_u64(&w, 10);
+    wb_i64(&w, 1);
+    wb_i64(&w, rlb_mono_ns() - 5000000);
+    n = unhex("5242010000000000", d);
+    d[7] = (uint8_t)w.len;
+    rlb_debug_feed_stream(c, d, 8 + w.len);
+    assert_true(rlb_rtt_ns(c) >= 5000000);
+    assert_true(rlb_rtt_ns(c) < 5000000000LL);
     rlb_close(c);
 }
 
