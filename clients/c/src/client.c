@@ -180,7 +180,7 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     pthread_condattr_destroy(&ca);
     randombytes_buf(&c->rng, sizeof c->rng);
     c->rng |= 1;
-    rlb_status rc = conn_new(c);
+    rlb_status rc = rlbi_conn_new(c);
     if (rc != RLB_OK) {
         pthread_mutex_destroy(&c->wait_mu);
         pthread_cond_destroy(&c->wait_cv);
@@ -221,7 +221,7 @@ uint64_t rlb_sessions(const rlb_client *c) {
 rlb_status rlb_connect(rlb_client *c) {
     if (c == NULL) return RLB_E_INVAL;
     if (c->started || c->connected_once) return RLB_E_STATE;
-    rlb_status rc = conn_open(c);
+    rlb_status rc = rlbi_conn_open(c);
     if (rc == RLB_OK) c->connected_once = true;
     return rc;
 }
@@ -229,7 +229,7 @@ rlb_status rlb_connect(rlb_client *c) {
 rlb_status rlb_spin_once(rlb_client *c, uint32_t timeout_ms) {
     if (c == NULL) return RLB_E_INVAL;
     if (!c->connected_once) return RLB_E_STATE;
-    rlb_status rc = conn_spin(c, timeout_ms);
+    rlb_status rc = rlbi_conn_spin(c, timeout_ms);
     pthread_mutex_lock(&c->wait_mu); /* wake rlb_read_wait / rlb_flush; no waiter: no syscall */
     pthread_cond_broadcast(&c->wait_cv);
     pthread_mutex_unlock(&c->wait_mu);
@@ -286,8 +286,8 @@ static void deadline_of(struct timespec *ts, uint32_t ms) {
 static size_t unsent(rlb_client *c) {
     size_t n = 0;
     for (uint32_t i = 0; i < c->n_channels; i++)
-        if (c->channels[i]->dir == DIR_PUBLISH) n += ring_count(&c->channels[i]->ring);
-    return n + conn_unsent(c);
+        if (c->channels[i]->dir == DIR_PUBLISH) n += rlbi_ring_count(&c->channels[i]->ring);
+    return n + rlbi_conn_unsent(c);
 }
 
 rlb_status rlb_flush(rlb_client *c, uint32_t timeout_ms) {
@@ -312,7 +312,7 @@ rlb_status rlb_flush(rlb_client *c, uint32_t timeout_ms) {
 static bool has_new(rlb_channel *ch) {
     if (ch->mode == RLB_LATEST)
         return atomic_load_explicit(&ch->triple.middle, memory_order_acquire) & 4u;
-    return ring_count(&ch->ring) > 0;
+    return rlbi_ring_count(&ch->ring) > 0;
 }
 
 int rlb_read_wait(rlb_channel *ch, uint32_t timeout_ms) {
@@ -341,9 +341,9 @@ void rlb_close(rlb_client *c) {
     if (c == NULL) return;
     atomic_store(&c->stop, true);
     if (c->started) pthread_join(c->thread, NULL);
-    conn_goodbye(c);
-    conn_free(c);
-    for (uint32_t i = 0; i < c->n_channels; i++) chan_free(c->channels[i]);
+    rlbi_conn_goodbye(c);
+    rlbi_conn_free(c);
+    for (uint32_t i = 0; i < c->n_channels; i++) rlbi_chan_free(c->channels[i]);
     free(c->channels);
     pthread_mutex_destroy(&c->wait_mu);
     pthread_cond_destroy(&c->wait_cv);

@@ -75,13 +75,13 @@ static void sealed_datagram(void **state) {
     /* header (flags SEALED), token, counter 1, then the Value body encoded by the library */
     size_t n = unhex("52420101" "0102030405060708" "0000000000000001", d);
     wbuf w;
-    wb_init(&w, d + n, sizeof d - n);
-    wb_array(&w, 5);
-    wb_u64(&w, 8);
-    wb_u64(&w, 1);
-    wb_u64(&w, 0);
-    wb_i64(&w, 0);
-    wb_f64(&w, 1.5);
+    rlbi_wb_init(&w, d + n, sizeof d - n);
+    rlbi_wb_array(&w, 5);
+    rlbi_wb_u64(&w, 8);
+    rlbi_wb_u64(&w, 1);
+    rlbi_wb_u64(&w, 0);
+    rlbi_wb_i64(&w, 0);
+    rlbi_wb_f64(&w, 1.5);
     assert_hex(d + n, w.len, "9508010000cb3ff8000000000000");
     rlb_seal(k.kc2s, 1, d, 20, d + 20, w.len, d + 20 + w.len);
     size_t total = 20 + w.len + 16;
