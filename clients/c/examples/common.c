@@ -28,6 +28,11 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
             a->udp_only = true;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
             a->spin = true;
+        } else if (strcmp(argv[i], "--tls-ca") == 0 && strstr(usage, "--tls") && i + 1 < argc) {
+            a->tls_ca = argv[++i];
+        } else if (strcmp(argv[i], "--tls-fingerprint") == 0 && strstr(usage, "--tls") &&
+                   i + 1 < argc) {
+            a->tls_fingerprint = argv[++i];
         } else if (strcmp(argv[i], "--psk-file") == 0 && i + 1 < argc) {
             a->psk_file = argv[++i];
         } else if (argv[i][0] == '-' && argv[i][1] == '-') {
@@ -74,6 +79,9 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
     cfg->port = a->port;
     cfg->name = name;
     if (a->udp_only) cfg->control = RLB_UDP;
+    cfg->tls = a->tls_ca || a->tls_fingerprint;
+    cfg->tls_ca_file = a->tls_ca;
+    cfg->tls_fingerprint = a->tls_fingerprint;
     if (a->udp_only && a->tcp) {
         fprintf(stderr, "%s: --tcp needs a TCP session: not with --udp-only\n", prog);
         exit(2);

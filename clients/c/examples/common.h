@@ -10,6 +10,7 @@
 
 typedef struct args {
     const char *host, *topic, *psk_file;
+    const char *tls_ca, *tls_fingerprint; /* --tls-ca FILE / --tls-fingerprint HEX: TLS */
     uint16_t port;
     unsigned long count;
     double number; /* RATE_HZ for rlb_pub, TIMEOUT_S for rlb_sub */
@@ -19,7 +20,7 @@ typedef struct args {
     unsigned channels; /* rlb_pub --channels N: TOPIC_0 .. TOPIC_{N-1}, default 1: TOPIC */
 } args;
 
-/* Parses HOST PORT TOPIC COUNT [NUMBER] [--tcp] [--psk-file FILE] [--spin] [--channels N] [--udp-only] (the options the
+/* Parses HOST PORT TOPIC COUNT [NUMBER] [--tcp] [--psk-file FILE] [--spin] [--channels N] [--udp-only] [--tls-ca FILE] [--tls-fingerprint HEX] (the options the
  * usage names; NUMBER when the usage has RATE_HZ or TIMEOUT_S); exits 2 with the usage. */
 void parse_args(int argc, char **argv, const char *usage, args *a);
 /* Fills cfg from a (and loads the key); exits 1 with one line if the key file is unusable. */

@@ -6,7 +6,7 @@
  * them all and exits 0; 1 with one line on stderr when it cannot connect. --channels N: the
  * same values on N channels, topics TOPIC_0 .. TOPIC_{N-1} (over UDP, one datagram per round
  * carries them all). --udp-only: a UDP-only session (protocol.md 8.2), for a server without
- * TCP.
+ * TCP. --tls-ca FILE / --tls-fingerprint HEX: TLS, the server verified by that CA or pinned.
  * The loop thread makes no system call but its sleep (clock_nanosleep) and clock reads.
  */
 #include <stdio.h>
@@ -58,7 +58,8 @@ static void on_event(void *ctx, const rlb_event *ev) {
 int main(int argc, char **argv) {
     args a;
     parse_args(argc, argv,
-               "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]",
+               "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only] "
+               "[--tls-ca FILE | --tls-fingerprint HEX]",
                &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];

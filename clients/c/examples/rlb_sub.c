@@ -7,7 +7,8 @@
  * server sends no more than the ring has room for. Link changes go to stderr ("link lost",
  * "connected"); the client reconnects by itself. --spin: no I/O thread, the reading thread
  * runs the I/O itself (rlb_spin_once, what a single-threaded target does). --udp-only: a
- * UDP-only session (protocol.md 8.2), for a server without TCP.
+ * UDP-only session (protocol.md 8.2), for a server without TCP. --tls-ca FILE /
+ * --tls-fingerprint HEX: TLS, the server verified by that CA or pinned.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -32,7 +33,9 @@ static void on_event(void *ctx, const rlb_event *ev) {
 int main(int argc, char **argv) {
     args a;
     parse_args(argc, argv,
-               "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only]", &a);
+               "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only] "
+               "[--tls-ca FILE | --tls-fingerprint HEX]",
+               &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_sub", "rlb_sub", &cfg, key);

@@ -99,6 +99,12 @@ typedef struct rlb_config {
                                      server without TCP; its channels must be UDP ones */
     const uint8_t *psk;           /* pre-shared key (raw bytes) or NULL: plain session */
     size_t psk_len;
+    bool tls;                     /* TLS 1.3 on the TCP connection (a --tls-cert server; needs
+                                     a library built with OpenSSL, else RLB_E_INVAL) */
+    const char *tls_ca_file;      /* PEM CAs to verify the server with; NULL: the system's */
+    const char *tls_fingerprint;  /* or pin the server certificate: its SHA-256, 64 hex */
+    const char *tls_cert_file;    /* a client certificate (mutual TLS), PEM, or NULL */
+    const char *tls_key_file;     /* its key (NULL: in the certificate file) */
     uint32_t max_channels;        /* channels the client can declare, default 32 */
     uint32_t connect_timeout_ms;  /* handshake + bindings, default 3000 */
     uint32_t period_us;           /* I/O thread: how often it takes values from the rings

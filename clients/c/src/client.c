@@ -145,7 +145,9 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     if (cfg == NULL || out == NULL || cfg->max_channels == 0 || cfg->max_channels > 65536 ||
         cfg->period_us == 0 || cfg->tcp_buffer < 4096 || cfg->psk_len > RLB_MAX_KEY ||
         (cfg->psk_len > 0 && cfg->psk == NULL) || (cfg->name && strlen(cfg->name) > 128) ||
-        (cfg->control != RLB_TCP && cfg->control != RLB_UDP))
+        (cfg->control != RLB_TCP && cfg->control != RLB_UDP) ||
+        (cfg->tls && cfg->control == RLB_UDP) || /* TLS needs TCP (16.4) */
+        (cfg->tls_fingerprint && strlen(cfg->tls_fingerprint) != 64))
         return RLB_E_INVAL;
     if (sodium_init() < 0) return RLB_E_NOMEM;
     rlb_client *c = calloc(1, sizeof *c);
@@ -168,6 +170,10 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     if (cfg->psk_len) memcpy(c->psk, cfg->psk, cfg->psk_len);
     c->psk_len = cfg->psk_len;
     c->cfg.psk = NULL;
+    if (cfg->tls_fingerprint) {
+        for (int i = 0; i < 64; i++) c->fingerprint[i] = (char)tolower(cfg->tls_fingerprint[i]);
+        c->cfg.tls_fingerprint = c->fingerprint;
+    }
     atomic_init(&c->link, RLB_LINK_CONNECTING);
     atomic_init(&c->sessions, 0);
     atomic_init(&c->rtt_ns, -1);
@@ -181,6 +187,7 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     randombytes_buf(&c->rng, sizeof c->rng);
     c->rng |= 1;
     rlb_status rc = rlbi_conn_new(c);
+    if (rc == RLB_OK && (rc = rlbi_tls_setup(c)) != RLB_OK) rlbi_conn_free(c);
     if (rc != RLB_OK) {
         pthread_mutex_destroy(&c->wait_mu);
         pthread_cond_destroy(&c->wait_cv);

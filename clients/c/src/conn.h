@@ -4,6 +4,8 @@
 #ifndef RLB_CONN_H
 #define RLB_CONN_H
 
+#include <sys/types.h>
+
 #include "internal.h"
 
 enum {
@@ -27,7 +29,9 @@ struct rlb_conn {
     bool up;
     uint64_t token;
     uint32_t hb_ms, timeout_ms;
-    bool sealed;
+    bool sealed;  /* datagrams sealed (a key, or TLS: 16.3, 16.4) */
+    bool records; /* the TCP stream as sealed records (a key without TLS: 16.5) */
+    void *tls_ctx, *ssl; /* OpenSSL's SSL_CTX and SSL (tls.c), NULL without TLS */
     rlb_keys keys;
     uint64_t dgram_tx, rec_tx, rec_rx;
     uint64_t replay_top, replay_bits[16]; /* 1024 counters below replay_top */
@@ -88,5 +92,12 @@ rlb_channel *rlbi_conn_channel(rlb_client *c, uint64_t id);
 /* handshake.c: blocking, within the deadline */
 rlb_status rlbi_handshake_tcp(rlb_client *c, int64_t deadline);
 rlb_status rlbi_handshake_udp(rlb_client *c, int64_t deadline);
+
+/* tls.c: TLS on the TCP connection, and the stream's reads and writes (plain or TLS) */
+void rlbi_tls_close(rlb_conn *k);
+rlb_status rlbi_tls_connect(rlb_client *c, int64_t deadline);
+ssize_t rlbi_stream_recv(rlb_conn *k, void *buf, size_t n);
+ssize_t rlbi_stream_send(rlb_conn *k, const void *buf, size_t n);
+bool rlbi_tls_pending(const rlb_conn *k);
 
 #endif

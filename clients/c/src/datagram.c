@@ -13,7 +13,9 @@ size_t rlbi_udp_body_cap(const rlb_conn *k) {
 }
 
 /* Sends the body already written at rlbi_udp_body_at(k) in dg_tx. */
-void rlbi_udp_send(rlb_conn *k, size_t body_len) { rlbi_udp_send_as(k, body_len, k->token, k->sealed); }
+void rlbi_udp_send(rlb_conn *k, size_t body_len) {
+    rlbi_udp_send_as(k, body_len, k->token, k->sealed);
+}
 
 /* The handshake's datagrams: token 0, flags 0, never sealed (protocol.md 3, 16.1). */
 void rlbi_udp_send_as(rlb_conn *k, size_t body_len, uint64_t token, bool sealed) {

@@ -73,16 +73,26 @@ static rlb_status challenge(rlb_client *c, hs *h, mp_cur *m) {
     return RLB_OK;
 }
 
-/* ConnectAck: the token, the heartbeat and the watchdog of the session. */
-static rlb_status take_ack(rlb_conn *k, mp_cur *m) {
+/* ConnectAck: the token, the heartbeat and the watchdog of the session; over TLS without a
+ * key, the secret the datagram keys derive from (16.4). */
+static rlb_status take_ack(rlb_conn *k, mp_cur *m, bool tls_keys) {
     uint64_t session, token, hb, to;
     uint32_t nl;
-    if (!rlbi_mp_u64(m, &session) || !rlbi_mp_u64(m, &token) || !rlbi_mp_u64(m, &hb) || !rlbi_mp_u64(m, &to) ||
-        !rlbi_mp_array(m, &nl) || token == 0 || hb == 0)
+    if (!rlbi_mp_u64(m, &session) || !rlbi_mp_u64(m, &token) || !rlbi_mp_u64(m, &hb) ||
+        !rlbi_mp_u64(m, &to) || !rlbi_mp_array(m, &nl) || token == 0 || hb == 0)
         return RLB_E_CONNECT;
+    for (uint32_t i = 0; i < nl; i++)
+        if (!rlbi_mp_skip(m)) return RLB_E_CONNECT;
     k->token = token;
     k->hb_ms = (uint32_t)hb;
     k->timeout_ms = (uint32_t)to;
+    if (tls_keys) {
+        const uint8_t *secret;
+        uint32_t len;
+        if (!rlbi_mp_bin(m, &secret, &len) || len == 0) return RLB_E_AUTH;
+        rlb_derive_tls(secret, len, token, &k->keys);
+        k->sealed = true;
+    }
     return RLB_OK;
 }
 
@@ -104,7 +114,7 @@ static const uint8_t *next(rlb_conn *k, int64_t deadline, size_t *len) {
         int64_t left = (deadline - rlb_mono_ns()) / 1000000;
         if (left <= 0) return NULL;
         struct pollfd p = {k->tcp, POLLIN, 0};
-        if (poll(&p, 1, (int)left) < 0 && errno != EINTR) return NULL;
+        if (!rlbi_tls_pending(k) && poll(&p, 1, (int)left) < 0 && errno != EINTR) return NULL;
         if (!rlbi_tcp_read(k) && k->in_len - k->in_off < 8) return NULL;
     }
 }
@@ -142,19 +152,21 @@ rlb_status rlbi_handshake_tcp(rlb_client *c, int64_t deadline) {
             enc_proof(&h, &w);
             rlbi_tcp_frame_end(k, &w);
             if (!rlbi_tcp_flush_blocking(k, deadline)) return RLB_E_CONNECT;
+            k->sealed = true; /* datagrams under the key's Kc2s/Ks2c (16.3) */
+            if (k->ssl) continue; /* inside TLS the stream is not sealed again (16.4) */
             /* From the ConnectAck on the server sends records: what follows is one. */
             size_t rest = k->in_len - k->in_off;
             if (rest > RECORD_MAX + 32) return RLB_E_CONNECT;
             memcpy(k->rec, k->in + k->in_off, rest);
             k->rec_len = rest;
             k->in_off = k->in_len = 0;
-            k->sealed = true;
+            k->records = true;
             if (!rlbi_tcp_open_records(k)) return RLB_E_AUTH;
             continue;
         }
         if (tag == T_ACK) {
-            if (h.keyed && !k->sealed) return RLB_E_AUTH; /* no downgrade (16.1) */
-            return take_ack(k, &m);
+            if (h.keyed && !h.challenged) return RLB_E_AUTH; /* no downgrade (16.1) */
+            return take_ack(k, &m, k->ssl != NULL && !h.keyed);
         }
         /* anything else before the ack is ignored */
     }
@@ -206,7 +218,7 @@ static int udp_answer(rlb_client *c, hs *h, uint8_t *d, size_t n, int64_t *resen
     }
     if (token != 0 && tag == T_ACK) {
         if (h->keyed && !h->challenged) return RLB_E_AUTH; /* no downgrade (16.1) */
-        rlb_status rc = take_ack(k, &m);
+        rlb_status rc = take_ack(k, &m, false);
         if (rc == RLB_OK && k->token != token) return RLB_E_CONNECT;
         if (rc == RLB_OK) k->sealed = h->keyed;
         return rc;

@@ -61,6 +61,8 @@ void rlb_proof(const uint8_t *key, size_t key_len, const char *label, const uint
                size_t t_len, uint8_t out[32]);
 void rlb_derive(const uint8_t *key, size_t key_len, const uint8_t nc[16], const uint8_t ns[16],
                 const uint8_t *t, size_t t_len, rlb_keys *keys);
+/* 16.4: the datagram keys of a TLS session from ConnectAck.datagram_key and the token. */
+void rlb_derive_tls(const uint8_t *secret, size_t len, uint64_t token, rlb_keys *keys);
 /* AEAD with nonce 00000000 || counter (u64 BE); the tag is appended after the text. */
 void rlb_seal(const uint8_t key[32], uint64_t counter, const uint8_t *aad, size_t aad_len,
               uint8_t *text, size_t len, uint8_t tag[16]);
@@ -147,6 +149,7 @@ struct rlb_client {
     char *host, *name;
     uint8_t psk[RLB_MAX_KEY];
     size_t psk_len;
+    char fingerprint[65]; /* cfg.tls_fingerprint, lower-case hex, kept for every reconnect */
     rlb_channel **channels; /* by id - 1 */
     uint32_t n_channels;
     rlb_conn *conn;
@@ -178,6 +181,9 @@ rlb_status rlbi_conn_open(rlb_client *c);          /* handshake + bindings, bloc
 rlb_status rlbi_conn_spin(rlb_client *c, uint32_t timeout_ms);
 size_t rlbi_conn_unsent(rlb_client *c);
 void rlbi_conn_goodbye(rlb_client *c);
+/* tls.c: the TLS context of cfg.tls (RLB_E_INVAL when built without OpenSSL) */
+rlb_status rlbi_tls_setup(rlb_client *c);
+void rlbi_tls_free(rlb_client *c);
 
 /* Test and fuzz entry points (session.c): received bytes without a socket. bind_all marks
  * every channel bound and sets the session token that datagrams must carry. */

@@ -331,7 +331,11 @@ void rlb_msg_key(rlb_msg *m, const char *key) {
 void rlb_msg_f64(rlb_msg *m, double v) { MSGBUF(m); rlbi_wb_f64(&w, v); MSGDONE(m); }
 void rlb_msg_i64(rlb_msg *m, int64_t v) { MSGBUF(m); rlbi_wb_i64(&w, v); MSGDONE(m); }
 void rlb_msg_bool(rlb_msg *m, bool v) { MSGBUF(m); rlbi_wb_bool(&w, v); MSGDONE(m); }
-void rlb_msg_str(rlb_msg *m, const char *s) { MSGBUF(m); rlbi_wb_str(&w, s, strlen(s)); MSGDONE(m); }
+void rlb_msg_str(rlb_msg *m, const char *s) {
+    MSGBUF(m);
+    rlbi_wb_str(&w, s, strlen(s));
+    MSGDONE(m);
+}
 
 int rlb_msg_end(const rlb_msg *m) {
     if (m->overflow || m->len > INT32_MAX) return RLB_E_TOOBIG;

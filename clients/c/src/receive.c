@@ -94,7 +94,8 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
         const char *type;
         uint32_t tl;
         if (!rlbi_mp_u64(m, &id) || !rlbi_mp_str(m, &type, &tl)) { rlbi_conn_malformed(k); return; }
-        if (rlbi_mp_skip(m) && rlbi_mp_skip(m) && !rlbi_mp_nil(m)) rlbi_mp_u64(m, &credit); /* initial, schema */
+        /* initial, schema, then the credit of a flow-controlled publish channel */
+        if (rlbi_mp_skip(m) && rlbi_mp_skip(m) && !rlbi_mp_nil(m)) rlbi_mp_u64(m, &credit);
         rlb_channel *ch = rlbi_conn_channel(c, id);
         if (ch == NULL || ch->bind != BIND_SENT) break;
         ch->bind = BIND_ACKED;
@@ -163,7 +164,8 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
         if (!rlbi_mp_array(m, &n)) { rlbi_conn_malformed(k); return; }
         for (uint32_t i = 0; i < n; i++) {
             uint64_t id, received, lost;
-            if (!rlbi_mp_array(m, &f) || f < 4 || !rlbi_mp_u64(m, &id) || !rlbi_mp_u64(m, &received) ||
+            if (!rlbi_mp_array(m, &f) || f < 4 || !rlbi_mp_u64(m, &id) ||
+                !rlbi_mp_u64(m, &received) ||
                 !rlbi_mp_u64(m, &lost)) {
                 rlbi_conn_malformed(k);
                 return;
@@ -188,7 +190,10 @@ void rlbi_conn_packet(rlb_client *c, const uint8_t *body, size_t len, bool in_bu
     uint32_t n;
     uint64_t tag;
     rlbi_mp_init(&m, body, len);
-    if (!rlbi_mp_array(&m, &n) || n < 1 || !rlbi_mp_u64(&m, &tag)) { rlbi_conn_malformed(c->conn); return; }
+    if (!rlbi_mp_array(&m, &n) || n < 1 || !rlbi_mp_u64(&m, &tag)) {
+        rlbi_conn_malformed(c->conn);
+        return;
+    }
     if (!in_bundle) c->conn->last_rx = rlb_mono_ns();
     dispatch(c, &m, tag, in_bundle);
 }

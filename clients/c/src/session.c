@@ -44,11 +44,12 @@ rlb_status rlbi_conn_new(rlb_client *c) {
 }
 
 void rlbi_conn_close_sockets(rlb_conn *k) {
+    rlbi_tls_close(k);
     if (k->tcp >= 0) close(k->tcp);
     if (k->udp >= 0) close(k->udp);
     k->tcp = k->udp = -1;
     k->up = false;
-    k->sealed = false;
+    k->sealed = k->records = false;
     sodium_memzero(&k->keys, sizeof k->keys);
 }
 
@@ -56,12 +57,15 @@ void rlbi_conn_free(rlb_client *c) {
     rlb_conn *k = c->conn;
     if (k == NULL) return;
     rlbi_conn_close_sockets(k);
+    rlbi_tls_free(c);
     free(k->out), free(k->wire), free(k->in), free(k->rec), free(k->dg_tx), free(k->dg_rx);
     free(k);
     c->conn = NULL;
 }
 
-size_t rlbi_conn_pending_bytes(const rlb_conn *k) { return k->out_len + (k->wire_len - k->wire_off); }
+size_t rlbi_conn_pending_bytes(const rlb_conn *k) {
+    return k->out_len + (k->wire_len - k->wire_off);
+}
 
 size_t rlbi_conn_unsent(rlb_client *c) { return rlbi_conn_pending_bytes(c->conn); }
 
@@ -142,8 +146,10 @@ rlb_status rlbi_conn_open(rlb_client *c) {
     k->peer_sent = k->peer_wall = k->srtt = k->rttvar = 0;
     reset_bindings(c);
     rlb_status rc = open_sockets(c, deadline);
+    if (rc == RLB_OK && c->cfg.tls) rc = rlbi_tls_connect(c, deadline);
     if (rc == RLB_OK)
-        rc = c->cfg.control == RLB_UDP ? rlbi_handshake_udp(c, deadline) : rlbi_handshake_tcp(c, deadline);
+        rc = c->cfg.control == RLB_UDP ? rlbi_handshake_udp(c, deadline)
+                                       : rlbi_handshake_tcp(c, deadline);
     if (rc != RLB_OK) {
         rlbi_conn_close_sockets(k);
         return rc;
@@ -235,8 +241,10 @@ static bool spin_io(rlb_client *c, int timeout_ms) {
     }
     struct pollfd p[2] = {{k->tcp, POLLIN, 0}, {k->udp, POLLIN, 0}};
     if (k->wire_off < k->wire_len) p[0].events |= POLLOUT;
-    int r = poll(p, 2, timeout_ms);
+    bool held = rlbi_tls_pending(k); /* bytes TLS has decrypted already: no wait for them */
+    int r = poll(p, 2, held ? 0 : timeout_ms);
     if (r < 0 && errno != EINTR) return true;
+    if (held) p[0].revents |= POLLIN;
     if (p[0].revents & (POLLIN | POLLHUP | POLLERR)) {
         bool ok = rlbi_tcp_read(k);
         for (;;) {

@@ -28,7 +28,7 @@ bool rlbi_tcp_frame_end(rlb_conn *k, const wbuf *w) {
 /* Moves the pending frames into the wire buffer (as sealed records on a keyed session). */
 static void stage(rlb_conn *k) {
     if (k->wire_off < k->wire_len || k->out_len == 0) return;
-    if (!k->sealed) {
+    if (!k->records) {
         uint8_t *t = k->wire;
         k->wire = k->out;
         k->out = t;
@@ -58,8 +58,7 @@ bool rlbi_tcp_flush(rlb_conn *k) {
     for (int i = 0; i < 4; i++) {
         stage(k);
         if (k->wire_off >= k->wire_len) return true;
-        ssize_t n = send(k->tcp, k->wire + k->wire_off, k->wire_len - k->wire_off,
-                         MSG_NOSIGNAL | MSG_DONTWAIT);
+        ssize_t n = rlbi_stream_send(k, k->wire + k->wire_off, k->wire_len - k->wire_off);
         if (n < 0) return errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR;
         k->wire_off += (size_t)n;
         if (k->wire_off == k->wire_len) k->wire_off = k->wire_len = 0;
@@ -116,10 +115,10 @@ bool rlbi_tcp_open_records(rlb_conn *k) {
 bool rlbi_tcp_read(rlb_conn *k) {
     for (int i = 0; i < 8; i++) {
         ssize_t n;
-        if (k->sealed) {
+        if (k->records) {
             size_t room = RECORD_MAX + 24 + 8 - k->rec_len;
             if (room == 0) return rlbi_tcp_open_records(k);
-            n = recv(k->tcp, k->rec + k->rec_len, room, MSG_DONTWAIT);
+            n = rlbi_stream_recv(k, k->rec + k->rec_len, room);
             if (n > 0) {
                 k->rec_len += (size_t)n;
                 if (!rlbi_tcp_open_records(k)) return false;
@@ -131,7 +130,7 @@ bool rlbi_tcp_read(rlb_conn *k) {
                 k->in_off = 0;
             }
             if (k->in_len == k->cap) return true;
-            n = recv(k->tcp, k->in + k->in_len, k->cap - k->in_len, MSG_DONTWAIT);
+            n = rlbi_stream_recv(k, k->in + k->in_len, k->cap - k->in_len);
             if (n > 0) k->in_len += (size_t)n;
         }
         if (n == 0) return false;
@@ -141,7 +140,7 @@ bool rlbi_tcp_read(rlb_conn *k) {
 }
 
 /* The next complete frame's body in in, or NULL; consumed by the caller via in_off. A frame
- * larger than the buffer is skipped (counted conn_malformed); -1 in *bad: the framing is lost. */
+ * larger than the buffer is skipped (counted malformed); -1 in *bad: the framing is lost. */
 const uint8_t *rlbi_tcp_next_frame(rlb_conn *k, size_t *len, bool *bad) {
     *bad = false;
     while (k->skip > 0 && k->in_off < k->in_len) {

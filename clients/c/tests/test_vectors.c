@@ -106,12 +106,23 @@ static void sealed_record(void **state) {
     assert_hex(r, 8 + m + 16, "524201010000001fca15266c928933a65cc37cf162090c99662dc5a776da74b09b203704f7b3df");
 }
 
+static void tls_datagram_keys(void **state) {
+    (void)state;
+    uint8_t s[32];
+    seq_bytes(s, 32, 0x40);
+    rlb_keys k;
+    rlb_derive_tls(s, 32, 0x0102030405060708ULL, &k);
+    assert_hex(k.kc2s, 32, "5a58f53f05a892fb2469d003b250bdae04f893c757df3ebcbbdf832bcce033ed");
+    assert_hex(k.ks2c, 32, "9cf139d34df410d8571444e72a9dacd9d2ec3664924dc29a1e2f4bafc7d032c7");
+}
+
 int main(void) {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(transcript_and_proofs),
         cmocka_unit_test(session_keys),
         cmocka_unit_test(sealed_datagram),
         cmocka_unit_test(sealed_record),
+        cmocka_unit_test(tls_datagram_keys),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }
