@@ -11,6 +11,7 @@
 typedef struct args {
     const char *host, *topic, *psk_file;
     const char *tls_ca, *tls_fingerprint; /* --tls-ca FILE / --tls-fingerprint HEX: TLS */
+    const char *tls_cert, *tls_key;       /* --tls-cert FILE --tls-key FILE: mutual TLS */
     uint16_t port;
     unsigned long count;
     double number; /* RATE_HZ for rlb_pub, TIMEOUT_S for rlb_sub */
@@ -26,6 +27,8 @@ void parse_args(int argc, char **argv, const char *usage, args *a);
 /* Fills cfg from a (and loads the key); exits 1 with one line if the key file is unusable. */
 void config_from(const args *a, const char *prog, const char *name, rlb_config *cfg,
                  uint8_t key[RLB_MAX_KEY]);
+/* The line for a client that could not be set up (rlb_client_new's status). */
+void setup_failed(const char *prog, const args *a, int status);
 /* Starts fn as the loop thread: SCHED_FIFO (priority 80) when permitted, else normal.
  * Locks memory first (mlockall) when permitted. Returns whether it got SCHED_FIFO. */
 bool start_rt_thread(pthread_t *t, void *(*fn)(void *), void *arg);

@@ -45,7 +45,7 @@ int main(int argc, char **argv) {
     rlb_client *c;
     rlb_status rc = rlb_client_new(&cfg, &c);
     if (rc != RLB_OK) {
-        fprintf(stderr, "rlb_sub: %s\n", rlb_status_text(rc));
+        setup_failed("rlb_sub", &a, rc);
         return 1;
     }
     rlb_channel_opts o;

@@ -185,6 +185,8 @@ int rlb_read_wait(rlb_channel *ch, uint32_t timeout_ms);
 /** Stops the I/O thread, says goodbye, closes the sockets and frees everything. */
 void rlb_close(rlb_client *c);
 
+/** Whether this library was built with TLS (OpenSSL); cfg.tls is refused otherwise. */
+bool rlb_has_tls(void);
 uint32_t rlb_channel_id(const rlb_channel *ch);
 const char *rlb_status_text(int status);
 

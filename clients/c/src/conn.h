@@ -32,6 +32,7 @@ struct rlb_conn {
     bool sealed;  /* datagrams sealed (a key, or TLS: 16.3, 16.4) */
     bool records; /* the TCP stream as sealed records (a key without TLS: 16.5) */
     void *tls_ctx, *ssl; /* OpenSSL's SSL_CTX and SSL (tls.c), NULL without TLS */
+    char tls_error[128]; /* why TLS ended the connection (an alert from the server), or "" */
     rlb_keys keys;
     uint64_t dgram_tx, rec_tx, rec_rx;
     uint64_t replay_top, replay_bits[16]; /* 1024 counters below replay_top */

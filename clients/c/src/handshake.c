@@ -131,6 +131,13 @@ rlb_status rlbi_handshake_tcp(rlb_client *c, int64_t deadline) {
     for (;;) {
         size_t len;
         const uint8_t *f = next(k, deadline, &len);
+        if (f == NULL && k->tls_error[0]) { /* TLS ended it: the server refused us */
+            char text[200];
+            snprintf(text, sizeof text, "TLS: the server ended the connection: %s",
+                     k->tls_error);
+            rlb_emit(c, RLB_EV_DISCONNECT, 21, 0, text);
+            return RLB_E_AUTH;
+        }
         if (f == NULL) return RLB_E_CONNECT;
         mp_cur m;
         uint32_t n;

@@ -20,6 +20,8 @@
 #include <openssl/x509.h>
 #include <openssl/x509v3.h>
 
+bool rlb_has_tls(void) { return true; }
+
 rlb_status rlbi_tls_setup(rlb_client *c) {
     if (!c->cfg.tls) return RLB_OK;
     SSL_CTX *ctx = SSL_CTX_new(TLS_client_method());
@@ -93,6 +95,7 @@ rlb_status rlbi_tls_connect(rlb_client *c, int64_t deadline) {
     rlb_conn *k = c->conn;
     SSL *ssl = SSL_new(k->tls_ctx);
     if (ssl == NULL) return RLB_E_NOMEM;
+    k->tls_error[0] = '\0';
     k->ssl = ssl;
     SSL_set_fd(ssl, k->tcp);
     if (c->cfg.tls_fingerprint == NULL) { /* the name (or address) the certificate must carry */
@@ -121,13 +124,16 @@ rlb_status rlbi_tls_connect(rlb_client *c, int64_t deadline) {
     return RLB_OK;
 }
 
-static ssize_t tls_result(SSL *ssl, int r, size_t done) {
+static ssize_t tls_result(rlb_conn *k, int r, size_t done) {
     if (r == 1) return (ssize_t)done;
-    int e = SSL_get_error(ssl, r);
+    int e = SSL_get_error(k->ssl, r);
     if (e == SSL_ERROR_WANT_READ || e == SSL_ERROR_WANT_WRITE) {
         errno = EAGAIN;
         return -1;
     }
+    unsigned long err = ERR_peek_last_error(); /* e.g. the server's alert: no certificate */
+    if (err && ERR_reason_error_string(err))
+        snprintf(k->tls_error, sizeof k->tls_error, "%s", ERR_reason_error_string(err));
     ERR_clear_error();
     if (e == SSL_ERROR_ZERO_RETURN) return 0;
     errno = EPIPE;
@@ -138,20 +144,21 @@ ssize_t rlbi_stream_recv(rlb_conn *k, void *buf, size_t n) {
     if (k->ssl == NULL) return recv(k->tcp, buf, n, MSG_DONTWAIT);
     size_t got = 0;
     int r = SSL_read_ex(k->ssl, buf, n, &got); /* before reading got: argument order */
-    return tls_result(k->ssl, r, got);
+    return tls_result(k, r, got);
 }
 
 ssize_t rlbi_stream_send(rlb_conn *k, const void *buf, size_t n) {
     if (k->ssl == NULL) return send(k->tcp, buf, n, MSG_NOSIGNAL | MSG_DONTWAIT);
     size_t put = 0;
     int r = SSL_write_ex(k->ssl, buf, n, &put);
-    return tls_result(k->ssl, r, put);
+    return tls_result(k, r, put);
 }
 
 bool rlbi_tls_pending(const rlb_conn *k) { return k->ssl && SSL_pending(k->ssl) > 0; }
 
 #else /* without OpenSSL */
 
+bool rlb_has_tls(void) { return false; }
 rlb_status rlbi_tls_setup(rlb_client *c) { return c->cfg.tls ? RLB_E_INVAL : RLB_OK; }
 void rlbi_tls_free(rlb_client *c) { (void)c; }
 void rlbi_tls_close(rlb_conn *k) { (void)k; }
