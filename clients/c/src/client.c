@@ -233,9 +233,8 @@ rlb_status rlb_connect(rlb_client *c) {
     return rc;
 }
 
-rlb_status rlb_spin_once(rlb_client *c, uint32_t timeout_ms) {
-    if (c == NULL) return RLB_E_INVAL;
-    if (!c->connected_once) return RLB_E_STATE;
+/* One round of I/O, then a wake-up for rlb_read_wait / rlb_flush sleepers. */
+static rlb_status spin(rlb_client *c, uint32_t timeout_ms) {
     rlb_status rc = rlbi_conn_spin(c, timeout_ms);
     pthread_mutex_lock(&c->wait_mu); /* wake rlb_read_wait / rlb_flush; no waiter: no syscall */
     pthread_cond_broadcast(&c->wait_cv);
@@ -243,15 +242,21 @@ rlb_status rlb_spin_once(rlb_client *c, uint32_t timeout_ms) {
     return rc;
 }
 
+rlb_status rlb_spin_once(rlb_client *c, uint32_t timeout_ms) {
+    if (c == NULL) return RLB_E_INVAL;
+    if (!c->connected_once || c->started) return RLB_E_STATE; /* the I/O thread's job */
+    return spin(c, timeout_ms);
+}
+
 static void *io_main(void *arg) {
     rlb_client *c = arg;
     uint32_t ms = c->cfg.period_us / 1000;
     while (!atomic_load(&c->stop)) {
         if (ms == 0) { /* sub-millisecond periods: poll without waiting, then sleep */
-            rlb_spin_once(c, 0);
+            spin(c, 0);
             struct timespec ts = {0, (long)c->cfg.period_us * 1000};
             nanosleep(&ts, NULL);
-        } else if (rlb_spin_once(c, ms) == RLB_E_CLOSED) {
+        } else if (spin(c, ms) == RLB_E_CLOSED) {
             break;
         }
     }
