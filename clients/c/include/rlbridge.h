@@ -131,6 +131,9 @@ typedef struct rlb_channel_opts {
     int flow;                  /* credit flow control: -1 default (on for TCP every-value
                                   channels: publish, and RLB_QUEUE subscribe), 0 off, 1 on */
     uint16_t qos_depth;        /* middleware history depth, default 10 */
+    uint8_t redundancy;        /* UDP, 0..16: each datagram repeats the channel's previous k
+                                  values (protocol.md 10.3); publish: this client does it,
+                                  subscribe: the server does; a lost datagram loses nothing */
     void *storage;             /* optional user buffer for the ring (see rlb_channel_storage) */
     size_t storage_bytes;
 } rlb_channel_opts;
