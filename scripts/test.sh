@@ -59,6 +59,20 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
   fi
 fi
 
+# -- the C client (clients/c, issue 28): its build tools and libraries -----------------------
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  c_need=()
+  command -v cmake >/dev/null 2>&1 || c_need+=(cmake)
+  command -v cc >/dev/null 2>&1 || c_need+=(gcc)
+  [ -e /usr/include/msgpack.h ] || c_need+=(libmsgpack-dev)
+  [ -e /usr/include/cmocka.h ] || c_need+=(libcmocka-dev)
+  [ -e /usr/include/sodium.h ] || c_need+=(libsodium-dev)
+  [ -e /usr/include/openssl/ssl.h ] || c_need+=(libssl-dev)  # its TLS sessions
+  if [ "${#c_need[@]}" -gt 0 ]; then
+    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${c_need[@]}" >/dev/null
+  fi
+fi
+
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".[test,ros2,compare]"
@@ -96,6 +110,16 @@ export RLBRIDGE_TEST_REQUIRE_ROS2=1  # rclpy was installed above: the ROS 2 test
 # The install above compiled the value path (setup.py) unless RLBRIDGE_PURE_PYTHON was set: the
 # tests of the compiled modules must run, not skip (tests/packaging/test_compiled.py).
 [ -n "${RLBRIDGE_PURE_PYTHON:-}" ] || export RLBRIDGE_TEST_REQUIRE_COMPILED=1
+# -- the C client: built warning-free (-Werror, gcc and clang where installed), its unit
+# tests (ctest: protocol.md 16.6 vectors, the decoder), then tests/c_client must run, not skip.
+cmake -S clients/c -B build/c -DRLB_WERROR=ON >/dev/null
+cmake --build build/c -j 2 >/dev/null
+(cd build/c && ctest --output-on-failure)
+if command -v clang >/dev/null 2>&1; then
+  CC=clang cmake -S clients/c -B build/c-clang -DRLB_WERROR=ON >/dev/null
+  cmake --build build/c-clang -j 2 >/dev/null
+fi
+export RLBRIDGE_C_BUILD="$PWD/build/c" RLBRIDGE_TEST_REQUIRE_C=1
 mkdir -p .test-logs
 start=$SECONDS
 suite=0
