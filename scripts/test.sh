@@ -46,30 +46,22 @@ if [ "${1:-}" = "--quick" ]; then
   exit "$rc"
 fi
 
-# System tools for the network-emulator and stress tests. Without root they are skipped,
-# and the tests that need them skip with the reason printed.
+# System packages: the network-emulator and stress tests' tools, libsodium for the cipher
+# setup.py builds, and the C client's (clients/c) build tools and libraries. Without root they
+# are skipped, and the tests that need them skip with the reason printed.
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
   need=()
   command -v ip >/dev/null 2>&1 || need+=(iproute2)
   command -v nft >/dev/null 2>&1 || need+=(nftables)
   command -v stress >/dev/null 2>&1 || need+=(stress)
-  [ -e /usr/include/sodium.h ] || need+=(libsodium-dev)  # setup.py builds the cipher with it
+  command -v cmake >/dev/null 2>&1 || need+=(cmake)
+  command -v cc >/dev/null 2>&1 || need+=(gcc)
+  [ -e /usr/include/sodium.h ] || need+=(libsodium-dev)
+  [ -e /usr/include/msgpack.h ] || need+=(libmsgpack-dev)
+  [ -e /usr/include/cmocka.h ] || need+=(libcmocka-dev)
+  [ -e /usr/include/openssl/ssl.h ] || need+=(libssl-dev)  # the C client's TLS sessions
   if [ "${#need[@]}" -gt 0 ]; then
     apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null
-  fi
-fi
-
-# -- the C client (clients/c, issue 28): its build tools and libraries -----------------------
-if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-  c_need=()
-  command -v cmake >/dev/null 2>&1 || c_need+=(cmake)
-  command -v cc >/dev/null 2>&1 || c_need+=(gcc)
-  [ -e /usr/include/msgpack.h ] || c_need+=(libmsgpack-dev)
-  [ -e /usr/include/cmocka.h ] || c_need+=(libcmocka-dev)
-  [ -e /usr/include/sodium.h ] || c_need+=(libsodium-dev)
-  [ -e /usr/include/openssl/ssl.h ] || c_need+=(libssl-dev)  # its TLS sessions
-  if [ "${#c_need[@]}" -gt 0 ]; then
-    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${c_need[@]}" >/dev/null
   fi
 fi
 
@@ -112,8 +104,9 @@ export RLBRIDGE_TEST_REQUIRE_ROS2=1  # rclpy was installed above: the ROS 2 test
 [ -n "${RLBRIDGE_PURE_PYTHON:-}" ] || export RLBRIDGE_TEST_REQUIRE_COMPILED=1
 # -- the C client: built warning-free (-Werror, gcc and clang where installed), its unit
 # tests (ctest: protocol.md 16.6 vectors, the decoder), then tests/c_client must run, not skip.
-cmake -S clients/c -B build/c -DRLB_WERROR=ON >/dev/null
-cmake --build build/c -j 2 >/dev/null
+mkdir -p .test-logs
+{ cmake -S clients/c -B build/c -DRLB_WERROR=ON && cmake --build build/c -j 2; } \
+  >.test-logs/c-build.log 2>&1 || { cat .test-logs/c-build.log; echo "FAILED: the C client does not build"; exit 1; }
 (cd build/c && ctest --output-on-failure)
 if command -v clang >/dev/null 2>&1; then
   CC=clang cmake -S clients/c -B build/c-clang -DRLB_WERROR=ON >/dev/null
