@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from rlbridge.csp.errors import ChannelClosed
-from rlbridge.csp.failsafe import FailSafe, LinkLost, SafeValue, fail_safe
+from rlbridge import LinkLost
+from rlbridge.csp.failsafe import FailSafe, SafeValue, fail_safe
 from rlbridge.csp.link_events import LinkEvents
+from rlbridge.errors import ChannelClosed
 from rlbridge.wire.link import LinkState
 
 

@@ -31,9 +31,9 @@ from mypy_extensions import mypyc_attr
 
 from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import _MISSING, Channel, _Missing
-from rlbridge.csp.errors import ChannelMisuseError, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.outgoing import OutgoingChannel
+from rlbridge.errors import ChannelMisuseError, SecondWriterError
 
 __all__ = ["AgedValue", "IncomingChannel", "OutgoingChannel", "SecondWriterError"]
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter

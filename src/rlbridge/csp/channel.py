@@ -46,18 +46,18 @@ from typing import Final, Generic, TypeVar
 from mypy_extensions import mypyc_attr
 
 from rlbridge.csp.doorbell import Doorbell
-from rlbridge.csp.errors import (
+from rlbridge.csp.idle import PARK, IdleStrategy
+from rlbridge.csp.process import current_process
+from rlbridge.csp.rendezvous import Rendezvous
+from rlbridge.csp.ring import EMPTY, SpscRing
+from rlbridge.csp.statistics import ChannelStatistics
+from rlbridge.errors import (
     ChannelClosed,
     ChannelMisuseError,
     NoValueYet,
     RealTimeWarning,
     WouldBlock,
 )
-from rlbridge.csp.idle import PARK, IdleStrategy
-from rlbridge.csp.process import current_process
-from rlbridge.csp.rendezvous import Rendezvous
-from rlbridge.csp.ring import EMPTY, SpscRing
-from rlbridge.csp.statistics import ChannelStatistics
 
 __all__ = ["Channel", "Doorbell"]
 

@@ -27,12 +27,12 @@ from typing import Any
 
 from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.errors import ChannelClosed, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.pacing import Pacing
 from rlbridge.csp.stamped_ring import StampedRing
 from rlbridge.csp.statistics import ChannelStatistics
-from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
+from rlbridge.csp.value_check import UNCHECKED, Mismatch, compile_check
+from rlbridge.errors import ChannelClosed, SecondWriterError, WrongValueType
 from rlbridge.wire import TopicAck
 from rlbridge.wire.bundle import BATCH_TAG, VALUE_TAG, Part
 from rlbridge.wire.clock import ClockOffset
@@ -124,7 +124,8 @@ class OutgoingChannel:
 
     def _wrong(self, exc: Mismatch) -> WrongValueType:
         self._rejected += 1
-        return WrongValueType(self.topic, self.msg_type, self.field, exc)
+        return WrongValueType(self.topic, self.msg_type, self.field, exc.path, exc.expected,
+                              exc.value)
 
     def _check_writer(self) -> None:
         """Slow path: a thread other than the recorded writer writes (module docstring)."""

@@ -21,12 +21,13 @@ from pathlib import Path
 from typing import Literal
 
 from rlbridge.adapters import MiddlewareAdapter, load_adapter
-from rlbridge.csp.auth import AuthRefused
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.connection import ConnectionFailed
+from rlbridge.csp.options import Psk
 from rlbridge.demo.monitor import Monitor, Trace
 from rlbridge.demo.topics import Topics
 from rlbridge.demo.vision import Dropout, VisionNode
+from rlbridge.errors import AuthRefused
 from rlbridge.server import ServerConfig, ServerThread
 
 AdapterName = Literal["inproc", "ros2"]
@@ -89,7 +90,8 @@ def connect_controller(host: str, port: int, *, timeout: float = 30.0,
         try:
             if psk_file is not None and not psk_file.exists():
                 raise ConnectionFailed(f"no key file {psk_file} yet")
-            return Bridge.connect(host, port, nodelay=True, name=name, psk_file=psk_file,
+            key = None if psk_file is None else Psk(file=psk_file)
+            return Bridge.connect(host, port, nodelay=True, name=name, security=key,
                                   timeout=min(2.0, max(0.2, remaining)))
         except AuthRefused:
             raise  # a wrong key or certificate: trying again will not help
