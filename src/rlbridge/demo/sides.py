@@ -20,14 +20,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from rlbridge import AuthenticationFailed, Bridge, ConnectionFailed, Psk
 from rlbridge.adapters import MiddlewareAdapter, load_adapter
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.connection import ConnectionFailed
-from rlbridge.csp.options import Psk
 from rlbridge.demo.monitor import Monitor, Trace
 from rlbridge.demo.topics import Topics
 from rlbridge.demo.vision import Dropout, VisionNode
-from rlbridge.errors import AuthRefused
 from rlbridge.server import ServerConfig, ServerThread
 
 AdapterName = Literal["inproc", "ros2"]
@@ -93,7 +90,7 @@ def connect_controller(host: str, port: int, *, timeout: float = 30.0,
             key = None if psk_file is None else Psk(file=psk_file)
             return Bridge.connect(host, port, nodelay=True, name=name, security=key,
                                   timeout=min(2.0, max(0.2, remaining)))
-        except AuthRefused:
+        except AuthenticationFailed:
             raise  # a wrong key or certificate: trying again will not help
         except ConnectionFailed as exc:
             remaining = deadline - time.monotonic()
