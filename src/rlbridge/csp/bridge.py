@@ -191,6 +191,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         channel.msg_type = ack.msg_type
         if flow:
             self._sender.add_credit(channel)
+        channel.on_close = self._unbind
         return channel
 
     def publish(
@@ -237,6 +238,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         with self._lock:
             self._outgoing[ch_id] = channel
         self._sender.add(channel)
+        channel.on_close = self._unbind
         return channel
 
     def send(self, wait: bool = False, *, inline: bool = False) -> None:
@@ -252,15 +254,24 @@ class Bridge(BridgeStatus, ServiceMethods):
             self._sender.flush(wait=wait)
 
     def unsubscribe(self, channel: IncomingChannel | OutgoingChannel) -> None:
-        """Unbind one channel on the server and close it here."""
+        """Unbind one channel on the server and close it here: ``channel.close()`` (or the
+        end of a ``with`` block) does the same."""
+        channel.close()
+        self._unbind(channel)
+
+    def _unbind(self, channel: IncomingChannel | OutgoingChannel) -> None:
+        """A channel of this bridge was closed: stop serving it and unbind it on the server.
+        Channels the bridge itself closes (its own close, a refused rebinding) are no longer
+        registered when they close, so nothing is sent for them."""
         with self._lock:
-            self._incoming.pop(channel.channel_id, None)
+            incoming = self._incoming.pop(channel.channel_id, None)
             out = self._outgoing.pop(channel.channel_id, None)
+        if incoming is None and out is None:
+            return
         if out is not None:
             self._sender.remove(out)
-        if isinstance(channel, IncomingChannel):
-            self._sender.remove_credit(channel)
-        channel.close()
+        if incoming is not None:
+            self._sender.remove_credit(incoming)
         self._conn.forget_topic(channel.channel_id)
         if self._conn.up:  # while reconnecting: the new session does not bind it again
             with contextlib.suppress(OSError, ConnectionClosed):

@@ -41,6 +41,7 @@ import os
 import time
 import warnings
 from collections.abc import Sequence
+from types import TracebackType
 from typing import Final, Generic, TypeVar
 
 from mypy_extensions import mypyc_attr
@@ -241,6 +242,14 @@ class Channel(Generic[T]):
         if self._rv is not None:
             self._rv.close()
         self._bell.ring()
+
+    def __enter__(self) -> Channel[T]:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, e: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        """Leaving a ``with`` block closes the channel (:meth:`close`)."""
+        self.close()
 
     def statistics(self) -> ChannelStatistics:
         """Return a snapshot of the counters (taken without stopping either side)."""
