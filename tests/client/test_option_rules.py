@@ -117,6 +117,8 @@ CALL_RULES: dict[str, tuple[str, dict[str, Any], str]] = {
                              r"flow=True\) needs transport='tcp'"),
     "publish: on_lost": ("publish", {"policy": Policy(on_lost=SafeValue(0.0))},
                          r"publish\(\): Policy\(on_lost=SafeValue"),
+    "publish: adapt_rate on TCP": ("publish", {"transport": "tcp", "policy": Policy(
+        max_rate_hz=100.0, adapt_rate=True)}, r"adapt_rate=True\) follows the loss"),
     "publish: durability match": ("publish", {"qos": QoS(durability="match")},
                                   r"QoS\(durability='match'\) copies the QoS"),
 }

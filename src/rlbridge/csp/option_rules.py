@@ -72,6 +72,11 @@ def check_publish(transport: str, qos: QoS, policy: Policy, *, buffer_size: int)
         raise _refuse(call, f"Policy(on_lost={policy.on_lost!r})",
                       "is what reads of a subscribe channel do while the link is lost; "
                       "writes to a publish channel wait in its buffer (health() shows it)")
+    if policy.adapt_rate and transport == "tcp":
+        raise _refuse(call, "Policy(adapt_rate=True)",
+                      "follows the loss the server reports at the first hop, and TCP loses "
+                      "nothing there (it retransmits): use transport='udp', or max_rate_hz "
+                      "alone")
     if qos.durability == "match":
         raise _refuse(call, "QoS(durability='match')",
                       "copies the QoS of a topic's publishers into a subscription; a "
