@@ -191,17 +191,6 @@ def server_options(command: F) -> F:
 
 
 # -- the options of every command that binds a topic: QoS and Policy, one to one ---------
-def _on_lost(value: str) -> str:
-    """``--on-lost``: ``hold``, ``raise``, or a JSON value read while the link is lost."""
-    if value not in ("hold", "raise"):
-        try:
-            json.loads(value)
-        except ValueError:
-            raise fail(f"--on-lost must be 'hold', 'raise' or a JSON value (the safe value), "
-                       f"not '{value}'", 2) from None
-    return value
-
-
 ReliabilityOpt = Annotated[str | None, typer.Option(
     "--reliability", help="QoS reliability: reliable or best_effort (default: by transport, "
     "best effort for udp, reliable for tcp).")]
@@ -222,7 +211,7 @@ MaxRateOpt = Annotated[float | None, typer.Option("--max-rate-hz", help="Publish
                                                   "this many values per second leave.")]
 AdaptRateOpt = Annotated[bool, typer.Option("--adapt-rate", help="Publish, with --max-rate-hz: "
                                             "lower the rate while the server reports loss.")]
-OnLostOpt = Annotated[str, typer.Option("--on-lost", callback=_on_lost, help="Subscribe: "
+OnLostOpt = Annotated[str, typer.Option("--on-lost", help="Subscribe: "
                                         "reads while the link is lost: hold, raise, or a JSON "
                                         "safe value.")]
 
@@ -257,8 +246,13 @@ class ChannelChoice:
         from rlbridge.csp.failsafe import SafeValue
         from rlbridge.csp.options import Policy
 
-        on_lost = self.on_lost if self.on_lost in ("hold", "raise") else SafeValue(
-            json.loads(self.on_lost))
+        on_lost: str | SafeValue = self.on_lost
+        if on_lost not in ("hold", "raise"):
+            try:
+                on_lost = SafeValue(json.loads(self.on_lost))
+            except ValueError:
+                raise ValueError(f"--on-lost must be 'hold', 'raise' or a JSON value (the safe "
+                                 f"value), not '{self.on_lost}'") from None
         return Policy(latest=self.latest, max_age_ms=self.max_age_ms,
                       redundancy=self.redundancy, flow=self.flow, max_rate_hz=self.max_rate_hz,
                       adapt_rate=self.adapt_rate, on_lost=cast(Any, on_lost))

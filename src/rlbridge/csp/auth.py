@@ -56,10 +56,10 @@ def resolve_key(psk: bytes | str | None = None, psk_file: str | Path | None = No
     ``environ`` defaults to ``os.environ`` (tests pass their own mapping).
     """
     if isinstance(psk, str):
-        return parse_key(psk, "psk=")
+        return parse_key(psk, "Psk(key=...)")
     if psk is not None:
         if len(psk) < MIN_KEY_SIZE:
-            raise ValueError(f"psk of {len(psk)} bytes is too short; use at least "
+            raise ValueError(f"Psk(key=...) of {len(psk)} bytes is too short; use at least "
                              f"{MIN_KEY_SIZE} random bytes")
         return bytes(psk)
     if psk_file is not None:
