@@ -95,8 +95,8 @@ class Psk:
 
     def __post_init__(self) -> None:
         if (self.key is None) == (self.file is None):
-            raise refuse("psk_one", "key= and file= both" if self.key is not None
-                         else "neither key= nor file=")
+            raise refuse("psk_one", "key= and file= both given:" if self.key is not None
+                         else "neither key= nor file= given:")
 
 
 @dataclass(frozen=True, slots=True)
