@@ -155,4 +155,7 @@ class Tuning:
 
 
 Security = Psk | Tls | None
+"""What ``Bridge.connect(security=...)`` takes (``None``: ``$RLBRIDGE_PSK`` if set, else plain)."""
+
 Transport = Literal["tcp", "udp"]
+"""Per channel: ``udp`` when the newest value matters most, ``tcp`` when every value must arrive."""
