@@ -25,9 +25,10 @@ def anchor(title: str) -> str:
 
 # (heading, module, names, why): the public API, in reading order.
 API: list[tuple[str, str, list[str], str]] = [
-    ("Bridge: the session with a server", "rlbridge.csp.bridge",
-     ["Bridge", "Transport", "DEFAULT_SWITCH_INTERVAL"],
+    ("Bridge: the session with a server", "rlbridge.csp.bridge", ["Bridge"],
      "Start here: `Bridge.connect` opens a session, `subscribe`/`publish` return channels."),
+    ("", "rlbridge.csp.options", ["Policy", "Psk", "Tls", "Tuning", "Transport"],
+     "The grouped options of `connect`, `subscribe` and `publish` (with `QoS`)."),
     ("", "rlbridge.csp.bridge_status", ["BridgeStatus"],
      "The Bridge's link state, session facts and counters (inherited by `Bridge`)."),
     ("I/O idle strategies", "rlbridge.csp.idle",
@@ -37,7 +38,7 @@ API: list[tuple[str, str, list[str], str]] = [
     ("Bridge channels", "rlbridge.csp.bridge_channels",
      ["IncomingChannel", "OutgoingChannel", "AgedValue", "SecondWriterError"],
      "What `Bridge.subscribe` and `Bridge.publish` return."),
-    ("Write-time type checks", "rlbridge.csp.value_check", ["WrongValueType"],
+    ("Write-time type checks", "rlbridge.errors", ["WrongValueType"],
      "`OutgoingChannel.write` of a value that cannot be the bound field's type raises this "
      "`TypeError` ([concepts.md](concepts.md#values-are-checked-where-they-are-written))."),
     ("Channel health", "rlbridge.csp.health", ["ChannelHealth"],
@@ -48,8 +49,9 @@ API: list[tuple[str, str, list[str], str]] = [
      "([reliability.md](reliability.md))."),
     ("Link events and fail-safes", "rlbridge.csp.link_events", ["LinkEvent"],
      "`Bridge.link_events()` and `Bridge.subscribe(on_lost=...)`."),
-    ("", "rlbridge.csp.failsafe", ["SafeValue", "LinkLost"], ""),
-    ("Authentication", "rlbridge.csp.auth", ["AuthRefused", "resolve_key"],
+    ("", "rlbridge.csp.failsafe", ["SafeValue"], ""),
+    ("", "rlbridge.errors", ["LinkLost"], ""),
+    ("Authentication", "rlbridge.csp.auth", ["resolve_key"],
      "`Bridge.connect(psk=...)` for a server started with a pre-shared key "
      "([security.md](security.md))."),
     ("HRT loop in its own process", "rlbridge.csp.shm", ["ShmLink", "HrtProcess", "forwarder",
@@ -61,7 +63,7 @@ API: list[tuple[str, str, list[str], str]] = [
     ("Link state and connection errors", "rlbridge.wire.link", ["LinkState"],
      "What control code branches on when the network misbehaves."),
     ("", "rlbridge.csp.connection", ["ConnectionFailed", "ConnectionClosed"], ""),
-    ("Errors from the server", "rlbridge.wire.errors",
+    ("Errors from the server", "rlbridge.errors",
      ["RlbridgeError", "LocalProtocolError", "RemoteProtocolError", "RemoteError",
       "BindingRefused", "UnknownTypeError", "TypeClashError", "NoSuchFieldError",
       "BadValueError", "LimitExceeded", "ServerShuttingDown"],
@@ -69,7 +71,7 @@ API: list[tuple[str, str, list[str], str]] = [
      "server's answer (remote error, one class per wire error code)."),
     ("CSP channels", "rlbridge.csp.channel", ["Channel", "ChannelStatistics", "Doorbell"],
      "Local channels between processes of the control program."),
-    ("Channel errors and warnings", "rlbridge.csp.errors",
+    ("Channel errors and warnings", "rlbridge.errors",
      ["ChannelError", "ChannelClosed", "WouldBlock", "NoValueYet", "ChannelMisuseError",
       "RealTimeWarning"], ""),
     ("Ring buffers", "rlbridge.csp.ring", ["SpscRing", "MpscRing", "EMPTY"],

@@ -18,10 +18,13 @@ import typer
 
 from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.cli_options import (
+    DEFAULT_CHANNEL,
     LOCAL_SERVER,
+    ChannelChoice,
     Field,
     ServerTarget,
     TransportOpt,
+    channel_options,
     checked_transport,
     option,
     server_options,
@@ -45,6 +48,7 @@ def _parse_value(text: str) -> Any:
 @topic_app.command("pub", context_settings={"ignore_unknown_options": True})
 @one_line_errors
 @server_options
+@channel_options
 def topic_pub(
     ctx: typer.Context,
     topic: Topic,
@@ -57,6 +61,7 @@ def topic_pub(
     count: Annotated[int, typer.Option(help="Number of messages.", min=1)] = 1,
     transport: TransportOpt = "udp",
     server: ServerTarget = LOCAL_SERVER,
+    channel: ChannelChoice = DEFAULT_CHANNEL,
 ) -> None:
     """Publish VALUE on TOPIC through the bridge, --count times.
 
@@ -73,7 +78,8 @@ def topic_pub(
         logging.getLogger("rlbridge.client").setLevel(logging.ERROR)
     parsed = _parse_value(value)
     with server.connect("rlbridge-topic-pub") as bridge:
-        out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport))
+        out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport),
+                             qos=channel.qos(), policy=channel.policy())
         n = count
         period = 1.0 / rate if rate > 0 else 0.0
         start = time.monotonic()
@@ -92,6 +98,7 @@ def topic_pub(
 @topic_app.command("echo")
 @one_line_errors
 @server_options
+@channel_options
 def topic_echo(
     topic: Topic,
     msg_type: MsgType,
@@ -103,11 +110,13 @@ def topic_echo(
                                                 "without a value (0 = wait forever).", min=0.0)]
     = 0.0,
     server: ServerTarget = LOCAL_SERVER,
+    channel: ChannelChoice = DEFAULT_CHANNEL,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
     with server.connect("rlbridge-topic-echo") as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
                               transport=checked_transport(transport),
+                              qos=channel.qos(), policy=channel.policy(),
                               blocking=True, buffer_size=4096)
         seen = 0
         while count == 0 or seen < count:
@@ -126,7 +135,7 @@ def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
     reconnect) closes the channel, which ends the read with ``ChannelClosed``.
     """
     from rlbridge.csp.connection import ConnectionClosed
-    from rlbridge.csp.errors import ChannelClosed
+    from rlbridge.errors import ChannelClosed
 
     deadline = None if timeout is None else time.monotonic() + timeout
     while True:
@@ -145,6 +154,7 @@ def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
 @topic_app.command("hz")
 @one_line_errors
 @server_options
+@channel_options
 def topic_hz(
     topic: Topic,
     msg_type: MsgType,
@@ -154,16 +164,18 @@ def topic_hz(
                                             min=0.0)] = 0.0,
     transport: TransportOpt = "udp",
     server: ServerTarget = LOCAL_SERVER,
+    channel: ChannelChoice = DEFAULT_CHANNEL,
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
 
     With --duration, exits 1 if no value arrived in that time (like echo's --timeout).
     """
-    from rlbridge.csp.errors import ChannelClosed
+    from rlbridge.errors import ChannelClosed
 
     with server.connect("rlbridge-topic-hz") as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
                               transport=checked_transport(transport),
+                              qos=channel.qos(), policy=channel.policy(),
                               blocking=True, buffer_size=65536)
         arrivals: list[float] = []
         end = time.monotonic() + duration if duration > 0 else math.inf

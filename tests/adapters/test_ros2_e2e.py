@@ -28,8 +28,9 @@ import pytest
 from ros_peers import env_for
 
 from localhost import rlbridge_command
+from rlbridge import QoS
 from rlbridge.csp.bridge import Bridge
-from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
+from rlbridge.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
 from waiting import wait_until
 
 if TYPE_CHECKING:
@@ -313,8 +314,8 @@ def test_sdk_qos_reaches_the_ros_graph(
     topic = unique_topic("qos")
     handle = peer.call("sub", topic=topic, type="std_msgs/msg/Float64", field="data",
                        reliability="reliable")
-    out = sdk.publish(topic, "std_msgs/msg/Float64", transport="udp", reliability="reliable",
-                      depth=5)
+    out = sdk.publish(topic, "std_msgs/msg/Float64", transport="udp",
+                      qos=QoS(reliability="reliable", depth=5))
     wait_until(lambda: peer.wait_messages(handle, bool, 0.1),
                "a reliable SDK publisher to reach rclpy", timeout=TIMEOUT, interval=0.0,
                between=lambda: out.write(1.5))

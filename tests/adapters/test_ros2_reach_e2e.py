@@ -22,9 +22,9 @@ from reach_netns import PEER, LoggedProcess, World, in_namespace, run_cli, world
 pytest.importorskip("test_msgs.action", reason="needs ros-test-msgs")
 pytest.importorskip("std_srvs.srv", reason="needs ros-std-srvs")
 
+from rlbridge import ParameterError, QoS
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.parameters import ParameterError
-from rlbridge.wire.errors import (
+from rlbridge.errors import (
     BadValueError,
     NoServiceError,
     UnknownTypeError,
@@ -151,7 +151,7 @@ def test_latched_topic_published_before_the_client_connected(
     """The value a latched topic holds when the channel binds arrives on either transport
     (over UDP the server's subscription is reliable, or DDS would send it no history)."""
     ch = sdk.subscribe("/reach/map", "std_msgs/msg/String", field, transport=transport,
-                       blocking=True, durability=durability)
+                       blocking=True, qos=QoS(durability=durability))
     assert ch.read(timeout=30) == ("map v1" if field else {"data": "map v1"})
     sdk.unsubscribe(ch)
 

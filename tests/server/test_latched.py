@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge import Bridge, QoS
 from rlbridge.wire import Heartbeat, TopicAck, TopicClose, TopicConnect, Value
 
 
@@ -27,12 +27,12 @@ def test_a_late_subscriber_gets_the_latched_value(
         transport: Any, publish_via: Any) -> None:
     publisher = bridge()
     out = publisher.publish("/latched", "std_msgs/msg/Float64", transport=publish_via,
-                            durability="transient_local")
+                            qos=QoS(durability="transient_local"))
     out.write(4.5)
     wait_until(lambda: _published(publisher, "/latched"), what="the value published")
     late = bridge()
     ch = late.subscribe("/latched", "std_msgs/msg/Float64", field, transport=transport,
-                        durability="transient_local", blocking=True)
+                        qos=QoS(durability="transient_local"), blocking=True)
     assert ch.read(timeout=10) == (4.5 if field else {"data": 4.5})
 
 
@@ -40,7 +40,8 @@ def test_a_volatile_subscriber_gets_no_history(
         bridge: Callable[..., Bridge], wait_until: Callable[..., Any]) -> None:
     """The control: without ``transient_local`` the latched value is not replayed."""
     publisher = bridge()
-    out = publisher.publish("/latched", "std_msgs/msg/Float64", durability="transient_local")
+    out = publisher.publish("/latched", "std_msgs/msg/Float64",
+                            qos=QoS(durability="transient_local"))
     out.write(4.5)
     wait_until(lambda: _published(publisher, "/latched"), what="the value published")
     ch = bridge().subscribe("/latched", "std_msgs/msg/Float64", transport="udp", blocking=True)
@@ -56,13 +57,14 @@ def test_values_of_a_udp_channel_bound_before_the_address_is_known_wait_for_it(
     """A TCP session's UDP channel binds before its first datagram: the latched value waits
     for the address instead of being dropped (docs/protocol.md 8.3)."""
     publisher = bridge()
-    out = publisher.publish("/latched", "std_msgs/msg/Float64", durability="transient_local")
+    out = publisher.publish("/latched", "std_msgs/msg/Float64",
+                            qos=QoS(durability="transient_local"))
     out.write(4.5)
     wait_until(lambda: _published(publisher, "/latched"), what="the value published")
     tcp = raw_tcp()
     ack = tcp.hello()
     tcp.send(TopicConnect(1, "subscribe", "/latched", "std_msgs/msg/Float64", "data", "udp",
-                          durability="transient_local"))
+                          qos=QoS(durability="transient_local")))
     tcp.expect(TopicAck)
     stats = tcp.stats()["session"]["channels"]["1"]
     assert (stats["values_out"], stats["dropped"]) == (1, 0)  # sent into the wait

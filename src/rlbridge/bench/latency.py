@@ -52,6 +52,7 @@ from rlbridge.bench.common import (
     select_cases,
     wait_for_go,
 )
+from rlbridge.csp.options import Tuning
 
 MODULE = "rlbridge.bench.latency"
 TOPIC = "/bench/latency"
@@ -127,7 +128,8 @@ def publisher(params: Params) -> None:
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
-                            name="bench-lat-pub", idle=idle_param(str(params.get("idle", "park"))))
+                            name="bench-lat-pub",
+                            tuning=Tuning(idle=idle_param(str(params.get("idle", "park")))))
     inline = bool(params.get("inline"))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                          through_buffer=inline)
@@ -158,7 +160,8 @@ def subscriber(params: Params) -> None:
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
-                            name="bench-lat-sub", idle=idle_param(str(params.get("idle", "park"))))
+                            name="bench-lat-sub",
+                            tuning=Tuning(idle=idle_param(str(params.get("idle", "park")))))
     ch = bridge.subscribe(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                           blocking=True, buffer_size=1024)
     emit("ready")
@@ -378,7 +381,7 @@ def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[
         "publisher's send-thread wake-up, hop 1 and the server; server send -> read includes "
         "hop 2, the receive thread and the reader's wake-up."
         + (" Idle rows: the SDK threads of publisher and subscriber wait by that strategy "
-           "(`Bridge.connect(idle=...)`); CPU % = user + system time of each whole process "
+           "(`Tuning(idle=...)`); CPU % = user + system time of each whole process "
            "over the stream, in % of one core; `pub loop late` = p99 of how late the "
            "publisher's paced loop woke for its next write (its own GIL and scheduler wait)."
            if settings.idle else ""),

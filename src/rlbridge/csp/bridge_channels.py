@@ -23,7 +23,7 @@ server more (``Credit``), so the reader's pace sets the publisher's.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from operator import itemgetter
 from typing import Any, NamedTuple
 
@@ -31,9 +31,9 @@ from mypy_extensions import mypyc_attr
 
 from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import _MISSING, Channel, _Missing
-from rlbridge.csp.errors import ChannelMisuseError, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.outgoing import OutgoingChannel
+from rlbridge.errors import ChannelMisuseError, SecondWriterError
 
 __all__ = ["AgedValue", "IncomingChannel", "OutgoingChannel", "SecondWriterError"]
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
@@ -57,12 +57,18 @@ _NO_CLOCK = ClockOffset()
 # Compiled by mypyc (rlbridge/_compiled.py); GuardedChannel (csp/failsafe.py) subclasses it.
 @mypyc_attr(allow_interpreted_subclasses=True)
 class IncomingChannel(Channel[Any]):
-    """Middleware -> control code. Read it like any buffered channel."""
+    """Middleware -> control code: what ``Bridge.subscribe`` returns.
+
+    Read it like any buffered :class:`Channel` (``read``, ``try_read``, ``read_many``;
+    ``read_with_age`` adds each value's age); ``health()`` reports its delivery (RTT, jitter,
+    loss, age), ``statistics()`` its buffer. ``close()`` (or leaving a ``with`` block) unbinds
+    the topic. ``write`` stores a value locally, as if it had arrived (tests, simulation).
+    """
 
     __slots__ = ("_arrived", "_clock", "_credit_bell", "_credit_step", "_delivered",
                  "_jitter", "_link", "_max_age_ns", "_one_way", "_overtaken", "_tracker",
                  "channel_id", "credited", "expired", "field", "last_stamp_ns", "latest",
-                 "msg_type", "ros_lost", "topic", "transport")  # fmt: skip
+                 "msg_type", "on_close", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, blocking: bool, buffer_size: int,
@@ -100,6 +106,20 @@ class IncomingChannel(Channel[Any]):
         self._credit_step = max(1, buffer_size // 4)
         self._arrived = 0
         self.credited = buffer_size
+        #: Called once by the first :meth:`close` (the Bridge unbinds the topic there).
+        self.on_close: Callable[[IncomingChannel], None] | None = None
+
+    def close(self) -> None:
+        """Unbind the topic on the server (as ``Bridge.unsubscribe``) and close the channel:
+        values already here stay readable, then reads raise ``ChannelClosed``; idempotent."""
+        Channel.close(self)
+        hook = self.on_close
+        if hook is not None:
+            self.on_close = None
+            hook(self)
+
+    def __enter__(self) -> IncomingChannel:
+        return self
 
     @property
     def flow(self) -> bool:
@@ -221,12 +241,17 @@ class IncomingChannel(Channel[Any]):
 
     # -- reading: the ring holds (stamp, value) pairs -----------------------------------------
     def read(self, timeout: float | None = None) -> Any:
+        """The next value (blocking channel: waits up to ``timeout``, then ``TimeoutError``)
+        or, non-blocking, the newest again when nothing is new (``initial`` before the first;
+        with neither, ``NoValueYet``). ``try_read`` never waits (``WouldBlock``)."""
         value = Channel.read(self, timeout)[1]
         if self._credit_bell is not None:
             self._consumed()
         return value
 
     def read_many(self, max_items: int | None = None) -> list[Any]:
+        """Every value not read yet (at most ``max_items``), oldest first, without waiting;
+        ``[]`` when nothing is new (the newest is not repeated here)."""
         values = list(map(_second, Channel.read_many(self, max_items)))
         if self._credit_bell is not None:
             self._consumed()

@@ -33,9 +33,9 @@ from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.services import ServiceCalls
-from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.csp.session_owner import Control, ValuesHandler
 from rlbridge.csp.stream_guard import StreamGuard
+from rlbridge.errors import ConnectionClosed, ConnectionFailed
 from rlbridge.tls import ClientTls
 from rlbridge.wire import (
     PROTOCOL_VERSION,
@@ -73,7 +73,7 @@ class Connection:
         self.control: Control = control
         self.timeout = timeout
         self.codec = PacketCodec()
-        #: Flags of every datagram: ``FLAG_BUNDLES`` unless ``Bridge.connect(bundles=False)``
+        #: Flags of every datagram: ``FLAG_BUNDLES`` unless ``Tuning(bundles=False)``
         #: (the server then sends this client one datagram per channel, too).
         self.udp_flags = FLAG_BUNDLES if bundles else 0
         #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.

@@ -38,7 +38,7 @@ thread also grants credit for flow-controlled incoming channels whose reader con
 (a ``Credit`` frame in the same ``sendall`` as the values).
 
 How the thread waits for work is its :mod:`~rlbridge.csp.idle` strategy (park, spin then
-park, busy spin): ``Bridge.connect(idle=...)``.
+park, busy spin): ``Bridge.connect(tuning=Tuning(idle=...))``.
 
 **Inline rounds** (``Bridge.send(inline=True)``): a caller may run the round itself, in its
 own thread, under the same round lock (:meth:`SendLoop.send_inline`).
@@ -78,12 +78,12 @@ import warnings
 
 from rlbridge.csp.bell import SendBell
 from rlbridge.csp.connection import Connection, ConnectionClosed
-from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.idle import PARK, IdleStrategy, Park
 from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.csp.plain_round import take_plain
 from rlbridge.csp.process import current_process
 from rlbridge.csp.send_sources import CreditSource, OutgoingSource
+from rlbridge.errors import RealTimeWarning
 from rlbridge.tcpstate import congested
 from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Value
 from rlbridge.wire.bundle import DatagramPacker, Part, as_packet

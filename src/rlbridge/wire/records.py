@@ -18,6 +18,7 @@ before it is refused at once: nothing sealed can precede the key.
 
 from __future__ import annotations
 
+from rlbridge.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.aead import (
     BULK_FROM,
     InvalidTag,
@@ -33,7 +34,6 @@ from rlbridge.wire.codec import (
     PacketCodec,
     check_header,
 )
-from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.packets import PROTOCOL_VERSION, Packet
 from rlbridge.wire.seal import FLAG_SEALED, TAG_SIZE, SessionKeys, nonce
 
