@@ -1,0 +1,318 @@
+/*
+ * fuzz_decode [--random N] [--seed S] CORPUS_DIR...
+ *
+ * Hardening (issue 28, point 7): every file of the corpus directories (fuzz/corpus: the
+ * Python harnesses' seeds), then N mutated and N random inputs, go through the client's
+ * receive path, each input four ways:
+ *
+ *   - a plain TCP stream, written in chunks to a socketpair and read by spin_io (framing,
+ *     frames larger than the buffer, every packet type's decoder);
+ *   - a sealed TCP stream (records opened under the corpus's stream key, 16.5);
+ *   - one UDP datagram, plain and sealed (token check, AEAD, replay window), read by udp_read;
+ *   - the bytes as one packet body, alone and as a bundle's part (on_packet).
+ *
+ * The I/O side is the library's own code: this file includes src/session.c, whose receive
+ * functions are static, and links the library's other sources. Subscribe channels are bound so
+ * that values reach their rings, and the reader side then reads them (as numbers, arrays, raw
+ * bytes and message fields). A malformed packet must be a count (conn->malformed, a dropped
+ * datagram, a lost session), never a crash: under -DRLB_SANITIZE=ON AddressSanitizer and
+ * UndefinedBehaviorSanitizer abort on the first invalid access, overflow or leak, and the
+ * invariants below abort too. Exit 0 with one summary line on stdout.
+ */
+#include <dirent.h>
+#include <sys/stat.h>
+
+#include "session.c" /* the receive path, static functions included */
+
+#define FUZZ_MAX_INPUT 8192
+#define N_CHANNELS 6
+
+static const uint8_t KEY_B[32] = {0,  1,  2,  3,  4,  5,  6,  7,  8,  9,  10,
+                                  11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21,
+                                  22, 23, 24, 25, 26, 27, 28, 29, 30, 31};
+
+typedef struct totals {
+    unsigned long inputs, malformed, records, sealed_dgrams, sessions_lost, events, reads;
+} totals;
+
+static totals T;
+
+static void on_event(void *ctx, const rlb_event *ev) {
+    (void)ctx;
+    T.events += strlen(ev->reason) > 0 || ev->code != 0 || ev->channel != 0 || ev->kind != 0;
+}
+
+static void check(bool ok, const char *what) {
+    if (!ok) {
+        fprintf(stderr, "fuzz_decode: invariant broken: %s (input %lu)\n", what, T.inputs);
+        abort();
+    }
+}
+
+static rlb_client *make_client(rlb_channel **ch) {
+    rlb_config cfg;
+    rlb_config_init(&cfg);
+    cfg.name = "fuzz";
+    cfg.tcp_buffer = 4096; /* small: frames larger than the buffer are skipped, not stored */
+    cfg.max_channels = N_CHANNELS;
+    cfg.on_event = on_event;
+    rlb_client *c;
+    check(rlb_client_new(&cfg, &c) == RLB_OK, "client");
+    static const struct {
+        int dir;
+        rlb_transport tr;
+        rlb_mode mode;
+        const char *field;
+        uint32_t bytes;
+    } spec[N_CHANNELS] = {
+        {DIR_SUBSCRIBE, RLB_UDP, RLB_LATEST, "data", 16},   /* 1 */
+        {DIR_SUBSCRIBE, RLB_TCP, RLB_QUEUE, "data", 16},    /* 2: credit */
+        {DIR_PUBLISH, RLB_UDP, RLB_QUEUE, "data", 16},      /* 3 */
+        {DIR_PUBLISH, RLB_TCP, RLB_QUEUE, "data", 16},      /* 4: credit */
+        {DIR_SUBSCRIBE, RLB_UDP, RLB_QUEUE, NULL, 256},     /* 5: whole messages */
+        {DIR_SUBSCRIBE, RLB_UDP, RLB_LATEST, "data", 128},  /* 6: arrays */
+    };
+    for (int i = 0; i < N_CHANNELS; i++) {
+        rlb_channel_opts o;
+        rlb_channel_opts_init(&o, "/fuzz", "std_msgs/msg/Float64", spec[i].field);
+        o.transport = spec[i].tr;
+        o.mode = spec[i].mode;
+        o.value_bytes = spec[i].bytes;
+        o.capacity = 8;
+        rlb_status rc = spec[i].dir == DIR_PUBLISH ? rlb_publish(c, &o, &ch[i])
+                                                   : rlb_subscribe(c, &o, &ch[i]);
+        check(rc == RLB_OK, "declare");
+    }
+    c->connected_once = true;
+    return c;
+}
+
+/* A live session on socketpairs: every channel bound, the client's socket ends in k. */
+static void session_up(rlb_client *c, int *peer_tcp, int *peer_udp, bool sealed) {
+    rlb_conn *k = c->conn;
+    int s[2], d[2];
+    check(socketpair(AF_UNIX, SOCK_STREAM, 0, s) == 0, "socketpair");
+    check(socketpair(AF_UNIX, SOCK_DGRAM, 0, d) == 0, "socketpair");
+    set_nonblock(s[0]);
+    set_nonblock(s[1]);
+    k->tcp = s[0];
+    k->udp = d[0];
+    *peer_tcp = s[1];
+    *peer_udp = d[1];
+    k->out_len = k->wire_off = k->wire_len = k->in_off = k->in_len = k->rec_len = k->skip = 0;
+    k->dgram_tx = k->rec_tx = k->rec_rx = k->replay_top = 0;
+    memset(k->replay_bits, 0, sizeof k->replay_bits);
+    k->token = 7; /* the corpus's datagrams carry token 7 */
+    k->hb_ms = 200;
+    k->timeout_ms = 600;
+    k->up = true;
+    k->closed = false;
+    k->sealed = sealed;
+    memset(&k->keys, 0, sizeof k->keys);
+    memcpy(k->keys.rs2c, KEY_B, 32);
+    memcpy(k->keys.ks2c, KEY_B, 32);
+    for (uint32_t i = 0; i < c->n_channels; i++) {
+        rlb_channel *ch = c->channels[i];
+        ch->bind = BIND_ACKED;
+        ch->next_seq = 0;
+        ch->has_highest = false;
+        ch->credit = ch->flow ? 0 : UINT64_MAX;
+    }
+}
+
+static void session_down(rlb_client *c, int peer_tcp, int peer_udp) {
+    rlb_conn *k = c->conn;
+    if (!k->up) T.sessions_lost++;
+    T.records += k->rec_rx;         /* sealed records that opened */
+    T.sealed_dgrams += k->replay_top > 0; /* a sealed datagram that opened */
+    close_sockets(k); /* idempotent: a lost session closed them already */
+    close(peer_tcp);
+    close(peer_udp);
+}
+
+static void invariants(const rlb_client *c) {
+    const rlb_conn *k = c->conn;
+    check(k->in_off <= k->in_len && k->in_len <= k->cap, "TCP input buffer bounds");
+    check(k->rec_len <= RECORD_MAX + 24 + 8, "record buffer bounds");
+    check(unsent_k(k) <= k->wire_cap, "output buffer bounds");
+    for (uint32_t i = 0; i < c->n_channels; i++) {
+        const rlb_channel *ch = c->channels[i];
+        if (ch->mode == RLB_QUEUE) check(ring_count(&ch->ring) <= ch->ring.cap, "ring bounds");
+    }
+}
+
+/* The reader's side of everything that arrived: every read kind on every subscribe channel. */
+static void drain(rlb_client *c) {
+    for (uint32_t i = 0; i < c->n_channels; i++) {
+        rlb_channel *ch = c->channels[i];
+        if (ch->dir != DIR_SUBSCRIBE) continue;
+        for (int n = 0; n < 16; n++) {
+            uint8_t raw[256];
+            size_t len = 0;
+            double v, arr[16];
+            int64_t iv;
+            bool bv;
+            int rc = rlb_read_raw(ch, raw, sizeof raw, &len);
+            if (rc <= 0) break;
+            T.reads++;
+            check(len <= ch->value_bytes, "a value larger than its slot");
+            (void)rlb_read_f64(ch, &v); /* the same value again, as each type */
+            (void)rlb_read_i64(ch, &iv);
+            (void)rlb_read_bool(ch, &bv);
+            (void)rlb_read_f64_array(ch, arr, 16, &len);
+            (void)rlb_msg_get_f64(raw, len, "linear.x", &v);
+            (void)rlb_msg_get_i64(raw, len, "data", &iv);
+            (void)rlb_msg_get_bool(raw, len, "a.b.c", &bv);
+        }
+    }
+}
+
+static void as_stream(rlb_client *c, const uint8_t *data, size_t len, bool sealed) {
+    int pt, pu;
+    session_up(c, &pt, &pu, sealed);
+    size_t step = len ? (size_t)data[0] % 17 + 1 : 1;
+    for (size_t at = 1; at < len && c->conn->up; at += step) {
+        size_t n = len - at < step ? len - at : step;
+        check(write(pt, data + at, n) == (ssize_t)n, "socketpair write");
+        (void)spin_io(c, 0);
+        invariants(c);
+    }
+    if (c->conn->up) (void)spin_io(c, 0);
+    invariants(c);
+    session_down(c, pt, pu);
+}
+
+static void as_datagram(rlb_client *c, const uint8_t *data, size_t len, bool sealed) {
+    int pt, pu;
+    session_up(c, &pt, &pu, sealed);
+    if (len > 0) check(send(pu, data, len, 0) == (ssize_t)len, "datagram send");
+    udp_read(c);
+    invariants(c);
+    session_down(c, pt, pu);
+}
+
+static void as_body(rlb_client *c, const uint8_t *data, size_t len) {
+    int pt, pu;
+    session_up(c, &pt, &pu, false);
+    on_packet(c, data, len, false);
+    if (c->conn->up) on_packet(c, data, len, true);
+    invariants(c);
+    session_down(c, pt, pu);
+}
+
+static void one_input(rlb_client *c, const uint8_t *data, size_t len) {
+    uint64_t before = c->conn->malformed;
+    T.inputs++;
+    as_stream(c, data, len, false);
+    as_stream(c, data, len, true);
+    for (int skip = 0; skip <= 1 && (size_t)skip <= len; skip++) { /* with the mode byte, without */
+        as_datagram(c, data + skip, len - (size_t)skip, false);
+        as_datagram(c, data + skip, len - (size_t)skip, true);
+        as_body(c, data + skip, len - (size_t)skip);
+    }
+    drain(c);
+    T.malformed += c->conn->malformed - before;
+}
+
+static uint64_t rng_state = 0x9e3779b97f4a7c15ULL;
+
+static uint64_t rnd(void) {
+    rng_state ^= rng_state << 13;
+    rng_state ^= rng_state >> 7;
+    rng_state ^= rng_state << 17;
+    return rng_state;
+}
+
+static uint8_t corpus[1024][FUZZ_MAX_INPUT];
+static size_t corpus_len[1024];
+static size_t n_corpus;
+
+static void load_dir(rlb_client *c, const char *dir) {
+    DIR *d = opendir(dir);
+    if (d == NULL) {
+        fprintf(stderr, "fuzz_decode: cannot open %s\n", dir);
+        exit(2);
+    }
+    struct dirent *e;
+    char path[4096];
+    while ((e = readdir(d)) != NULL) {
+        if (e->d_name[0] == '.') continue;
+        snprintf(path, sizeof path, "%s/%s", dir, e->d_name);
+        FILE *f = fopen(path, "rb");
+        if (f == NULL) continue;
+        static uint8_t buf[1 << 20];
+        size_t n = fread(buf, 1, sizeof buf, f);
+        fclose(f);
+        one_input(c, buf, n);
+        if (n_corpus < 1024 && n <= FUZZ_MAX_INPUT) {
+            memcpy(corpus[n_corpus], buf, n);
+            corpus_len[n_corpus++] = n;
+        }
+    }
+    closedir(d);
+}
+
+int main(int argc, char **argv) {
+    unsigned long random_n = 2000;
+    int first_dir = 1;
+    for (; first_dir < argc && argv[first_dir][0] == '-'; first_dir += 2) {
+        if (first_dir + 1 >= argc) break;
+        if (strcmp(argv[first_dir], "--random") == 0)
+            random_n = strtoul(argv[first_dir + 1], NULL, 10);
+        else if (strcmp(argv[first_dir], "--seed") == 0)
+            rng_state = strtoull(argv[first_dir + 1], NULL, 10) | 1;
+        else break;
+    }
+    if (first_dir >= argc) {
+        fprintf(stderr, "usage: %s [--random N] [--seed S] CORPUS_DIR...\n", argv[0]);
+        return 2;
+    }
+    uint64_t seed = rng_state;
+    rlb_channel *ch[N_CHANNELS];
+    rlb_client *c = make_client(ch);
+    for (int i = first_dir; i < argc; i++) load_dir(c, argv[i]);
+    unsigned long from_corpus = T.inputs;
+    static uint8_t buf[FUZZ_MAX_INPUT];
+    for (unsigned long i = 0; i < random_n; i++) {
+        size_t len;
+        if (n_corpus > 0 && i % 2 == 0) { /* a corpus file mutated: flips, cuts, splices */
+            size_t j = rnd() % n_corpus;
+            len = corpus_len[j];
+            memcpy(buf, corpus[j], len);
+            for (int m = 0, edits = (int)(rnd() % 8) + 1; m < edits && len > 0; m++) {
+                switch (rnd() % 4) {
+                case 0: buf[rnd() % len] ^= (uint8_t)(1u << (rnd() % 8)); break;
+                case 1: buf[rnd() % len] = (uint8_t)rnd(); break;
+                case 2: len = rnd() % (len + 1); break;
+                default: { /* an interesting byte: msgpack lengths at their edges */
+                    static const uint8_t edge[] = {0xc1, 0xdc, 0xdd, 0xde, 0xdf, 0xdb,
+                                                   0xc6, 0xff, 0x00, 0x7f, 0x80, 0x9f};
+                    buf[rnd() % len] = edge[rnd() % sizeof edge];
+                }
+                }
+            }
+        } else { /* random bytes, often behind a valid header so they reach the decoder */
+            len = rnd() % 512;
+            for (size_t b = 0; b < len; b++) buf[b] = (uint8_t)rnd();
+            if (len >= 13 && rnd() % 2) {
+                uint32_t body = (uint32_t)(len - 9);
+                buf[1] = 'R', buf[2] = 'B', buf[3] = RLB_PROTOCOL_VERSION, buf[4] = 0;
+                buf[5] = (uint8_t)(body >> 24), buf[6] = (uint8_t)(body >> 16);
+                buf[7] = (uint8_t)(body >> 8), buf[8] = (uint8_t)body;
+            }
+        }
+        one_input(c, buf, len);
+    }
+    rlb_close(c);
+    printf("fuzz_decode: %lu inputs (%lu from the corpus, %lu generated, seed %llu): "
+           "%lu malformed packets counted, %lu sealed records and %lu sealed datagrams opened, "
+           "%lu new values read, %lu sessions ended by bad input, %lu events; no crash\n",
+           T.inputs, from_corpus, T.inputs - from_corpus, (unsigned long long)seed,
+           T.malformed, T.records, T.sealed_dgrams, T.reads, T.sessions_lost, T.events);
+    if (from_corpus == 0 || T.malformed == 0 || T.reads == 0 || T.records == 0 ||
+        T.sealed_dgrams == 0) {
+        fprintf(stderr, "fuzz_decode: the inputs never reached the decoder\n");
+        return 1;
+    }
+    return 0;
+}

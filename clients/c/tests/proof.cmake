@@ -1,0 +1,63 @@
+# The proofs of issue 28's points 6 and 7 and the C client's benchmark program, included at the
+# end of clients/c/CMakeLists.txt (the library, its warnings and the test switch exist by now).
+#
+#  - rt_seccomp: the loop thread under a seccomp filter (tests/c_client/test_c_realtime.py).
+#  - fuzz_decode: the fuzz corpus and random bytes through the receive path (ctest).
+#  - alloc_fail: every failed allocation at creation and declare time is an error (ctest).
+#  - rlb_rt_bench: benchmarks/c_client_rt.py's loop, jitter and latency program.
+#
+# -DRLB_SANITIZE=ON builds everything (the library included) with AddressSanitizer and
+# UndefinedBehaviorSanitizer, every report fatal (scripts/test.sh: build/c-asan).
+option(RLB_SANITIZE "Build with AddressSanitizer and UndefinedBehaviorSanitizer" OFF)
+if(RLB_SANITIZE)
+  set(RLB_SAN_FLAGS -fsanitize=address,undefined -fno-sanitize-recover=all
+      -fno-omit-frame-pointer)
+  foreach(target rlbridge rlb_pub rlb_sub)
+    target_compile_options(${target} PRIVATE ${RLB_SAN_FLAGS})
+    target_link_options(${target} PRIVATE ${RLB_SAN_FLAGS})
+  endforeach()
+  # The library is static: whoever links it links the sanitizer runtime too.
+  target_link_options(rlbridge INTERFACE ${RLB_SAN_FLAGS})
+endif()
+
+set(RLB_PROOF_DIR ${CMAKE_CURRENT_LIST_DIR})
+set(RLB_REPO_ROOT ${CMAKE_CURRENT_LIST_DIR}/../../..)
+
+function(rlb_proof_program name)
+  add_executable(${name} ${ARGN})
+  target_compile_options(${name} PRIVATE ${RLB_WARNINGS} ${RLB_SAN_FLAGS})
+  target_compile_definitions(${name} PRIVATE _POSIX_C_SOURCE=200809L _DEFAULT_SOURCE)
+  target_link_options(${name} PRIVATE ${RLB_SAN_FLAGS})
+  set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR})
+endfunction()
+
+if(CMAKE_SYSTEM_NAME STREQUAL "Linux")
+  rlb_proof_program(rt_seccomp ${RLB_PROOF_DIR}/rt_seccomp.c)
+  target_link_libraries(rt_seccomp PRIVATE rlbridge)
+endif()
+
+rlb_proof_program(rlb_rt_bench ${RLB_REPO_ROOT}/benchmarks/c_client/rlb_rt_bench.c)
+target_link_libraries(rlb_rt_bench PRIVATE rlbridge)
+
+# The receive path's static functions: the harness compiles session.c itself, next to the
+# library's other sources (not the library, whose session.c would be linked twice).
+rlb_proof_program(fuzz_decode ${RLB_PROOF_DIR}/fuzz_decode.c
+  src/mp.c src/crypto.c src/channel.c src/client.c)
+target_include_directories(fuzz_decode PRIVATE include src ${SODIUM_INCLUDE_DIR})
+target_link_libraries(fuzz_decode PRIVATE ${SODIUM_LIBRARY} Threads::Threads)
+
+rlb_proof_program(alloc_fail ${RLB_PROOF_DIR}/alloc_fail.c)
+target_link_libraries(alloc_fail PRIVATE rlbridge)
+target_link_options(alloc_fail PRIVATE -Wl,--wrap=malloc,--wrap=calloc,--wrap=realloc)
+
+if(RLB_TESTS)
+  enable_testing()
+  set(RLB_FUZZ_RANDOM 2000 CACHE STRING "fuzz_decode: generated inputs after the corpus")
+  add_test(NAME fuzz_decode COMMAND fuzz_decode --random ${RLB_FUZZ_RANDOM}
+    ${RLB_REPO_ROOT}/fuzz/corpus/decoder ${RLB_REPO_ROOT}/fuzz/corpus/server)
+  add_test(NAME alloc_fail COMMAND alloc_fail)
+  if(RLB_SANITIZE)
+    set_tests_properties(fuzz_decode alloc_fail PROPERTIES ENVIRONMENT
+      "ASAN_OPTIONS=halt_on_error=1:detect_leaks=1:abort_on_error=1;UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1")
+  endif()
+endif()
