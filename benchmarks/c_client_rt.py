@@ -171,6 +171,13 @@ def stress(seconds: float) -> Iterator[None]:
         proc.wait(timeout=20)
 
 
+def steal_ms() -> float:
+    """The machine's stolen time so far (/proc/stat): a VM's vCPUs not running at all, which
+    no priority inside the guest can prevent (it shows in every loop's maximum alike)."""
+    fields = Path("/proc/stat").read_text().splitlines()[0].split()
+    return int(fields[8]) * 1000 / os.sysconf("SC_CLK_TCK")
+
+
 def run_json(argv: list[str], timeout: float) -> dict[str, Any]:
     done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, check=False)
     if done.returncode != 0 or not done.stdout.strip():
@@ -209,13 +216,15 @@ def jitter(bench: Path, seconds: int, rounds: int) -> list[dict[str, Any]]:
                     argv = [str(bench), "jitter", str(seconds)]
                     if streaming:
                         argv += ["127.0.0.1", str(port), str(CHANNELS)]
+                    steal0, loadavg = steal_ms(), os.getloadavg()[0]
                     res = run_json(argv, seconds * 3 + 30)
-                    res.update(load=load, streaming=streaming, round=r)
+                    res.update(load=load, streaming=streaming, round=r, loadavg_1min=loadavg,
+                               steal_ms=steal_ms() - steal0)
                     runs.append(res)
                     print(f"  jitter {load:11} {'streaming' if streaming else 'alone':9} "
                           f"late p50 {res['late_us']['p50']:.1f} p99 "
-                          f"{res['late_us']['p99']:.1f} max {res['late_us']['max']:.0f} us",
-                          flush=True)
+                          f"{res['late_us']['p99']:.1f} max {res['late_us']['max']:.0f} us "
+                          f"(load {loadavg:.1f}, steal {res['steal_ms']:.0f} ms)", flush=True)
     return runs
 
 
@@ -297,6 +306,23 @@ def tables(jit: list[dict[str, Any]], paths: list[dict[str, Any]], count: int) -
             f"{m(lambda p: p['middle_cpu_us_per_value']):.2f} us | "
             f"{m(lambda p: p['sub']['cpu_us_per_value']):.2f} us | "
             f"{int(m(lambda p: p['sub']['received']))} of {CHANNELS * count} |")
+    def p50(name: str, get: Callable[[dict[str, Any]], float]) -> float:
+        return median([get(p) for p in paths if p["path"] == name])
+
+    c, raw, sdk = "C client, I/O period 1000 us", "raw UDP", "Python SDK"
+
+    def lat(p: dict[str, Any]) -> float:
+        return float(p["sub"]["latency_us"]["p50"])
+
+    def cpu(p: dict[str, Any]) -> float:
+        return float(p["pub"]["cpu_us_per_value"])
+
+    if all(any(p["path"] == n for p in paths) for n in (c, raw, sdk)):
+        lines += ["", "C client (1000 us) / raw UDP: latency p50 "
+                  f"x{p50(c, lat) / p50(raw, lat):.2f}, sender CPU "
+                  f"x{p50(c, cpu) / p50(raw, cpu):.2f}; C client / Python SDK: "
+                  f"latency p50 x{p50(c, lat) / p50(sdk, lat):.2f}, sender CPU "
+                  f"x{p50(c, cpu) / p50(sdk, cpu):.2f}"]
     return "\n".join(lines)
 
 
