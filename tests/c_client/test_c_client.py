@@ -92,6 +92,24 @@ def test_rlb_pub_to_sdk_subscriber(c_build: Path, cli_server: Server, keyed: lis
     assert got == [float(i) for i in range(COUNT)]
 
 
+def test_one_datagram_per_round_for_all_udp_channels(c_build: Path, cli_server: Server) -> None:
+    """``rlb_pub --channels 4``: each round's values of the four channels travel in one
+    ``Bundle`` datagram (protocol.md 6.16), so the server counts far fewer packets than values;
+    every value still arrives, in order, on each topic."""
+    port, _ = cli_server()
+    with _connect(port) as bridge:
+        channels = [bridge.subscribe(f"/c_bundle_{k}", FLOAT64, blocking=True,
+                                     buffer_size=COUNT) for k in range(4)]
+        before = bridge.server_stats()["server"]["packets_in"]
+        pub = _pub(c_build, port, "/c_bundle", COUNT, "--channels", "4")
+        assert pub.returncode == 0, pub.stderr
+        for channel in channels:
+            assert [channel.read(timeout=WAIT) for _ in range(COUNT)] == [
+                float(i) for i in range(COUNT)]
+        packets = bridge.server_stats()["server"]["packets_in"] - before
+    assert packets < 4 * COUNT / 2  # one per value would be 4 * COUNT
+
+
 def test_sdk_publisher_to_rlb_sub(c_build: Path, cli_server: Server, keyed: list[str],
                                   transport: Transport, c_processes: list[CProcess]) -> None:
     port, _ = cli_server(*keyed)
@@ -131,6 +149,64 @@ def test_rlb_sub_single_threaded(c_build: Path, cli_server: Server, transport: T
     assert sub.values() == [float(i) for i in range(COUNT)]
 
 
+def test_whole_messages_both_ways_and_a_refused_value(c_build: Path, cli_server: Server) -> None:
+    """``rlb_twist``: Twist maps built with ``rlb_msg_*`` reach an SDK whole-message reader;
+    read back whole and through a field; a map with an unknown field is the channel's error."""
+    port, _ = cli_server()
+    with _connect(port) as bridge:
+        seen = bridge.subscribe("/c_twist", "geometry_msgs/msg/Twist", None, transport="tcp",
+                                blocking=True, buffer_size=16)
+        twist = subprocess.run([str(c_build / "rlb_twist"), "127.0.0.1", str(port), "/c_twist",
+                                "10"], capture_output=True, text=True, timeout=120, check=False)
+        assert twist.returncode == 0, twist.stderr
+        maps = [seen.read(timeout=WAIT) for _ in range(10)]
+    assert [(m["linear"]["x"], m["angular"]["z"]) for m in maps] == [
+        (float(i), -float(i)) for i in range(10)]
+    lines = twist.stdout.splitlines()
+    read_back = [[float(x) for x in line.split()] for line in lines[:10]]
+    assert read_back == [[i, -i, -i] for i in range(10)]  # linear.x, angular.z, the field
+    assert lines[10] == "error 13"  # BAD_VALUE, surfaced on the publishing channel
+
+
+def test_arrays_through_ros2(c_build: Path, cli_server: Server, tmp_path: Path,
+                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """``rlb_array``: Float64MultiArray ``data`` (a ROS sequence) out and back through a
+    server on the ROS 2 adapter, arrays in fixed-size slots both ways."""
+    if os.environ.get("RLBRIDGE_TEST_REQUIRE_ROS2") != "1":
+        pytest.importorskip("rclpy", reason="rclpy is not installed: no ROS 2 adapter here")
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # discovery stays here
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(1 + (os.getpid() + 37) % 100))
+    monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path))
+    port, _ = cli_server("--adapter", "ros2")
+    arrays = subprocess.run([str(c_build / "rlb_array"), "127.0.0.1", str(port), "/c_arrays",
+                             "10"], capture_output=True, text=True, timeout=120, check=False)
+    assert arrays.returncode == 0, arrays.stderr
+    got = [[float(x) for x in line.split()] for line in arrays.stdout.splitlines()]
+    assert got == [[i, i / 2, -i] for i in range(10)]
+
+
+def test_a_refused_binding_is_exit_1_with_the_reason(c_build: Path, cli_server: Server) -> None:
+    port, _ = cli_server()
+    with _connect(port) as bridge:
+        bridge.subscribe("/c_clash", "std_msgs/msg/Int32")  # the topic's type is Int32 now
+        pub = _pub(c_build, port, "/c_clash", 1)
+    assert pub.returncode == 1
+    assert pub.stderr.count("\n") == 1
+    assert "refused by the server (server: code 11" in pub.stderr  # TYPE_CLASH
+
+
+def test_udp_only_sessions(c_build: Path, cli_server: Server, keyed: list[str],
+                           c_processes: list[CProcess]) -> None:
+    """``--udp-only`` against a server without TCP (protocol.md 8.2): the handshake (with a
+    key: challenge and proof) over token-0 datagrams, bindings repeated until answered."""
+    port, _ = cli_server("--no-tcp", *keyed)
+    sub = _sub(c_build, c_processes, port, "/c_udp_only", COUNT, "--udp-only", *keyed)
+    pub = _pub(c_build, port, "/c_udp_only", COUNT, "--udp-only", *keyed)
+    assert pub.returncode == 0, pub.stderr
+    assert sub.finish(timeout=WAIT + 10) == 0, sub.err
+    assert sub.values() == [float(i) for i in range(COUNT)]
+
+
 def test_no_server_is_exit_1_with_one_line(c_build: Path, free_port: Callable[[], int]) -> None:
     pub = _pub(c_build, free_port(), "/nobody", 1)
     assert pub.returncode == 1
@@ -142,10 +218,11 @@ def test_a_wrong_key_is_refused(c_build: Path, cli_server: Server, tmp_path: Pat
     (tmp_path / "server").write_text(os.urandom(32).hex() + "\n")
     (tmp_path / "client").write_text("rlb_pub " + os.urandom(32).hex() + "\n")
     port, _ = cli_server("--psk-file", str(tmp_path / "server"))
-    for extra in (["--psk-file", str(tmp_path / "client")], []):  # wrong key, and none
+    wrong = ["--psk-file", str(tmp_path / "client")]
+    for extra in (wrong, [], [*wrong, "--udp-only"], ["--udp-only"]):  # wrong key, and none
         pub = _pub(c_build, port, "/refused", 1, *extra)
-        assert pub.returncode == 1
-        assert "authentication failed" in pub.stderr
+        assert pub.returncode == 1, extra
+        assert "authentication failed" in pub.stderr, extra
 
 
 def _serve(cli: Any, port: int) -> subprocess.Popen[str]:
@@ -172,18 +249,19 @@ def _publish(port: int, topic: str, values: range) -> None:
         bridge.send(wait=True)  # handed to the socket before the goodbye
 
 
-@pytest.mark.parametrize("transport", ["udp", "tcp"])
+@pytest.mark.parametrize("how", ["udp", "tcp", "udp-only"])
 def test_server_restart_under_rlb_sub(c_build: Path, cli: Any, free_port: Callable[[], int],
-                                      c_processes: list[CProcess], transport: Transport,
+                                      c_processes: list[CProcess], how: str,
                                       monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("RLBRIDGE_PSK", raising=False)
     port = free_port()
     server = _serve(cli, port)
-    topic = f"/c_restart_{transport}"
-    sub = _sub(c_build, c_processes, port, topic, 20, *_flag(transport), timeout_s=90)
+    topic = f"/c_restart_{how.replace('-', '_')}"
+    flags = {"udp": [], "tcp": ["--tcp"], "udp-only": ["--udp-only"]}[how]
+    sub = _sub(c_build, c_processes, port, topic, 20, *flags, timeout_s=90)
     _publish(port, topic, range(10))
     sub.wait_out(10)
-    server.kill()  # no goodbye: the kernel resets the connection
+    server.kill()  # no goodbye: TCP is reset; a UDP-only client notices the silence
     server.communicate(timeout=WAIT)
     sub.wait_err("link lost")
     _serve(cli, port)  # same port; nobody tells rlb_sub

@@ -9,11 +9,22 @@
 
 void parse_args(int argc, char **argv, const char *usage, args *a) {
     memset(a, 0, sizeof *a);
-    int pos = 0;
+    a->channels = 1;
+    int pos = 0, want = strstr(usage, "RATE_HZ") || strstr(usage, "TIMEOUT_S") ? 5 : 4;
     const char *p[5] = {0};
     for (int i = 1; i < argc; i++) {
-        if (strcmp(argv[i], "--tcp") == 0) {
+        if (strcmp(argv[i], "--tcp") == 0 && strstr(usage, "--tcp")) {
             a->tcp = true;
+        } else if (strcmp(argv[i], "--channels") == 0 && strstr(usage, "--channels") && i + 1 < argc) {
+            char *end;
+            unsigned long n = strtoul(argv[++i], &end, 10);
+            if (*end || n < 1 || n > 256) {
+                fprintf(stderr, "%s: --channels takes 1..256, not %s\n", argv[0], argv[i]);
+                exit(2);
+            }
+            a->channels = (unsigned)n;
+        } else if (strcmp(argv[i], "--udp-only") == 0 && strstr(usage, "--udp-only")) {
+            a->udp_only = true;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
             a->spin = true;
         } else if (strcmp(argv[i], "--psk-file") == 0 && i + 1 < argc) {
@@ -21,14 +32,14 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
         } else if (argv[i][0] == '-' && argv[i][1] == '-') {
             fprintf(stderr, "%s: unknown option %s\nusage: %s %s\n", argv[0], argv[i], argv[0], usage);
             exit(2);
-        } else if (pos < 5) {
+        } else if (pos < want) {
             p[pos++] = argv[i];
         } else {
             pos++;
         }
     }
     char *end;
-    if (pos != 5) {
+    if (pos != want) {
         fprintf(stderr, "usage: %s %s\n", argv[0], usage);
         exit(2);
     }
@@ -45,6 +56,7 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
         fprintf(stderr, "%s: COUNT must be a positive integer, not %s\n", argv[0], p[3]);
         exit(2);
     }
+    if (want == 4) return;
     a->number = strtod(p[4], &end);
     if (*end || !(a->number > 0)) {
         fprintf(stderr, "%s: %s must be a positive number, not %s\n", argv[0],
@@ -59,6 +71,11 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
     cfg->host = a->host;
     cfg->port = a->port;
     cfg->name = name;
+    if (a->udp_only) cfg->control = RLB_UDP;
+    if (a->udp_only && a->tcp) {
+        fprintf(stderr, "%s: --tcp needs a TCP session: not with --udp-only\n", prog);
+        exit(2);
+    }
     if (a->psk_file) {
         size_t len = 0;
         rlb_status rc = rlb_load_psk_file(a->psk_file, name, key, &len);

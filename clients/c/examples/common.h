@@ -15,9 +15,12 @@ typedef struct args {
     double number; /* RATE_HZ for rlb_pub, TIMEOUT_S for rlb_sub */
     bool tcp;
     bool spin; /* rlb_sub --spin: no I/O thread, rlb_spin_once from the reading thread */
+    bool udp_only; /* --udp-only: a UDP-only session (for a server without TCP) */
+    unsigned channels; /* rlb_pub --channels N: TOPIC_0 .. TOPIC_{N-1}, default 1: TOPIC */
 } args;
 
-/* Parses HOST PORT TOPIC COUNT NUMBER [--tcp] [--psk-file FILE] [--spin]; exits 2 with usage. */
+/* Parses HOST PORT TOPIC COUNT [NUMBER] [--tcp] [--psk-file FILE] [--spin] [--channels N] [--udp-only] (the options the
+ * usage names; NUMBER when the usage has RATE_HZ or TIMEOUT_S); exits 2 with the usage. */
 void parse_args(int argc, char **argv, const char *usage, args *a);
 /* Fills cfg from a (and loads the key); exits 1 with one line if the key file is unusable. */
 void config_from(const args *a, const char *prog, const char *name, rlb_config *cfg,

@@ -1,9 +1,12 @@
 /*
- * rlb_pub HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE]
+ * rlb_pub HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]
  *
  * A periodic loop (SCHED_FIFO when permitted, memory locked) publishes std_msgs/msg/Float64
  * field data values 0, 1, ..., COUNT-1 at RATE_HZ, then waits until the I/O side has sent
- * them all and exits 0; 1 with one line on stderr when it cannot connect.
+ * them all and exits 0; 1 with one line on stderr when it cannot connect. --channels N: the
+ * same values on N channels, topics TOPIC_0 .. TOPIC_{N-1} (over UDP, one datagram per round
+ * carries them all). --udp-only: a UDP-only session (protocol.md 8.2), for a server without
+ * TCP.
  * The loop thread makes no system call but its sleep (clock_nanosleep) and clock reads.
  */
 #include <stdio.h>
@@ -12,11 +15,15 @@
 
 #include "common.h"
 
+#define MAX_CHANNELS 256
+
 typedef struct loop {
-    rlb_channel *ch;
+    rlb_channel *ch[MAX_CHANNELS];
+    unsigned n;
     unsigned long count;
     long period_ns;
-    unsigned long full; /* periods in which the ring was full: the value waits a period */
+    unsigned long full; /* periods in which a ring was full: the value waits a period */
+    unsigned long done[MAX_CHANNELS]; /* values written per channel */
 } loop;
 
 static void *run(void *arg) {
@@ -30,50 +37,77 @@ static void *run(void *arg) {
             next.tv_sec++;
         }
         clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL);
-        if (rlb_write_f64(l->ch, (double)i) == RLB_OK) i++;
+        bool all = true; /* a channel whose ring was full gets the value again next period */
+        for (unsigned k = 0; k < l->n; k++)
+            if (l->done[k] <= i) {
+                if (rlb_write_f64(l->ch[k], (double)i) == RLB_OK) l->done[k] = i + 1;
+                else all = false;
+            }
+        if (all) i++;
         else l->full++;
     }
     return NULL;
 }
 
+/* Keeps the server's last reason (a refused binding or session) for the one error line. */
+static void on_event(void *ctx, const rlb_event *ev) {
+    if (ev->kind == RLB_EV_TOPIC_ERROR || ev->kind == RLB_EV_DISCONNECT || ev->kind == RLB_EV_ERROR)
+        snprintf(ctx, 256, " (server: code %d, %s)", ev->code, ev->reason);
+}
+
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE]", &a);
+    parse_args(argc, argv, "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]", &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_pub", "rlb_pub", &cfg, key);
+    char reason[256] = "";
+    cfg.on_event = on_event;
+    cfg.event_ctx = reason;
+    cfg.max_channels = a.channels;
     rlb_client *c;
     rlb_status rc = rlb_client_new(&cfg, &c);
     if (rc != RLB_OK) {
         fprintf(stderr, "rlb_pub: %s\n", rlb_status_text(rc));
         return 1;
     }
-    rlb_channel_opts o;
-    rlb_channel_opts_init(&o, a.topic, "std_msgs/msg/Float64", "data");
-    o.transport = a.tcp ? RLB_TCP : RLB_UDP;
-    o.capacity = 4096;
-    rlb_channel *ch;
-    if ((rc = rlb_publish(c, &o, &ch)) != RLB_OK) {
-        fprintf(stderr, "rlb_pub: bad channel %s: %s\n", a.topic, rlb_status_text(rc));
-        rlb_close(c);
-        return 1;
+    static loop l; /* static: the per-channel arrays stay off the stack */
+    l.n = a.channels;
+    l.count = a.count;
+    l.period_ns = (long)(1e9 / a.number);
+    for (unsigned k = 0; k < a.channels; k++) {
+        char topic[300];
+        if (a.channels == 1) snprintf(topic, sizeof topic, "%s", a.topic);
+        else snprintf(topic, sizeof topic, "%s_%u", a.topic, k);
+        rlb_channel_opts o;
+        rlb_channel_opts_init(&o, topic, "std_msgs/msg/Float64", "data");
+        o.transport = a.tcp ? RLB_TCP : RLB_UDP;
+        o.capacity = 4096;
+        if ((rc = rlb_publish(c, &o, &l.ch[k])) != RLB_OK) {
+            fprintf(stderr, "rlb_pub: bad channel %s: %s\n", topic, rlb_status_text(rc));
+            rlb_close(c);
+            return 1;
+        }
     }
     if ((rc = rlb_connect(c)) != RLB_OK) {
-        fprintf(stderr, "rlb_pub: cannot connect to %s:%u: %s\n", a.host, (unsigned)a.port,
-                rlb_status_text(rc));
+        fprintf(stderr, "rlb_pub: cannot connect to %s:%u: %s%s\n", a.host, (unsigned)a.port,
+                rlb_status_text(rc), reason);
         rlb_close(c);
         return 1;
     }
     rlb_start(c);
-    loop l = {ch, a.count, (long)(1e9 / a.number), 0};
     pthread_t t;
     bool fifo = start_rt_thread(&t, run, &l);
     pthread_join(t, NULL);
     rc = rlb_flush(c, 30000);
-    rlb_channel_stats st;
-    rlb_channel_stats_get(ch, &st);
-    fprintf(stderr, "rlb_pub: %lu values written (%s), %llu sent, ring full %lu times\n",
-            a.count, fifo ? "SCHED_FIFO" : "SCHED_OTHER", (unsigned long long)st.values, l.full);
+    unsigned long long sent = 0;
+    for (unsigned k = 0; k < l.n; k++) {
+        rlb_channel_stats st;
+        rlb_channel_stats_get(l.ch[k], &st);
+        sent += st.values;
+    }
+    fprintf(stderr, "rlb_pub: %lu values written on %u channel(s) (%s), %llu sent, ring full %lu times\n",
+            a.count, l.n, fifo ? "SCHED_FIFO" : "SCHED_OTHER", sent, l.full);
     rlb_close(c);
     if (rc != RLB_OK) {
         fprintf(stderr, "rlb_pub: not everything was sent: %s\n", rlb_status_text(rc));

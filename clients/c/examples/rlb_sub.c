@@ -1,12 +1,13 @@
 /*
- * rlb_sub HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin]
+ * rlb_sub HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only]
  *
  * Prints every value of std_msgs/msg/Float64 field data on TOPIC, one per line, and exits 0
  * once COUNT values arrived, 1 on timeout. The channel keeps every value (RLB_QUEUE): over
  * UDP in a ring of COUNT values; over TCP in a ring of 64 with credit flow control, so the
  * server sends no more than the ring has room for. Link changes go to stderr ("link lost",
  * "connected"); the client reconnects by itself. --spin: no I/O thread, the reading thread
- * runs the I/O itself (rlb_spin_once, what a single-threaded target does).
+ * runs the I/O itself (rlb_spin_once, what a single-threaded target does). --udp-only: a
+ * UDP-only session (protocol.md 8.2), for a server without TCP.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -30,7 +31,7 @@ static void on_event(void *ctx, const rlb_event *ev) {
 
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin]", &a);
+    parse_args(argc, argv, "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only]", &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_sub", "rlb_sub", &cfg, key);

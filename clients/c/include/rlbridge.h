@@ -94,6 +94,9 @@ typedef struct rlb_config {
     const char *host;             /* server address (name or numeric), default "127.0.0.1" */
     uint16_t port;                /* default 7411 */
     const char *name;             /* client name (key file lookup, logs), default "rlb-c" */
+    rlb_transport control;        /* RLB_TCP (default): a TCP session, UDP channels beside it;
+                                     RLB_UDP: a UDP-only session (protocol.md 8.2), for a
+                                     server without TCP; its channels must be UDP ones */
     const uint8_t *psk;           /* pre-shared key (raw bytes) or NULL: plain session */
     size_t psk_len;
     uint32_t max_channels;        /* channels the client can declare, default 32 */

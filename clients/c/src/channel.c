@@ -133,6 +133,7 @@ static rlb_status declare(rlb_client *c, const rlb_channel_opts *o, int dir, rlb
     bool every = dir == DIR_PUBLISH || o->mode == RLB_QUEUE;
     bool flow = o->flow == -1 ? (o->transport == RLB_TCP && every) : o->flow == 1;
     if (flow && (o->transport != RLB_TCP || !every)) return RLB_E_INVAL; /* protocol.md 10.5 */
+    if (c->cfg.control == RLB_UDP && o->transport == RLB_TCP) return RLB_E_INVAL; /* 8.2 */
     if (c->started || c->connected_once) return RLB_E_STATE;
     if (c->n_channels >= c->cfg.max_channels) return RLB_E_INVAL;
     size_t need = storage_for(o, dir);

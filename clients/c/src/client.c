@@ -30,6 +30,7 @@ void rlb_config_init(rlb_config *cfg) {
     cfg->host = "127.0.0.1";
     cfg->port = RLB_DEFAULT_PORT;
     cfg->name = "rlb-c";
+    cfg->control = RLB_TCP;
     cfg->max_channels = 32;
     cfg->connect_timeout_ms = 3000;
     cfg->period_us = 1000;
@@ -143,7 +144,8 @@ rlb_status rlb_load_psk_file(const char *path, const char *name, uint8_t *key, s
 rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     if (cfg == NULL || out == NULL || cfg->max_channels == 0 || cfg->max_channels > 65536 ||
         cfg->period_us == 0 || cfg->tcp_buffer < 4096 || cfg->psk_len > RLB_MAX_KEY ||
-        (cfg->psk_len > 0 && cfg->psk == NULL) || (cfg->name && strlen(cfg->name) > 128))
+        (cfg->psk_len > 0 && cfg->psk == NULL) || (cfg->name && strlen(cfg->name) > 128) ||
+        (cfg->control != RLB_TCP && cfg->control != RLB_UDP))
         return RLB_E_INVAL;
     if (sodium_init() < 0) return RLB_E_NOMEM;
     rlb_client *c = calloc(1, sizeof *c);

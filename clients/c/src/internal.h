@@ -178,4 +178,11 @@ rlb_status conn_spin(rlb_client *c, uint32_t timeout_ms);
 size_t conn_unsent(rlb_client *c);
 void conn_goodbye(rlb_client *c);
 
+/* Test and fuzz entry points (session.c): received bytes without a socket. bind_all marks
+ * every channel bound and sets the session token that datagrams must carry. */
+void rlb_debug_bind_all(rlb_client *c, uint64_t token);
+void rlb_debug_feed_datagram(rlb_client *c, const uint8_t *d, size_t n);
+void rlb_debug_feed_stream(rlb_client *c, const uint8_t *bytes, size_t n);
+uint64_t rlb_debug_malformed(const rlb_client *c);
+
 #endif

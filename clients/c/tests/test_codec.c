@@ -215,6 +215,64 @@ static void bad_declarations_are_errors(void **state) {
     assert_int_equal(rlb_client_new(&cfg, &c), RLB_E_INVAL);
 }
 
+static void received_packets_of_section_14(void **state) {
+    (void)state;
+    rlb_config cfg;
+    rlb_config_init(&cfg);
+    rlb_client *c;
+    assert_int_equal(rlb_client_new(&cfg, &c), RLB_OK);
+    rlb_channel *ch[4];
+    rlb_channel_opts o;
+    rlb_channel_opts_init(&o, "/x", "std_msgs/msg/Float64", "data");
+    o.mode = RLB_QUEUE;
+    for (int i = 0; i < 4; i++) assert_int_equal(rlb_subscribe(c, &o, &ch[i]), RLB_OK);
+    rlb_debug_bind_all(c, 0x0123456789abcdefULL);
+    uint8_t d[256];
+    /* 14.10: a Bundle datagram, channel 3 seq 7 = 1.5, channel 4 seq 0 = -2.0 */
+    size_t n = unhex("524201000123456789abcdef92209295080307cf17979cfe362a0000cb3ff8000000000000"
+                     "95080400cf17979cfe362a0000cbc000000000000000", d);
+    rlb_debug_feed_datagram(c, d, n);
+    double v;
+    assert_int_equal(rlb_read_f64(ch[2], &v), RLB_NEW);
+    assert_true(v == 1.5);
+    assert_int_equal(rlb_read_stamp(ch[2]), 1700000000000000000LL);
+    assert_int_equal(rlb_read_f64(ch[3], &v), RLB_NEW);
+    assert_true(v == -2.0);
+    rlb_debug_feed_datagram(c, d, n); /* the same again: duplicates, nothing delivered */
+    assert_int_equal(rlb_read_f64(ch[2], &v), 0);
+    rlb_channel_stats st;
+    rlb_channel_stats_get(ch[2], &st);
+    assert_int_equal(st.duplicates, 1);
+    d[11] ^= 1; /* another token: dropped before the body */
+    rlb_debug_feed_datagram(c, d, n);
+    /* 14.5: a Batch frame on channel 2, seq 10 and 11, as a TCP stream cut in two */
+    n = unhex("524201000000002a9509020a92cf17979cfe362a0000cf17979cfe3639424092cb3fd0000000000000"
+              "cbc000000000000000", d);
+    rlb_debug_feed_stream(c, d, 7);
+    assert_int_equal(rlb_read_f64(ch[1], &v), RLB_E_NOVALUE);
+    rlb_debug_feed_stream(c, d + 7, n - 7);
+    assert_int_equal(rlb_read_f64(ch[1], &v), RLB_NEW);
+    assert_true(v == 0.25);
+    assert_int_equal(rlb_read_f64(ch[1], &v), RLB_NEW);
+    assert_true(v == -2.0);
+    /* a gap: seq 15 after 11 counts 3 lost */
+    n = unhex("5242010000000016950802" "0f" "cf17979cfe362a0000cb3ff0000000000000", d);
+    rlb_debug_feed_stream(c, d, n);
+    rlb_channel_stats_get(ch[1], &st);
+    assert_int_equal(st.lost, 3);
+    /* malformed bodies are counted, never delivered: a Batch whose lengths differ, junk */
+    uint64_t before = rlb_debug_malformed(c);
+    n = unhex("5242010000000009" "950902149100920102", d);
+    rlb_debug_feed_stream(c, d, n);
+    n = unhex("5242010000000003c1c1c1", d);
+    rlb_debug_feed_stream(c, d, n);
+    assert_int_equal(rlb_debug_malformed(c), before + 2);
+    assert_int_equal(rlb_read_f64(ch[1], &v), RLB_NEW); /* only the seq-15 value */
+    assert_true(v == 1.0);
+    assert_int_equal(rlb_read_f64(ch[1], &v), 0);
+    rlb_close(c);
+}
+
 int main(void) {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(batch_of_section_14_5),
@@ -223,6 +281,7 @@ int main(void) {
         cmocka_unit_test(message_builder_and_accessors),
         cmocka_unit_test(rings_and_triple_buffer),
         cmocka_unit_test(bad_declarations_are_errors),
+        cmocka_unit_test(received_packets_of_section_14),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }
