@@ -5,14 +5,15 @@
  * Python harnesses' seeds), then N mutated and N random inputs, go through the client's
  * receive path, each input four ways:
  *
- *   - a plain TCP stream, written in chunks to a socketpair and read by spin_io (framing,
- *     frames larger than the buffer, every packet type's decoder);
+ *   - a plain TCP stream, written in chunks to a socketpair and read as the session does
+ *     (framing, frames larger than the buffer, every packet type's decoder);
  *   - a sealed TCP stream (records opened under the corpus's stream key, 16.5);
  *   - one UDP datagram, plain and sealed (token check, AEAD, replay window), read by udp_read;
- *   - the bytes as one packet body, alone and as a bundle's part (on_packet).
+ *   - the bytes as one packet body, alone and as a bundle's part (conn_packet).
  *
- * The I/O side is the library's own code: this file includes src/session.c, whose receive
- * functions are static, and links the library's other sources. Subscribe channels are bound so
+ * The I/O side is the library's own code (its internal functions, src/conn.h): tcp_read,
+ * tcp_next_frame and conn_packet as the session's receive step calls them, udp_read, and
+ * conn_lost when the stream cannot go on. Subscribe channels are bound so
  * that values reach their rings, and the reader side then reads them (as numbers, arrays, raw
  * bytes and message fields). A malformed packet must be a count (conn->malformed, a dropped
  * datagram, a lost session), never a crash: under -DRLB_SANITIZE=ON AddressSanitizer and
@@ -20,9 +21,14 @@
  * invariants below abort too. Exit 0 with one summary line on stdout.
  */
 #include <dirent.h>
-#include <sys/stat.h>
+#include <fcntl.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <unistd.h>
 
-#include "session.c" /* the receive path, static functions included */
+#include "conn.h"
 
 #define FUZZ_MAX_INPUT 8192
 #define N_CHANNELS 6
@@ -87,6 +93,23 @@ static rlb_client *make_client(rlb_channel **ch) {
     return c;
 }
 
+static void set_nonblock(int fd) { (void)fcntl(fd, F_SETFL, fcntl(fd, F_GETFL, 0) | O_NONBLOCK); }
+
+/* The session's receive step on its TCP socket (session.c's spin_io, without the poll). */
+static void receive_tcp(rlb_client *c) {
+    rlb_conn *k = c->conn;
+    bool ok = tcp_read(k);
+    for (;;) {
+        size_t len;
+        bool bad;
+        const uint8_t *f = tcp_next_frame(k, &len, &bad);
+        if (bad) ok = false;
+        if (f == NULL || !k->up) break;
+        conn_packet(c, f, len, false);
+    }
+    if (!ok && k->up) conn_lost(c, "connection closed");
+}
+
 /* A live session on socketpairs: every channel bound, the client's socket ends in k. */
 static void session_up(rlb_client *c, int *peer_tcp, int *peer_udp, bool sealed) {
     rlb_conn *k = c->conn;
@@ -125,7 +148,7 @@ static void session_down(rlb_client *c, int peer_tcp, int peer_udp) {
     if (!k->up) T.sessions_lost++;
     T.records += k->rec_rx;         /* sealed records that opened */
     T.sealed_dgrams += k->replay_top > 0; /* a sealed datagram that opened */
-    close_sockets(k); /* idempotent: a lost session closed them already */
+    conn_close_sockets(k); /* idempotent: a lost session closed them already */
     close(peer_tcp);
     close(peer_udp);
 }
@@ -134,7 +157,7 @@ static void invariants(const rlb_client *c) {
     const rlb_conn *k = c->conn;
     check(k->in_off <= k->in_len && k->in_len <= k->cap, "TCP input buffer bounds");
     check(k->rec_len <= RECORD_MAX + 24 + 8, "record buffer bounds");
-    check(unsent_k(k) <= k->wire_cap, "output buffer bounds");
+    check(conn_pending_bytes(k) <= k->wire_cap, "output buffer bounds");
     for (uint32_t i = 0; i < c->n_channels; i++) {
         const rlb_channel *ch = c->channels[i];
         if (ch->mode == RLB_QUEUE) check(ring_count(&ch->ring) <= ch->ring.cap, "ring bounds");
@@ -174,10 +197,10 @@ static void as_stream(rlb_client *c, const uint8_t *data, size_t len, bool seale
     for (size_t at = 1; at < len && c->conn->up; at += step) {
         size_t n = len - at < step ? len - at : step;
         check(write(pt, data + at, n) == (ssize_t)n, "socketpair write");
-        (void)spin_io(c, 0);
+        receive_tcp(c);
         invariants(c);
     }
-    if (c->conn->up) (void)spin_io(c, 0);
+    if (c->conn->up) receive_tcp(c);
     invariants(c);
     session_down(c, pt, pu);
 }
@@ -194,14 +217,14 @@ static void as_datagram(rlb_client *c, const uint8_t *data, size_t len, bool sea
 static void as_body(rlb_client *c, const uint8_t *data, size_t len) {
     int pt, pu;
     session_up(c, &pt, &pu, false);
-    on_packet(c, data, len, false);
-    if (c->conn->up) on_packet(c, data, len, true);
+    conn_packet(c, data, len, false);
+    if (c->conn->up) conn_packet(c, data, len, true);
     invariants(c);
     session_down(c, pt, pu);
 }
 
 static void one_input(rlb_client *c, const uint8_t *data, size_t len) {
-    uint64_t before = c->conn->malformed;
+    uint64_t before = c->conn->conn_malformed;
     T.inputs++;
     as_stream(c, data, len, false);
     as_stream(c, data, len, true);
@@ -211,7 +234,7 @@ static void one_input(rlb_client *c, const uint8_t *data, size_t len) {
         as_body(c, data + skip, len - (size_t)skip);
     }
     drain(c);
-    T.malformed += c->conn->malformed - before;
+    T.malformed += c->conn->conn_malformed - before;
 }
 
 static uint64_t rng_state = 0x9e3779b97f4a7c15ULL;
@@ -221,6 +244,70 @@ static uint64_t rnd(void) {
     rng_state ^= rng_state >> 7;
     rng_state ^= rng_state << 17;
     return rng_state;
+}
+
+/* A well-formed value packet with a random value (a number, a string or binary of up to 400
+ * bytes, an array of numbers, a map) for a random channel, sequence and stamp, as a frame and
+ * a datagram (with the token): values of every size reach the channels' slots. */
+static size_t structured(uint8_t *buf, size_t cap) {
+    static uint8_t body[2048], filler[512];
+    wbuf w;
+    wb_init(&w, body, sizeof body);
+    unsigned parts = rnd() % 3 == 0 ? (unsigned)(rnd() % 4) + 1 : 0;
+    if (parts) { /* a bundle of values */
+        wb_array(&w, 2);
+        wb_u64(&w, 32);
+        wb_array(&w, parts);
+    }
+    for (unsigned p = 0; p < (parts ? parts : 1); p++) {
+        bool batch = rnd() % 4 == 0;
+        uint32_t n = batch ? (uint32_t)(rnd() % 5) : 1;
+        wb_array(&w, 5);
+        wb_u64(&w, batch ? 9 : 8);
+        wb_u64(&w, rnd() % (N_CHANNELS + 2));
+        wb_u64(&w, rnd() % 4 ? rnd() % 64 : rnd());
+        if (batch) {
+            wb_array(&w, n);
+            for (uint32_t i = 0; i < n; i++) wb_i64(&w, (int64_t)rnd());
+            wb_array(&w, n);
+        } else {
+            wb_i64(&w, (int64_t)rnd());
+        }
+        for (uint32_t i = 0; i < n; i++) {
+            size_t len = rnd() % 400;
+            for (size_t b = 0; b < len; b++) filler[b] = (uint8_t)rnd();
+            switch (rnd() % 5) {
+            case 0: wb_f64(&w, (double)(int64_t)rnd()); break;
+            case 1: wb_str(&w, (const char *)filler, len); break;
+            case 2: wb_bin(&w, filler, len); break;
+            case 3:
+                wb_array(&w, (uint32_t)(len % 40));
+                for (size_t j = 0; j < len % 40; j++) wb_f64(&w, (double)j);
+                break;
+            default:
+                wb_map(&w, 1);
+                wb_str(&w, "linear", 6);
+                wb_map(&w, 1);
+                wb_str(&w, "x", 1);
+                wb_f64(&w, 1.5);
+            }
+        }
+    }
+    if (w.overflow || w.len + 13 > cap) return 0;
+    buf[0] = (uint8_t)rnd(); /* the chunking byte; then a frame header, or a datagram's */
+    bool dgram = rnd() % 2;
+    buf[1] = 'R', buf[2] = 'B', buf[3] = RLB_PROTOCOL_VERSION;
+    if (dgram) {
+        buf[4] = F_BUNDLES;
+        for (int i = 0; i < 8; i++) buf[5 + i] = i == 7 ? 7 : 0; /* token 7 */
+        memcpy(buf + 13, body, w.len);
+        return 13 + w.len;
+    }
+    buf[4] = 0;
+    buf[5] = (uint8_t)(w.len >> 24), buf[6] = (uint8_t)(w.len >> 16);
+    buf[7] = (uint8_t)(w.len >> 8), buf[8] = (uint8_t)w.len;
+    memcpy(buf + 9, body, w.len);
+    return 9 + w.len;
 }
 
 static uint8_t corpus[1024][FUZZ_MAX_INPUT];
@@ -275,7 +362,9 @@ int main(int argc, char **argv) {
     static uint8_t buf[FUZZ_MAX_INPUT];
     for (unsigned long i = 0; i < random_n; i++) {
         size_t len;
-        if (n_corpus > 0 && i % 2 == 0) { /* a corpus file mutated: flips, cuts, splices */
+        if (i % 3 == 2) {
+            len = structured(buf, sizeof buf);
+        } else if (n_corpus > 0 && i % 3 == 0) { /* a corpus file mutated: flips, cuts */
             size_t j = rnd() % n_corpus;
             len = corpus_len[j];
             memcpy(buf, corpus[j], len);

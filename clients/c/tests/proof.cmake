@@ -12,7 +12,7 @@ option(RLB_SANITIZE "Build with AddressSanitizer and UndefinedBehaviorSanitizer"
 if(RLB_SANITIZE)
   set(RLB_SAN_FLAGS -fsanitize=address,undefined -fno-sanitize-recover=all
       -fno-omit-frame-pointer)
-  foreach(target rlbridge rlb_pub rlb_sub)
+  foreach(target rlbridge rlb_pub rlb_sub rlb_twist rlb_array)
     target_compile_options(${target} PRIVATE ${RLB_SAN_FLAGS})
     target_link_options(${target} PRIVATE ${RLB_SAN_FLAGS})
   endforeach()
@@ -39,12 +39,10 @@ endif()
 rlb_proof_program(rlb_rt_bench ${RLB_REPO_ROOT}/benchmarks/c_client/rlb_rt_bench.c)
 target_link_libraries(rlb_rt_bench PRIVATE rlbridge)
 
-# The receive path's static functions: the harness compiles session.c itself, next to the
-# library's other sources (not the library, whose session.c would be linked twice).
-rlb_proof_program(fuzz_decode ${RLB_PROOF_DIR}/fuzz_decode.c
-  src/mp.c src/crypto.c src/channel.c src/client.c)
-target_include_directories(fuzz_decode PRIVATE include src ${SODIUM_INCLUDE_DIR})
-target_link_libraries(fuzz_decode PRIVATE ${SODIUM_LIBRARY} Threads::Threads)
+# The receive path through the library's internal functions (src/conn.h).
+rlb_proof_program(fuzz_decode ${RLB_PROOF_DIR}/fuzz_decode.c)
+target_include_directories(fuzz_decode PRIVATE src)
+target_link_libraries(fuzz_decode PRIVATE rlbridge)
 
 rlb_proof_program(alloc_fail ${RLB_PROOF_DIR}/alloc_fail.c)
 target_link_libraries(alloc_fail PRIVATE rlbridge)
