@@ -58,6 +58,7 @@ typedef struct loop {
     long period_ns;
     bool forbidden;
     _Atomic int state; /* 0 starting, 1 filtered, 2 done, -1 the filter was refused */
+    _Atomic bool go;   /* main has said "filter installed": the periods may begin */
     unsigned long full;
 } loop;
 
@@ -95,6 +96,11 @@ static void *run(void *arg) {
     }
     atomic_store(&l->state, 1);
     /* From here on: clock_gettime, clock_nanosleep and the library's real-time side only. */
+    while (!atomic_load(&l->go)) { /* main reports the filter first (a killed process can't) */
+        struct timespec ms = {0, 1000000};
+        clock_nanosleep(CLOCK_MONOTONIC, 0, &ms, NULL);
+    }
+    clock_gettime(CLOCK_MONOTONIC, &next);
     unsigned long next_value[MAX_CHANNELS] = {0}, done = 0;
     /* Bounded: a ring that stays full (an I/O side that stopped) ends the loop early, and the
      * values missing at the server say so. */
@@ -202,6 +208,7 @@ int main(int argc, char **argv) {
     }
     fprintf(stderr, "rt_seccomp: filter installed on the loop thread (%s)\n",
             fifo ? "SCHED_FIFO" : "SCHED_OTHER");
+    atomic_store(&l.go, true);
     wait_state(&l, 2);
     rc = rlb_flush(c, 30000);
     unsigned long long sent = 0;
