@@ -9,7 +9,10 @@
  *     (framing, frames larger than the buffer, every packet type's decoder);
  *   - a sealed TCP stream (records opened under the corpus's stream key, 16.5);
  *   - one UDP datagram, plain and sealed (token check, AEAD, replay window), read by udp_read;
- *   - the bytes as one packet body, alone and as a bundle's part (conn_packet).
+ *   - the bytes as one packet body, alone and as a bundle's part (conn_packet);
+ *   - the server's side of a handshake (handshake_tcp: ConnectAck, ConnectError, AuthChallenge),
+ *     as a plain and as a keyed client; the corpus and every 8th generated input also as the
+ *     UDP-only handshake's datagrams (handshake_udp, bounded by a 1 ms deadline).
  *
  * The I/O side is the library's own code (its internal functions, src/conn.h): tcp_read,
  * tcp_next_frame and conn_packet as the session's receive step calls them, udp_read, and
@@ -39,6 +42,7 @@ static const uint8_t KEY_B[32] = {0,  1,  2,  3,  4,  5,  6,  7,  8,  9,  10,
 
 typedef struct totals {
     unsigned long inputs, malformed, records, sealed_dgrams, sessions_lost, events, reads;
+    unsigned long handshakes, handshakes_ok;
 } totals;
 
 static totals T;
@@ -55,9 +59,13 @@ static void check(bool ok, const char *what) {
     }
 }
 
-static rlb_client *make_client(rlb_channel **ch) {
+static rlb_client *make_client(rlb_channel **ch, bool keyed) {
     rlb_config cfg;
     rlb_config_init(&cfg);
+    if (keyed) {
+        cfg.psk = KEY_B;
+        cfg.psk_len = sizeof KEY_B;
+    }
     cfg.name = "fuzz";
     cfg.tcp_buffer = 4096; /* small: frames larger than the buffer are skipped, not stored */
     cfg.max_channels = N_CHANNELS;
@@ -223,7 +231,32 @@ static void as_body(rlb_client *c, const uint8_t *data, size_t len) {
     session_down(c, pt, pu);
 }
 
-static void one_input(rlb_client *c, const uint8_t *data, size_t len) {
+/* The server's answers to our Hello: the bytes (after the mode byte) as the TCP stream, then
+ * the end of the stream; or as one datagram during the UDP-only handshake. */
+static void as_handshake(rlb_client *c, const uint8_t *data, size_t len, bool udp) {
+    int pt, pu;
+    session_up(c, &pt, &pu, false);
+    rlb_conn *k = c->conn;
+    k->up = false; /* a session opens only after its handshake */
+    rlb_status rc;
+    if (udp) {
+        if (len > 0) check(send(pu, data, len, 0) == (ssize_t)len, "datagram send");
+        rc = handshake_udp(c, rlb_mono_ns() + 1000000);
+    } else {
+        if (len > 1) check(write(pt, data + 1, len - 1) == (ssize_t)(len - 1), "stream write");
+        shutdown(pt, SHUT_WR);
+        rc = handshake_tcp(c, rlb_mono_ns() + 5000000); /* see the note above main */
+    }
+    check(rc <= RLB_OK, "a handshake status");
+    T.handshakes++;
+    T.handshakes_ok += rc == RLB_OK;
+    invariants(c);
+    k->up = true; /* not a lost session: session_down counts those */
+    session_down(c, pt, pu);
+}
+
+static void one_input(rlb_client *c, rlb_client *keyed, const uint8_t *data, size_t len,
+                      bool udp_handshake) {
     uint64_t before = c->conn->conn_malformed;
     T.inputs++;
     as_stream(c, data, len, false);
@@ -232,6 +265,12 @@ static void one_input(rlb_client *c, const uint8_t *data, size_t len) {
         as_datagram(c, data + skip, len - (size_t)skip, false);
         as_datagram(c, data + skip, len - (size_t)skip, true);
         as_body(c, data + skip, len - (size_t)skip);
+    }
+    as_handshake(c, data, len, false);
+    as_handshake(keyed, data, len, false);
+    if (udp_handshake) {
+        as_handshake(c, data + (len > 0), len - (len > 0), true);
+        as_handshake(keyed, data + (len > 0), len - (len > 0), true);
     }
     drain(c);
     T.malformed += c->conn->conn_malformed - before;
@@ -314,7 +353,7 @@ static uint8_t corpus[1024][FUZZ_MAX_INPUT];
 static size_t corpus_len[1024];
 static size_t n_corpus;
 
-static void load_dir(rlb_client *c, const char *dir) {
+static void load_dir(rlb_client *c, rlb_client *keyed, const char *dir) {
     DIR *d = opendir(dir);
     if (d == NULL) {
         fprintf(stderr, "fuzz_decode: cannot open %s\n", dir);
@@ -330,7 +369,7 @@ static void load_dir(rlb_client *c, const char *dir) {
         static uint8_t buf[1 << 20];
         size_t n = fread(buf, 1, sizeof buf, f);
         fclose(f);
-        one_input(c, buf, n);
+        one_input(c, keyed, buf, n, true);
         if (n_corpus < 1024 && n <= FUZZ_MAX_INPUT) {
             memcpy(corpus[n_corpus], buf, n);
             corpus_len[n_corpus++] = n;
@@ -339,6 +378,10 @@ static void load_dir(rlb_client *c, const char *dir) {
     closedir(d);
 }
 
+/* The TCP handshake's deadline is 5 ms here: handshake.c's next() does not give up at the end
+ * of the stream while 8 or more bytes of an unfinished frame are buffered (tcp_read keeps
+ * returning false, the loop polls again) and spins until the deadline; with rlb_connect's
+ * 3 s a server that closes mid-frame costs 3 s of CPU, not a crash. */
 int main(int argc, char **argv) {
     unsigned long random_n = 2000;
     int first_dir = 1;
@@ -356,8 +399,9 @@ int main(int argc, char **argv) {
     }
     uint64_t seed = rng_state;
     rlb_channel *ch[N_CHANNELS];
-    rlb_client *c = make_client(ch);
-    for (int i = first_dir; i < argc; i++) load_dir(c, argv[i]);
+    rlb_channel *kch[N_CHANNELS];
+    rlb_client *c = make_client(ch, false), *keyed = make_client(kch, true);
+    for (int i = first_dir; i < argc; i++) load_dir(c, keyed, argv[i]);
     unsigned long from_corpus = T.inputs;
     static uint8_t buf[FUZZ_MAX_INPUT];
     for (unsigned long i = 0; i < random_n; i++) {
@@ -390,16 +434,19 @@ int main(int argc, char **argv) {
                 buf[7] = (uint8_t)(body >> 8), buf[8] = (uint8_t)body;
             }
         }
-        one_input(c, buf, len);
+        one_input(c, keyed, buf, len, i % 8 == 0);
     }
     rlb_close(c);
+    rlb_close(keyed);
     printf("fuzz_decode: %lu inputs (%lu from the corpus, %lu generated, seed %llu): "
            "%lu malformed packets counted, %lu sealed records and %lu sealed datagrams opened, "
-           "%lu new values read, %lu sessions ended by bad input, %lu events; no crash\n",
+           "%lu new values read, %lu sessions ended by bad input, %lu events, %lu handshakes "
+           "(%lu accepted); no crash\n",
            T.inputs, from_corpus, T.inputs - from_corpus, (unsigned long long)seed,
-           T.malformed, T.records, T.sealed_dgrams, T.reads, T.sessions_lost, T.events);
+           T.malformed, T.records, T.sealed_dgrams, T.reads, T.sessions_lost, T.events,
+           T.handshakes, T.handshakes_ok);
     if (from_corpus == 0 || T.malformed == 0 || T.reads == 0 || T.records == 0 ||
-        T.sealed_dgrams == 0) {
+        T.sealed_dgrams == 0 || T.handshakes_ok == 0) {
         fprintf(stderr, "fuzz_decode: the inputs never reached the decoder\n");
         return 1;
     }
