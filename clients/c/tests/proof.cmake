@@ -44,18 +44,26 @@ rlb_proof_program(fuzz_decode ${RLB_PROOF_DIR}/fuzz_decode.c)
 target_include_directories(fuzz_decode PRIVATE src)
 target_link_libraries(fuzz_decode PRIVATE rlbridge)
 
-rlb_proof_program(alloc_fail ${RLB_PROOF_DIR}/alloc_fail.c)
-target_link_libraries(alloc_fail PRIVATE rlbridge)
-target_link_options(alloc_fail PRIVATE -Wl,--wrap=malloc,--wrap=calloc,--wrap=realloc)
+if(CMAKE_SYSTEM_NAME STREQUAL "Linux") # --wrap: GNU ld and lld
+  rlb_proof_program(alloc_fail ${RLB_PROOF_DIR}/alloc_fail.c)
+  target_link_libraries(alloc_fail PRIVATE rlbridge)
+  target_link_options(alloc_fail PRIVATE -Wl,--wrap=malloc,--wrap=calloc,--wrap=realloc)
+endif()
 
 if(RLB_TESTS)
   enable_testing()
   set(RLB_FUZZ_RANDOM 2000 CACHE STRING "fuzz_decode: generated inputs after the corpus")
   add_test(NAME fuzz_decode COMMAND fuzz_decode --random ${RLB_FUZZ_RANDOM}
     ${RLB_REPO_ROOT}/fuzz/corpus/decoder ${RLB_REPO_ROOT}/fuzz/corpus/server)
-  add_test(NAME alloc_fail COMMAND alloc_fail)
+  if(TARGET alloc_fail)
+    add_test(NAME alloc_fail COMMAND alloc_fail)
+  endif()
   if(RLB_SANITIZE)
-    set_tests_properties(fuzz_decode alloc_fail PROPERTIES ENVIRONMENT
+    set_tests_properties(fuzz_decode PROPERTIES ENVIRONMENT
+      "ASAN_OPTIONS=halt_on_error=1:detect_leaks=1:abort_on_error=1;UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1")
+  endif()
+  if(RLB_SANITIZE AND TARGET alloc_fail)
+    set_tests_properties(alloc_fail PROPERTIES ENVIRONMENT
       "ASAN_OPTIONS=halt_on_error=1:detect_leaks=1:abort_on_error=1;UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1")
   endif()
 endif()
