@@ -30,6 +30,7 @@ if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
   [ -e /usr/include/msgpack.h ] || c_need+=(libmsgpack-dev)
   [ -e /usr/include/cmocka.h ] || c_need+=(libcmocka-dev)
   [ -e /usr/include/sodium.h ] || c_need+=(libsodium-dev)
+  [ -e /usr/include/openssl/ssl.h ] || c_need+=(libssl-dev)  # its TLS sessions
   if [ "${#c_need[@]}" -gt 0 ]; then
     apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${c_need[@]}" >/dev/null
   fi

@@ -15,7 +15,8 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
     for (int i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--tcp") == 0 && strstr(usage, "--tcp")) {
             a->tcp = true;
-        } else if (strcmp(argv[i], "--channels") == 0 && strstr(usage, "--channels") && i + 1 < argc) {
+        } else if (strcmp(argv[i], "--channels") == 0 && strstr(usage, "--channels") &&
+                   i + 1 < argc) {
             char *end;
             unsigned long n = strtoul(argv[++i], &end, 10);
             if (*end || n < 1 || n > 256) {
@@ -27,10 +28,20 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
             a->udp_only = true;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
             a->spin = true;
+        } else if (strcmp(argv[i], "--tls-ca") == 0 && strstr(usage, "--tls") && i + 1 < argc) {
+            a->tls_ca = argv[++i];
+        } else if (strcmp(argv[i], "--tls-fingerprint") == 0 && strstr(usage, "--tls") &&
+                   i + 1 < argc) {
+            a->tls_fingerprint = argv[++i];
+        } else if (strcmp(argv[i], "--tls-cert") == 0 && strstr(usage, "--tls") && i + 1 < argc) {
+            a->tls_cert = argv[++i];
+        } else if (strcmp(argv[i], "--tls-key") == 0 && strstr(usage, "--tls") && i + 1 < argc) {
+            a->tls_key = argv[++i];
         } else if (strcmp(argv[i], "--psk-file") == 0 && i + 1 < argc) {
             a->psk_file = argv[++i];
         } else if (argv[i][0] == '-' && argv[i][1] == '-') {
-            fprintf(stderr, "%s: unknown option %s\nusage: %s %s\n", argv[0], argv[i], argv[0], usage);
+            fprintf(stderr, "%s: unknown option %s\nusage: %s %s\n", argv[0], argv[i], argv[0],
+                    usage);
             exit(2);
         } else if (pos < want) {
             p[pos++] = argv[i];
@@ -72,6 +83,11 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
     cfg->port = a->port;
     cfg->name = name;
     if (a->udp_only) cfg->control = RLB_UDP;
+    cfg->tls = a->tls_ca || a->tls_fingerprint;
+    cfg->tls_ca_file = a->tls_ca;
+    cfg->tls_fingerprint = a->tls_fingerprint;
+    cfg->tls_cert_file = a->tls_cert;
+    cfg->tls_key_file = a->tls_key;
     if (a->udp_only && a->tcp) {
         fprintf(stderr, "%s: --tcp needs a TCP session: not with --udp-only\n", prog);
         exit(2);
@@ -87,6 +103,15 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
         cfg->psk = key;
         cfg->psk_len = len;
     }
+}
+
+void setup_failed(const char *prog, const args *a, int status) {
+    const char *why = "";
+    if ((a->tls_ca || a->tls_fingerprint) && !rlb_has_tls())
+        why = " (this librlbridge was built without TLS: install libssl-dev, build again)";
+    else if (a->tls_ca || a->tls_fingerprint)
+        why = " (a TLS CA, certificate or key file that does not load, or a bad fingerprint)";
+    fprintf(stderr, "%s: cannot set up the client: %s%s\n", prog, rlb_status_text(status), why);
 }
 
 bool start_rt_thread(pthread_t *t, void *(*fn)(void *), void *arg) {

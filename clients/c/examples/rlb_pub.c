@@ -6,7 +6,8 @@
  * them all and exits 0; 1 with one line on stderr when it cannot connect. --channels N: the
  * same values on N channels, topics TOPIC_0 .. TOPIC_{N-1} (over UDP, one datagram per round
  * carries them all). --udp-only: a UDP-only session (protocol.md 8.2), for a server without
- * TCP.
+ * TCP. --tls-ca FILE / --tls-fingerprint HEX: TLS, the server verified by that CA or pinned;
+ * --tls-cert/--tls-key: a client certificate (a server with --tls-client-ca).
  * The loop thread makes no system call but its sleep (clock_nanosleep) and clock reads.
  */
 #include <stdio.h>
@@ -57,7 +58,10 @@ static void on_event(void *ctx, const rlb_event *ev) {
 
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only]", &a);
+    parse_args(argc, argv,
+               "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only] "
+               "[--tls-ca FILE | --tls-fingerprint HEX] [--tls-cert FILE --tls-key FILE]",
+               &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_pub", "rlb_pub", &cfg, key);
@@ -68,7 +72,7 @@ int main(int argc, char **argv) {
     rlb_client *c;
     rlb_status rc = rlb_client_new(&cfg, &c);
     if (rc != RLB_OK) {
-        fprintf(stderr, "rlb_pub: %s\n", rlb_status_text(rc));
+        setup_failed("rlb_pub", &a, rc);
         return 1;
     }
     static loop l; /* static: the per-channel arrays stay off the stack */
@@ -106,7 +110,8 @@ int main(int argc, char **argv) {
         rlb_channel_stats_get(l.ch[k], &st);
         sent += st.values;
     }
-    fprintf(stderr, "rlb_pub: %lu values written on %u channel(s) (%s), %llu sent, ring full %lu times\n",
+    fprintf(stderr,
+            "rlb_pub: %lu values written on %u channel(s) (%s), %llu sent, ring full %lu times\n",
             a.count, l.n, fifo ? "SCHED_FIFO" : "SCHED_OTHER", sent, l.full);
     rlb_close(c);
     if (rc != RLB_OK) {

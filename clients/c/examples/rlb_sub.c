@@ -7,7 +7,8 @@
  * server sends no more than the ring has room for. Link changes go to stderr ("link lost",
  * "connected"); the client reconnects by itself. --spin: no I/O thread, the reading thread
  * runs the I/O itself (rlb_spin_once, what a single-threaded target does). --udp-only: a
- * UDP-only session (protocol.md 8.2), for a server without TCP.
+ * UDP-only session (protocol.md 8.2), for a server without TCP. --tls-ca FILE /
+ * --tls-fingerprint HEX: TLS, the server verified by that CA or pinned.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -31,7 +32,10 @@ static void on_event(void *ctx, const rlb_event *ev) {
 
 int main(int argc, char **argv) {
     args a;
-    parse_args(argc, argv, "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only]", &a);
+    parse_args(argc, argv,
+               "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only] "
+               "[--tls-ca FILE | --tls-fingerprint HEX]",
+               &a);
     rlb_config cfg;
     uint8_t key[RLB_MAX_KEY];
     config_from(&a, "rlb_sub", "rlb_sub", &cfg, key);
@@ -41,7 +45,7 @@ int main(int argc, char **argv) {
     rlb_client *c;
     rlb_status rc = rlb_client_new(&cfg, &c);
     if (rc != RLB_OK) {
-        fprintf(stderr, "rlb_sub: %s\n", rlb_status_text(rc));
+        setup_failed("rlb_sub", &a, rc);
         return 1;
     }
     rlb_channel_opts o;
@@ -69,9 +73,11 @@ int main(int argc, char **argv) {
     int code = 0;
     while (got < a.count) {
         clock_gettime(CLOCK_MONOTONIC, &now);
-        double left = a.number - (double)(now.tv_sec - t0.tv_sec) - (now.tv_nsec - t0.tv_nsec) / 1e9;
+        double left = a.number - (double)(now.tv_sec - t0.tv_sec) -
+                      (double)(now.tv_nsec - t0.tv_nsec) / 1e9;
         if (left <= 0) {
-            fprintf(stderr, "rlb_sub: timed out after %g s with %lu of %lu values\n", a.number, got, a.count);
+            fprintf(stderr, "rlb_sub: timed out after %g s with %lu of %lu values\n", a.number,
+                    got, a.count);
             code = 1;
             break;
         }
@@ -85,7 +91,8 @@ int main(int argc, char **argv) {
     }
     rlb_channel_stats st;
     rlb_channel_stats_get(ch, &st);
-    fprintf(stderr, "rlb_sub: %lu values, %llu lost, %llu duplicates, %llu dropped, %llu sessions\n",
+    fprintf(stderr,
+            "rlb_sub: %lu values, %llu lost, %llu duplicates, %llu dropped, %llu sessions\n",
             got, (unsigned long long)st.lost, (unsigned long long)st.duplicates,
             (unsigned long long)st.dropped, (unsigned long long)rlb_sessions(c));
     rlb_close(c);

@@ -99,6 +99,12 @@ typedef struct rlb_config {
                                      server without TCP; its channels must be UDP ones */
     const uint8_t *psk;           /* pre-shared key (raw bytes) or NULL: plain session */
     size_t psk_len;
+    bool tls;                     /* TLS 1.3 on the TCP connection (a --tls-cert server; needs
+                                     a library built with OpenSSL, else RLB_E_INVAL) */
+    const char *tls_ca_file;      /* PEM CAs to verify the server with; NULL: the system's */
+    const char *tls_fingerprint;  /* or pin the server certificate: its SHA-256, 64 hex */
+    const char *tls_cert_file;    /* a client certificate (mutual TLS), PEM, or NULL */
+    const char *tls_key_file;     /* its key (NULL: in the certificate file) */
     uint32_t max_channels;        /* channels the client can declare, default 32 */
     uint32_t connect_timeout_ms;  /* handshake + bindings, default 3000 */
     uint32_t period_us;           /* I/O thread: how often it takes values from the rings
@@ -179,6 +185,8 @@ int rlb_read_wait(rlb_channel *ch, uint32_t timeout_ms);
 /** Stops the I/O thread, says goodbye, closes the sockets and frees everything. */
 void rlb_close(rlb_client *c);
 
+/** Whether this library was built with TLS (OpenSSL); cfg.tls is refused otherwise. */
+bool rlb_has_tls(void);
 uint32_t rlb_channel_id(const rlb_channel *ch);
 const char *rlb_status_text(int status);
 
@@ -208,6 +216,9 @@ int rlb_read_raw(rlb_channel *ch, void *buf, size_t cap, size_t *len);
 int64_t rlb_read_stamp(const rlb_channel *ch);
 
 rlb_link rlb_link_state(const rlb_client *c);
+/** Smoothed round-trip time to the server from the heartbeat echo (protocol.md 11), ns;
+ *  -1 before the first sample. */
+int64_t rlb_rtt_ns(const rlb_client *c);
 /** Times a session was opened (1 after rlb_connect, +1 per reconnect). */
 uint64_t rlb_sessions(const rlb_client *c);
 void rlb_channel_stats_get(const rlb_channel *ch, rlb_channel_stats *out);

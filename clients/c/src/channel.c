@@ -16,31 +16,31 @@ static rlb_slot *slot_at(uint8_t *mem, size_t stride, size_t i) {
     return (rlb_slot *)(void *)(mem + stride * i);
 }
 
-rlb_slot *ring_reserve(rlb_ring *r) {
+rlb_slot *rlbi_ring_reserve(rlb_ring *r) {
     size_t h = atomic_load_explicit(&r->head, memory_order_relaxed);
     size_t t = atomic_load_explicit(&r->tail, memory_order_acquire);
     if (h - t >= r->cap) return NULL;
     return slot_at(r->mem, r->stride, h % r->cap);
 }
 
-void ring_commit(rlb_ring *r) {
+void rlbi_ring_commit(rlb_ring *r) {
     size_t h = atomic_load_explicit(&r->head, memory_order_relaxed);
     atomic_store_explicit(&r->head, h + 1, memory_order_release);
 }
 
-rlb_slot *ring_peek(rlb_ring *r, size_t i) {
+rlb_slot *rlbi_ring_peek(rlb_ring *r, size_t i) {
     size_t t = atomic_load_explicit(&r->tail, memory_order_relaxed);
     size_t h = atomic_load_explicit(&r->head, memory_order_acquire);
     if (h - t <= i) return NULL;
     return slot_at(r->mem, r->stride, (t + i) % r->cap);
 }
 
-void ring_release(rlb_ring *r, size_t n) {
+void rlbi_ring_release(rlb_ring *r, size_t n) {
     size_t t = atomic_load_explicit(&r->tail, memory_order_relaxed);
     atomic_store_explicit(&r->tail, t + n, memory_order_release);
 }
 
-size_t ring_count(const rlb_ring *r) {
+size_t rlbi_ring_count(const rlb_ring *r) {
     size_t t = atomic_load_explicit(&r->tail, memory_order_acquire);
     size_t h = atomic_load_explicit(&r->head, memory_order_acquire);
     return h - t;
@@ -110,7 +110,7 @@ static char *dup_str(const char *s) {
     return d;
 }
 
-void chan_free(rlb_channel *ch) {
+void rlbi_chan_free(rlb_channel *ch) {
     if (ch == NULL) return;
     free(ch->topic);
     free(ch->msg_type);
@@ -126,7 +126,8 @@ static rlb_status declare(rlb_client *c, const rlb_channel_opts *o, int dir, rlb
     if (o->topic[0] != '/' || strlen(o->topic) > 256 || o->msg_type[0] == '\0' ||
         strlen(o->msg_type) > 128 || (o->field && (o->field[0] == '\0' || strlen(o->field) > 128)))
         return RLB_E_INVAL;
-    if (o->value_bytes < 1 || o->value_bytes > 65536 || (o->mode != RLB_LATEST && o->mode != RLB_QUEUE) ||
+    if (o->value_bytes < 1 || o->value_bytes > 65536 ||
+        (o->mode != RLB_LATEST && o->mode != RLB_QUEUE) ||
         (o->transport != RLB_UDP && o->transport != RLB_TCP) || o->flow < -1 || o->flow > 1)
         return RLB_E_INVAL;
     if (!latest_sub(o, dir) && (o->capacity < 1 || o->capacity > (1u << 24))) return RLB_E_INVAL;
@@ -170,7 +171,7 @@ static rlb_status declare(rlb_client *c, const rlb_channel_opts *o, int dir, rlb
     }
     if (ch->topic == NULL || ch->msg_type == NULL || (o->field && ch->field == NULL) ||
         ch->cur == NULL || mem == NULL) {
-        chan_free(ch);
+        rlbi_chan_free(ch);
         return RLB_E_NOMEM;
     }
     ch->credit = UINT64_MAX;
@@ -194,12 +195,12 @@ uint32_t rlb_channel_id(const rlb_channel *ch) { return ch->id; }
 
 static rlb_slot *begin(rlb_channel *ch, wbuf *w) {
     if (ch->dir != DIR_PUBLISH) return NULL;
-    rlb_slot *s = ring_reserve(&ch->ring);
+    rlb_slot *s = rlbi_ring_reserve(&ch->ring);
     if (s == NULL) {
         atomic_fetch_add_explicit(&ch->n_dropped, 1, memory_order_relaxed);
         return NULL;
     }
-    wb_init(w, s->data, ch->value_bytes);
+    rlbi_wb_init(w, s->data, ch->value_bytes);
     return s;
 }
 
@@ -209,7 +210,7 @@ static int finish(rlb_channel *ch, rlb_slot *s, const wbuf *w) {
     clock_gettime(CLOCK_REALTIME, &ts);
     s->stamp = (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
     s->len = (uint32_t)w->len;
-    ring_commit(&ch->ring);
+    rlbi_ring_commit(&ch->ring);
     return RLB_OK;
 }
 
@@ -223,36 +224,36 @@ static int finish(rlb_channel *ch, rlb_slot *s, const wbuf *w) {
         return finish((ch), s, &w); \
     } while (0)
 
-int rlb_write_f64(rlb_channel *ch, double v) { WRITE_WITH(ch, wb_f64(&w, v)); }
-int rlb_write_f32(rlb_channel *ch, float v) { WRITE_WITH(ch, wb_f64(&w, (double)v)); }
-int rlb_write_i64(rlb_channel *ch, int64_t v) { WRITE_WITH(ch, wb_i64(&w, v)); }
-int rlb_write_i32(rlb_channel *ch, int32_t v) { WRITE_WITH(ch, wb_i64(&w, v)); }
-int rlb_write_u64(rlb_channel *ch, uint64_t v) { WRITE_WITH(ch, wb_u64(&w, v)); }
-int rlb_write_bool(rlb_channel *ch, bool v) { WRITE_WITH(ch, wb_bool(&w, v)); }
+int rlb_write_f64(rlb_channel *ch, double v) { WRITE_WITH(ch, rlbi_wb_f64(&w, v)); }
+int rlb_write_f32(rlb_channel *ch, float v) { WRITE_WITH(ch, rlbi_wb_f64(&w, (double)v)); }
+int rlb_write_i64(rlb_channel *ch, int64_t v) { WRITE_WITH(ch, rlbi_wb_i64(&w, v)); }
+int rlb_write_i32(rlb_channel *ch, int32_t v) { WRITE_WITH(ch, rlbi_wb_i64(&w, v)); }
+int rlb_write_u64(rlb_channel *ch, uint64_t v) { WRITE_WITH(ch, rlbi_wb_u64(&w, v)); }
+int rlb_write_bool(rlb_channel *ch, bool v) { WRITE_WITH(ch, rlbi_wb_bool(&w, v)); }
 int rlb_write_str(rlb_channel *ch, const char *str) {
     if (str == NULL) return RLB_E_INVAL;
-    WRITE_WITH(ch, wb_str(&w, str, strlen(str)));
+    WRITE_WITH(ch, rlbi_wb_str(&w, str, strlen(str)));
 }
 int rlb_write_f64_array(rlb_channel *ch, const double *v, size_t n) {
     if (v == NULL && n > 0) return RLB_E_INVAL;
     WRITE_WITH(ch, {
-        wb_array(&w, (uint32_t)n);
-        for (size_t i = 0; i < n; i++) wb_f64(&w, v[i]);
+        rlbi_wb_array(&w, (uint32_t)n);
+        for (size_t i = 0; i < n; i++) rlbi_wb_f64(&w, v[i]);
     });
 }
 int rlb_write_i64_array(rlb_channel *ch, const int64_t *v, size_t n) {
     if (v == NULL && n > 0) return RLB_E_INVAL;
     WRITE_WITH(ch, {
-        wb_array(&w, (uint32_t)n);
-        for (size_t i = 0; i < n; i++) wb_i64(&w, v[i]);
+        rlbi_wb_array(&w, (uint32_t)n);
+        for (size_t i = 0; i < n; i++) rlbi_wb_i64(&w, v[i]);
     });
 }
 int rlb_write_raw(rlb_channel *ch, const void *msgpack, size_t len) {
     if (msgpack == NULL) return RLB_E_INVAL;
     mp_cur c; /* exactly one well-formed value, or the server would refuse the packet */
-    mp_init(&c, msgpack, len);
-    if (!mp_skip(&c) || c.p != c.end) return RLB_E_INVAL;
-    WRITE_WITH(ch, wb_raw(&w, msgpack, len));
+    rlbi_mp_init(&c, msgpack, len);
+    if (!rlbi_mp_skip(&c) || c.p != c.end) return RLB_E_INVAL;
+    WRITE_WITH(ch, rlbi_wb_raw(&w, msgpack, len));
 }
 
 /* -- reads (real-time side) ------------------------------------------------------------- */
@@ -275,10 +276,10 @@ static int advance(rlb_channel *ch) {
             fresh = 1;
         }
     } else {
-        rlb_slot *s = ring_peek(&ch->ring, 0);
+        rlb_slot *s = rlbi_ring_peek(&ch->ring, 0);
         if (s != NULL) {
             take(ch, s);
-            ring_release(&ch->ring, 1);
+            rlbi_ring_release(&ch->ring, 1);
             atomic_fetch_add_explicit(&ch->n_consumed, 1, memory_order_relaxed);
             fresh = 1;
         }
@@ -291,24 +292,24 @@ int rlb_read_f64(rlb_channel *ch, double *v) {
     int rc = advance(ch);
     if (rc < 0) return rc;
     mp_cur c;
-    mp_init(&c, ch->cur, ch->cur_len);
-    return mp_f64(&c, v) ? rc : RLB_E_TYPE;
+    rlbi_mp_init(&c, ch->cur, ch->cur_len);
+    return rlbi_mp_f64(&c, v) ? rc : RLB_E_TYPE;
 }
 
 int rlb_read_i64(rlb_channel *ch, int64_t *v) {
     int rc = advance(ch);
     if (rc < 0) return rc;
     mp_cur c;
-    mp_init(&c, ch->cur, ch->cur_len);
-    return mp_i64(&c, v) ? rc : RLB_E_TYPE;
+    rlbi_mp_init(&c, ch->cur, ch->cur_len);
+    return rlbi_mp_i64(&c, v) ? rc : RLB_E_TYPE;
 }
 
 int rlb_read_bool(rlb_channel *ch, bool *v) {
     int rc = advance(ch);
     if (rc < 0) return rc;
     mp_cur c;
-    mp_init(&c, ch->cur, ch->cur_len);
-    return mp_bool(&c, v) ? rc : RLB_E_TYPE;
+    rlbi_mp_init(&c, ch->cur, ch->cur_len);
+    return rlbi_mp_bool(&c, v) ? rc : RLB_E_TYPE;
 }
 
 int rlb_read_f64_array(rlb_channel *ch, double *v, size_t cap, size_t *n) {
@@ -316,10 +317,10 @@ int rlb_read_f64_array(rlb_channel *ch, double *v, size_t cap, size_t *n) {
     if (rc < 0) return rc;
     mp_cur c;
     uint32_t len;
-    mp_init(&c, ch->cur, ch->cur_len);
-    if (!mp_array(&c, &len) || len > cap) return RLB_E_TYPE;
+    rlbi_mp_init(&c, ch->cur, ch->cur_len);
+    if (!rlbi_mp_array(&c, &len) || len > cap) return RLB_E_TYPE;
     for (uint32_t i = 0; i < len; i++)
-        if (!mp_f64(&c, &v[i])) return RLB_E_TYPE;
+        if (!rlbi_mp_f64(&c, &v[i])) return RLB_E_TYPE;
     if (n) *n = len;
     return rc;
 }
@@ -337,7 +338,7 @@ int64_t rlb_read_stamp(const rlb_channel *ch) { return ch->has_cur ? ch->cur_sta
 
 /* -- the I/O side's delivery into a subscribe channel ------------------------------------ */
 
-bool chan_deliver(rlb_channel *ch, int64_t stamp, const uint8_t *value, size_t len) {
+bool rlbi_chan_deliver(rlb_channel *ch, int64_t stamp, const uint8_t *value, size_t len) {
     if (len > ch->value_bytes) {
         atomic_fetch_add_explicit(&ch->n_dropped, 1, memory_order_relaxed);
         return false;
@@ -346,7 +347,7 @@ bool chan_deliver(rlb_channel *ch, int64_t stamp, const uint8_t *value, size_t l
     if (ch->mode == RLB_LATEST) {
         s = triple_back(&ch->triple);
     } else {
-        s = ring_reserve(&ch->ring);
+        s = rlbi_ring_reserve(&ch->ring);
         if (s == NULL) {
             atomic_fetch_add_explicit(&ch->n_dropped, 1, memory_order_relaxed);
             return false;
@@ -356,7 +357,7 @@ bool chan_deliver(rlb_channel *ch, int64_t stamp, const uint8_t *value, size_t l
     s->len = (uint32_t)len;
     s->stamp = stamp;
     if (ch->mode == RLB_LATEST) triple_publish(&ch->triple);
-    else ring_commit(&ch->ring);
+    else rlbi_ring_commit(&ch->ring);
     ch->pushed++;
     atomic_fetch_add_explicit(&ch->n_values, 1, memory_order_relaxed);
     return true;
@@ -373,6 +374,6 @@ void rlb_channel_stats_get(const rlb_channel *ch, rlb_channel_stats *o) {
     o->server_received = atomic_load_explicit(&m->n_srv_received, memory_order_relaxed);
     o->errors = atomic_load_explicit(&m->n_errors, memory_order_relaxed);
     o->last_error = atomic_load_explicit(&m->last_error, memory_order_relaxed);
-    o->pending = ch->dir == DIR_PUBLISH ? (uint32_t)ring_count(&m->ring) : 0;
+    o->pending = ch->dir == DIR_PUBLISH ? (uint32_t)rlbi_ring_count(&m->ring) : 0;
     o->bound = atomic_load_explicit(&m->bound, memory_order_relaxed);
 }

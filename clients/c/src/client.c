@@ -145,7 +145,9 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     if (cfg == NULL || out == NULL || cfg->max_channels == 0 || cfg->max_channels > 65536 ||
         cfg->period_us == 0 || cfg->tcp_buffer < 4096 || cfg->psk_len > RLB_MAX_KEY ||
         (cfg->psk_len > 0 && cfg->psk == NULL) || (cfg->name && strlen(cfg->name) > 128) ||
-        (cfg->control != RLB_TCP && cfg->control != RLB_UDP))
+        (cfg->control != RLB_TCP && cfg->control != RLB_UDP) ||
+        (cfg->tls && cfg->control == RLB_UDP) || /* TLS needs TCP (16.4) */
+        (cfg->tls_fingerprint && strlen(cfg->tls_fingerprint) != 64))
         return RLB_E_INVAL;
     if (sodium_init() < 0) return RLB_E_NOMEM;
     rlb_client *c = calloc(1, sizeof *c);
@@ -168,8 +170,13 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     if (cfg->psk_len) memcpy(c->psk, cfg->psk, cfg->psk_len);
     c->psk_len = cfg->psk_len;
     c->cfg.psk = NULL;
+    if (cfg->tls_fingerprint) {
+        for (int i = 0; i < 64; i++) c->fingerprint[i] = (char)tolower(cfg->tls_fingerprint[i]);
+        c->cfg.tls_fingerprint = c->fingerprint;
+    }
     atomic_init(&c->link, RLB_LINK_CONNECTING);
     atomic_init(&c->sessions, 0);
+    atomic_init(&c->rtt_ns, -1);
     atomic_init(&c->stop, false);
     pthread_mutex_init(&c->wait_mu, NULL);
     pthread_condattr_t ca;
@@ -179,7 +186,8 @@ rlb_status rlb_client_new(const rlb_config *cfg, rlb_client **out) {
     pthread_condattr_destroy(&ca);
     randombytes_buf(&c->rng, sizeof c->rng);
     c->rng |= 1;
-    rlb_status rc = conn_new(c);
+    rlb_status rc = rlbi_conn_new(c);
+    if (rc == RLB_OK && (rc = rlbi_tls_setup(c)) != RLB_OK) rlbi_conn_free(c);
     if (rc != RLB_OK) {
         pthread_mutex_destroy(&c->wait_mu);
         pthread_cond_destroy(&c->wait_cv);
@@ -209,6 +217,10 @@ rlb_link rlb_link_state(const rlb_client *c) {
     return (rlb_link)atomic_load_explicit(&((rlb_client *)c)->link, memory_order_relaxed);
 }
 
+int64_t rlb_rtt_ns(const rlb_client *c) {
+    return atomic_load_explicit(&((rlb_client *)c)->rtt_ns, memory_order_relaxed);
+}
+
 uint64_t rlb_sessions(const rlb_client *c) {
     return atomic_load_explicit(&((rlb_client *)c)->sessions, memory_order_relaxed);
 }
@@ -216,19 +228,24 @@ uint64_t rlb_sessions(const rlb_client *c) {
 rlb_status rlb_connect(rlb_client *c) {
     if (c == NULL) return RLB_E_INVAL;
     if (c->started || c->connected_once) return RLB_E_STATE;
-    rlb_status rc = conn_open(c);
+    rlb_status rc = rlbi_conn_open(c);
     if (rc == RLB_OK) c->connected_once = true;
+    return rc;
+}
+
+/* One round of I/O, then a wake-up for rlb_read_wait / rlb_flush sleepers. */
+static rlb_status spin(rlb_client *c, uint32_t timeout_ms) {
+    rlb_status rc = rlbi_conn_spin(c, timeout_ms);
+    pthread_mutex_lock(&c->wait_mu); /* wake rlb_read_wait / rlb_flush; no waiter: no syscall */
+    pthread_cond_broadcast(&c->wait_cv);
+    pthread_mutex_unlock(&c->wait_mu);
     return rc;
 }
 
 rlb_status rlb_spin_once(rlb_client *c, uint32_t timeout_ms) {
     if (c == NULL) return RLB_E_INVAL;
-    if (!c->connected_once) return RLB_E_STATE;
-    rlb_status rc = conn_spin(c, timeout_ms);
-    pthread_mutex_lock(&c->wait_mu); /* wake rlb_read_wait / rlb_flush; no waiter: no syscall */
-    pthread_cond_broadcast(&c->wait_cv);
-    pthread_mutex_unlock(&c->wait_mu);
-    return rc;
+    if (!c->connected_once || c->started) return RLB_E_STATE; /* the I/O thread's job */
+    return spin(c, timeout_ms);
 }
 
 static void *io_main(void *arg) {
@@ -236,10 +253,10 @@ static void *io_main(void *arg) {
     uint32_t ms = c->cfg.period_us / 1000;
     while (!atomic_load(&c->stop)) {
         if (ms == 0) { /* sub-millisecond periods: poll without waiting, then sleep */
-            rlb_spin_once(c, 0);
+            spin(c, 0);
             struct timespec ts = {0, (long)c->cfg.period_us * 1000};
             nanosleep(&ts, NULL);
-        } else if (rlb_spin_once(c, ms) == RLB_E_CLOSED) {
+        } else if (spin(c, ms) == RLB_E_CLOSED) {
             break;
         }
     }
@@ -281,8 +298,8 @@ static void deadline_of(struct timespec *ts, uint32_t ms) {
 static size_t unsent(rlb_client *c) {
     size_t n = 0;
     for (uint32_t i = 0; i < c->n_channels; i++)
-        if (c->channels[i]->dir == DIR_PUBLISH) n += ring_count(&c->channels[i]->ring);
-    return n + conn_unsent(c);
+        if (c->channels[i]->dir == DIR_PUBLISH) n += rlbi_ring_count(&c->channels[i]->ring);
+    return n + rlbi_conn_unsent(c);
 }
 
 rlb_status rlb_flush(rlb_client *c, uint32_t timeout_ms) {
@@ -307,7 +324,7 @@ rlb_status rlb_flush(rlb_client *c, uint32_t timeout_ms) {
 static bool has_new(rlb_channel *ch) {
     if (ch->mode == RLB_LATEST)
         return atomic_load_explicit(&ch->triple.middle, memory_order_acquire) & 4u;
-    return ring_count(&ch->ring) > 0;
+    return rlbi_ring_count(&ch->ring) > 0;
 }
 
 int rlb_read_wait(rlb_channel *ch, uint32_t timeout_ms) {
@@ -336,9 +353,9 @@ void rlb_close(rlb_client *c) {
     if (c == NULL) return;
     atomic_store(&c->stop, true);
     if (c->started) pthread_join(c->thread, NULL);
-    conn_goodbye(c);
-    conn_free(c);
-    for (uint32_t i = 0; i < c->n_channels; i++) chan_free(c->channels[i]);
+    rlbi_conn_goodbye(c);
+    rlbi_conn_free(c);
+    for (uint32_t i = 0; i < c->n_channels; i++) rlbi_chan_free(c->channels[i]);
     free(c->channels);
     pthread_mutex_destroy(&c->wait_mu);
     pthread_cond_destroy(&c->wait_cv);

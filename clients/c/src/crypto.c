@@ -39,21 +39,21 @@ void rlb_proof(const uint8_t *key, size_t key_len, const char *label, const uint
     crypto_auth_hmacsha256_final(&st, out);
 }
 
-void rlb_derive(const uint8_t *key, size_t key_len, const uint8_t nc[16], const uint8_t ns[16],
-                const uint8_t *t, size_t t_len, rlb_keys *keys) {
-    uint8_t salt[32], prk[32], block[32], okm[128];
-    memcpy(salt, nc, 16);
-    memcpy(salt + 16, ns, 16);
-    crypto_auth_hmacsha256_state st; /* extract: PRK = HMAC(salt, IKM) */
-    crypto_auth_hmacsha256_init(&st, salt, sizeof salt);
-    crypto_auth_hmacsha256_update(&st, key, key_len);
+/* HKDF-SHA256 (RFC 5869) with info = INFO || info, 128 bytes: the four keys of 16.2. */
+static void hkdf(const uint8_t *ikm, size_t ikm_len, const uint8_t *salt, size_t salt_len,
+                 const uint8_t *info, size_t info_len, rlb_keys *keys) {
+    uint8_t prk[32], block[32], okm[128];
+    crypto_auth_hmacsha256_state st; /* extract: PRK = HMAC(salt, IKM); an empty salt is the
+                                        same key as HashLen zeros */
+    crypto_auth_hmacsha256_init(&st, salt, salt_len);
+    crypto_auth_hmacsha256_update(&st, ikm, ikm_len);
     crypto_auth_hmacsha256_final(&st, prk);
     size_t have = 0; /* expand: T(i) = HMAC(PRK, T(i-1) || info || i) */
     for (uint8_t i = 1; have < sizeof okm; i++) {
         crypto_auth_hmacsha256_init(&st, prk, sizeof prk);
         if (i > 1) crypto_auth_hmacsha256_update(&st, block, sizeof block);
         crypto_auth_hmacsha256_update(&st, (const uint8_t *)INFO, sizeof INFO);
-        crypto_auth_hmacsha256_update(&st, t, t_len);
+        crypto_auth_hmacsha256_update(&st, info, info_len);
         crypto_auth_hmacsha256_update(&st, &i, 1);
         crypto_auth_hmacsha256_final(&st, block);
         memcpy(okm + have, block, sizeof block);
@@ -66,6 +66,20 @@ void rlb_derive(const uint8_t *key, size_t key_len, const uint8_t nc[16], const 
     sodium_memzero(okm, sizeof okm);
     sodium_memzero(prk, sizeof prk);
     sodium_memzero(block, sizeof block);
+}
+
+void rlb_derive(const uint8_t *key, size_t key_len, const uint8_t nc[16], const uint8_t ns[16],
+                const uint8_t *t, size_t t_len, rlb_keys *keys) {
+    uint8_t salt[32];
+    memcpy(salt, nc, 16);
+    memcpy(salt + 16, ns, 16);
+    hkdf(key, key_len, salt, sizeof salt, t, t_len, keys);
+}
+
+void rlb_derive_tls(const uint8_t *secret, size_t len, uint64_t token, rlb_keys *keys) {
+    uint8_t info[12] = {'t', 'l', 's', 0};
+    for (int i = 0; i < 8; i++) info[4 + i] = (uint8_t)(token >> (56 - 8 * i));
+    hkdf(secret, len, (const uint8_t *)"", 0, info, sizeof info, keys);
 }
 
 static void nonce_of(uint64_t counter, uint8_t nonce[12]) {

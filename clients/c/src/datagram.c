@@ -6,17 +6,19 @@
 
 /* -- UDP output -------------------------------------------------------------------------- */
 
-size_t udp_body_at(const rlb_conn *k) { return UDP_HDR + (k->sealed ? 8u : 0u); }
+size_t rlbi_udp_body_at(const rlb_conn *k) { return UDP_HDR + (k->sealed ? 8u : 0u); }
 
-size_t udp_body_cap(const rlb_conn *k) {
+size_t rlbi_udp_body_cap(const rlb_conn *k) {
     return DGRAM_MAX - UDP_HDR - (k->sealed ? SEAL_DGRAM : 0u);
 }
 
-/* Sends the body already written at udp_body_at(k) in dg_tx. */
-void udp_send(rlb_conn *k, size_t body_len) { udp_send_as(k, body_len, k->token, k->sealed); }
+/* Sends the body already written at rlbi_udp_body_at(k) in dg_tx. */
+void rlbi_udp_send(rlb_conn *k, size_t body_len) {
+    rlbi_udp_send_as(k, body_len, k->token, k->sealed);
+}
 
 /* The handshake's datagrams: token 0, flags 0, never sealed (protocol.md 3, 16.1). */
-void udp_send_as(rlb_conn *k, size_t body_len, uint64_t token, bool sealed) {
+void rlbi_udp_send_as(rlb_conn *k, size_t body_len, uint64_t token, bool sealed) {
     uint8_t *d = k->dg_tx;
     d[0] = 'R', d[1] = 'B', d[2] = RLB_PROTOCOL_VERSION;
     d[3] = token == 0 ? 0 : F_BUNDLES | (sealed ? F_SEALED : 0);
@@ -33,7 +35,7 @@ void udp_send_as(rlb_conn *k, size_t body_len, uint64_t token, bool sealed) {
 
 /* -- UDP input ----------------------------------------------------------------------------- */
 
-bool udp_replay_ok(rlb_conn *k, uint64_t ctr) {
+bool rlbi_udp_replay_ok(rlb_conn *k, uint64_t ctr) {
     if (ctr == 0) return false;
     if (ctr > k->replay_top) {
         uint64_t shift = ctr - k->replay_top;
@@ -59,10 +61,10 @@ bool udp_replay_ok(rlb_conn *k, uint64_t ctr) {
 }
 
 /* One received datagram: header, token, seal, then the body (protocol.md 3, 16.3). */
-void udp_datagram(rlb_client *c, uint8_t *d, size_t n) {
+void rlbi_udp_datagram(rlb_client *c, uint8_t *d, size_t n) {
     rlb_conn *k = c->conn;
     if (n < UDP_HDR || d[0] != 'R' || d[1] != 'B' || d[2] != RLB_PROTOCOL_VERSION) {
-        conn_malformed(k);
+        rlbi_conn_malformed(k);
         return;
     }
     uint64_t token = 0;
@@ -76,18 +78,18 @@ void udp_datagram(rlb_client *c, uint8_t *d, size_t n) {
         for (int j = 0; j < 8; j++) ctr = ctr << 8 | d[12 + j];
         len = n - 36;
         if (!rlb_open(k->keys.ks2c, ctr, d, 20, d + 20, len, d + 20 + len)) return;
-        if (!udp_replay_ok(k, ctr)) return;
+        if (!rlbi_udp_replay_ok(k, ctr)) return;
         body = d + 20;
     }
-    conn_packet(c, body, len, false);
+    rlbi_conn_packet(c, body, len, false);
 }
 
-void udp_read(rlb_client *c) {
+void rlbi_udp_read(rlb_client *c) {
     rlb_conn *k = c->conn;
     for (int i = 0; i < 256 && k->udp >= 0 && k->up; i++) {
         ssize_t n = recv(k->udp, k->dg_rx, RX_DGRAM, MSG_DONTWAIT);
         if (n < 0) return;
-        udp_datagram(c, k->dg_rx, (size_t)n);
+        rlbi_udp_datagram(c, k->dg_rx, (size_t)n);
     }
 }
 

@@ -17,18 +17,18 @@ typedef struct mp_cur {
     bool err;
 } mp_cur;
 
-void mp_init(mp_cur *c, const void *data, size_t len);
-bool mp_array(mp_cur *c, uint32_t *n);
-bool mp_map(mp_cur *c, uint32_t *n);
-bool mp_u64(mp_cur *c, uint64_t *v);
-bool mp_i64(mp_cur *c, int64_t *v);
-bool mp_f64(mp_cur *c, double *v); /* float32/64 and integers (widened) */
-bool mp_bool(mp_cur *c, bool *v);
-bool mp_nil(mp_cur *c);            /* consumes a nil if there is one */
-bool mp_str(mp_cur *c, const char **s, uint32_t *len);
-bool mp_bin(mp_cur *c, const uint8_t **b, uint32_t *len);
-bool mp_skip(mp_cur *c);           /* one whole value, iteratively (no recursion) */
-bool mp_is_int(const mp_cur *c);
+void rlbi_mp_init(mp_cur *c, const void *data, size_t len);
+bool rlbi_mp_array(mp_cur *c, uint32_t *n);
+bool rlbi_mp_map(mp_cur *c, uint32_t *n);
+bool rlbi_mp_u64(mp_cur *c, uint64_t *v);
+bool rlbi_mp_i64(mp_cur *c, int64_t *v);
+bool rlbi_mp_f64(mp_cur *c, double *v); /* float32/64 and integers (widened) */
+bool rlbi_mp_bool(mp_cur *c, bool *v);
+bool rlbi_mp_nil(mp_cur *c);            /* consumes a nil if there is one */
+bool rlbi_mp_str(mp_cur *c, const char **s, uint32_t *len);
+bool rlbi_mp_bin(mp_cur *c, const uint8_t **b, uint32_t *len);
+bool rlbi_mp_skip(mp_cur *c);           /* one whole value, iteratively (no recursion) */
+bool rlbi_mp_is_int(const mp_cur *c);
 
 typedef struct wbuf {
     uint8_t *buf;
@@ -36,17 +36,17 @@ typedef struct wbuf {
     bool overflow;
 } wbuf;
 
-void wb_init(wbuf *w, void *buf, size_t cap);
-void wb_array(wbuf *w, uint32_t n);
-void wb_map(wbuf *w, uint32_t n);
-void wb_u64(wbuf *w, uint64_t v);
-void wb_i64(wbuf *w, int64_t v);
-void wb_f64(wbuf *w, double v);
-void wb_bool(wbuf *w, bool v);
-void wb_nil(wbuf *w);
-void wb_str(wbuf *w, const char *s, size_t len);
-void wb_bin(wbuf *w, const uint8_t *b, size_t len);
-void wb_raw(wbuf *w, const void *b, size_t len);
+void rlbi_wb_init(wbuf *w, void *buf, size_t cap);
+void rlbi_wb_array(wbuf *w, uint32_t n);
+void rlbi_wb_map(wbuf *w, uint32_t n);
+void rlbi_wb_u64(wbuf *w, uint64_t v);
+void rlbi_wb_i64(wbuf *w, int64_t v);
+void rlbi_wb_f64(wbuf *w, double v);
+void rlbi_wb_bool(wbuf *w, bool v);
+void rlbi_wb_nil(wbuf *w);
+void rlbi_wb_str(wbuf *w, const char *s, size_t len);
+void rlbi_wb_bin(wbuf *w, const uint8_t *b, size_t len);
+void rlbi_wb_raw(wbuf *w, const void *b, size_t len);
 
 /* -- crypto (section 16) ---------------------------------------------------------------- */
 
@@ -61,6 +61,8 @@ void rlb_proof(const uint8_t *key, size_t key_len, const char *label, const uint
                size_t t_len, uint8_t out[32]);
 void rlb_derive(const uint8_t *key, size_t key_len, const uint8_t nc[16], const uint8_t ns[16],
                 const uint8_t *t, size_t t_len, rlb_keys *keys);
+/* 16.4: the datagram keys of a TLS session from ConnectAck.datagram_key and the token. */
+void rlb_derive_tls(const uint8_t *secret, size_t len, uint64_t token, rlb_keys *keys);
 /* AEAD with nonce 00000000 || counter (u64 BE); the tag is appended after the text. */
 void rlb_seal(const uint8_t key[32], uint64_t counter, const uint8_t *aad, size_t aad_len,
               uint8_t *text, size_t len, uint8_t tag[16]);
@@ -85,11 +87,11 @@ typedef struct rlb_ring {
     uint8_t *mem;
 } rlb_ring;
 
-rlb_slot *ring_reserve(rlb_ring *r);   /* producer: NULL when full */
-void ring_commit(rlb_ring *r);
-rlb_slot *ring_peek(rlb_ring *r, size_t i); /* consumer: i-th unread slot or NULL */
-void ring_release(rlb_ring *r, size_t n);
-size_t ring_count(const rlb_ring *r);
+rlb_slot *rlbi_ring_reserve(rlb_ring *r);   /* producer: NULL when full */
+void rlbi_ring_commit(rlb_ring *r);
+rlb_slot *rlbi_ring_peek(rlb_ring *r, size_t i); /* consumer: i-th unread slot or NULL */
+void rlbi_ring_release(rlb_ring *r, size_t n);
+size_t rlbi_ring_count(const rlb_ring *r);
 
 /* Triple buffer: the newest value, wait-free both ways (one atomic exchange each). */
 typedef struct rlb_triple {
@@ -147,11 +149,13 @@ struct rlb_client {
     char *host, *name;
     uint8_t psk[RLB_MAX_KEY];
     size_t psk_len;
+    char fingerprint[65]; /* cfg.tls_fingerprint, lower-case hex, kept for every reconnect */
     rlb_channel **channels; /* by id - 1 */
     uint32_t n_channels;
     rlb_conn *conn;
     _Atomic int link;
     _Atomic uint64_t sessions;
+    _Atomic int64_t rtt_ns; /* smoothed round trip, -1 before the first sample */
     _Atomic bool stop;
     bool started, connected_once;
     pthread_t thread;
@@ -167,16 +171,19 @@ void rlb_emit(rlb_client *c, rlb_event_kind kind, int code, uint32_t channel,
 void rlb_set_link(rlb_client *c, rlb_link link);
 
 /* channel.c: the I/O side's access to a subscribe channel's buffer */
-bool chan_deliver(rlb_channel *ch, int64_t stamp, const uint8_t *value, size_t len);
-void chan_free(rlb_channel *ch);
+bool rlbi_chan_deliver(rlb_channel *ch, int64_t stamp, const uint8_t *value, size_t len);
+void rlbi_chan_free(rlb_channel *ch);
 
 /* session.c */
-rlb_status conn_new(rlb_client *c);
-void conn_free(rlb_client *c);
-rlb_status conn_open(rlb_client *c);          /* handshake + bindings, blocking */
-rlb_status conn_spin(rlb_client *c, uint32_t timeout_ms);
-size_t conn_unsent(rlb_client *c);
-void conn_goodbye(rlb_client *c);
+rlb_status rlbi_conn_new(rlb_client *c);
+void rlbi_conn_free(rlb_client *c);
+rlb_status rlbi_conn_open(rlb_client *c);          /* handshake + bindings, blocking */
+rlb_status rlbi_conn_spin(rlb_client *c, uint32_t timeout_ms);
+size_t rlbi_conn_unsent(rlb_client *c);
+void rlbi_conn_goodbye(rlb_client *c);
+/* tls.c: the TLS context of cfg.tls (RLB_E_INVAL when built without OpenSSL) */
+rlb_status rlbi_tls_setup(rlb_client *c);
+void rlbi_tls_free(rlb_client *c);
 
 /* Test and fuzz entry points (session.c): received bytes without a socket. bind_all marks
  * every channel bound and sets the session token that datagrams must carry. */

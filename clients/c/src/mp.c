@@ -13,7 +13,7 @@
 
 #include "internal.h"
 
-void mp_init(mp_cur *c, const void *data, size_t len) {
+void rlbi_mp_init(mp_cur *c, const void *data, size_t len) {
     c->p = data;
     c->end = c->p + len;
     c->err = false;
@@ -40,7 +40,7 @@ static bool take_len(mp_cur *c, int n, uint32_t *len) {
     return true;
 }
 
-bool mp_array(mp_cur *c, uint32_t *n) {
+bool rlbi_mp_array(mp_cur *c, uint32_t *n) {
     if (!need(c, 1)) return false;
     uint8_t t = *c->p;
     if ((t & 0xf0) == 0x90) {
@@ -54,7 +54,7 @@ bool mp_array(mp_cur *c, uint32_t *n) {
     return false;
 }
 
-bool mp_map(mp_cur *c, uint32_t *n) {
+bool rlbi_mp_map(mp_cur *c, uint32_t *n) {
     if (!need(c, 1)) return false;
     uint8_t t = *c->p;
     if ((t & 0xf0) == 0x80) {
@@ -68,7 +68,7 @@ bool mp_map(mp_cur *c, uint32_t *n) {
     return false;
 }
 
-bool mp_is_int(const mp_cur *c) {
+bool rlbi_mp_is_int(const mp_cur *c) {
     if (c->err || c->p >= c->end) return false;
     uint8_t t = *c->p;
     return t <= 0x7f || t >= 0xe0 || (t >= 0xcc && t <= 0xcf) || (t >= 0xd0 && t <= 0xd3);
@@ -112,14 +112,14 @@ static bool read_int(mp_cur *c, bool *negative, uint64_t *u) {
     return true;
 }
 
-bool mp_u64(mp_cur *c, uint64_t *v) {
+bool rlbi_mp_u64(mp_cur *c, uint64_t *v) {
     bool neg;
     if (!read_int(c, &neg, v)) return false;
     if (neg) c->err = true;
     return !neg;
 }
 
-bool mp_i64(mp_cur *c, int64_t *v) {
+bool rlbi_mp_i64(mp_cur *c, int64_t *v) {
     bool neg;
     uint64_t u;
     if (!read_int(c, &neg, &u)) return false;
@@ -131,7 +131,7 @@ bool mp_i64(mp_cur *c, int64_t *v) {
     return true;
 }
 
-bool mp_f64(mp_cur *c, double *v) {
+bool rlbi_mp_f64(mp_cur *c, double *v) {
     if (!need(c, 1)) return false;
     uint8_t t = *c->p;
     if (t == 0xcb) {
@@ -157,7 +157,7 @@ bool mp_f64(mp_cur *c, double *v) {
     return true;
 }
 
-bool mp_bool(mp_cur *c, bool *v) {
+bool rlbi_mp_bool(mp_cur *c, bool *v) {
     if (!need(c, 1)) return false;
     if (*c->p != 0xc2 && *c->p != 0xc3) {
         c->err = true;
@@ -168,7 +168,7 @@ bool mp_bool(mp_cur *c, bool *v) {
     return true;
 }
 
-bool mp_nil(mp_cur *c) {
+bool rlbi_mp_nil(mp_cur *c) {
     if (c->err || c->p >= c->end || *c->p != 0xc0) return false;
     c->p++;
     return true;
@@ -181,7 +181,7 @@ static bool body(mp_cur *c, uint32_t len, const uint8_t **b) {
     return true;
 }
 
-bool mp_str(mp_cur *c, const char **s, uint32_t *len) {
+bool rlbi_mp_str(mp_cur *c, const char **s, uint32_t *len) {
     if (!need(c, 1)) return false;
     uint8_t t = *c->p;
     if ((t & 0xe0) == 0xa0) {
@@ -203,7 +203,7 @@ bool mp_str(mp_cur *c, const char **s, uint32_t *len) {
     return true;
 }
 
-bool mp_bin(mp_cur *c, const uint8_t **b, uint32_t *len) {
+bool rlbi_mp_bin(mp_cur *c, const uint8_t **b, uint32_t *len) {
     if (!need(c, 1)) return false;
     uint8_t t = *c->p;
     int n = t == 0xc4 ? 1 : t == 0xc5 ? 2 : t == 0xc6 ? 4 : 0;
@@ -215,7 +215,7 @@ bool mp_bin(mp_cur *c, const uint8_t **b, uint32_t *len) {
     return body(c, *len, b);
 }
 
-bool mp_skip(mp_cur *c) {
+bool rlbi_mp_skip(mp_cur *c) {
     uint64_t todo = 1;
     while (todo > 0) {
         if (!need(c, 1)) return false;
@@ -229,20 +229,20 @@ bool mp_skip(mp_cur *c) {
         if (t <= 0x7f || t >= 0xe0 || t == 0xc0 || t == 0xc2 || t == 0xc3) {
             c->p++;
         } else if ((t & 0xf0) == 0x80 || t == 0xde || t == 0xdf) {
-            if (!mp_map(c, &n)) return false;
+            if (!rlbi_mp_map(c, &n)) return false;
             todo += 2ULL * n;
         } else if ((t & 0xf0) == 0x90 || t == 0xdc || t == 0xdd) {
-            if (!mp_array(c, &n)) return false;
+            if (!rlbi_mp_array(c, &n)) return false;
             todo += n;
         } else if ((t & 0xe0) == 0xa0 || (t >= 0xd9 && t <= 0xdb)) {
             const char *s;
-            if (!mp_str(c, &s, &n)) return false;
+            if (!rlbi_mp_str(c, &s, &n)) return false;
         } else if (t >= 0xc4 && t <= 0xc6) {
             const uint8_t *b;
-            if (!mp_bin(c, &b, &n)) return false;
+            if (!rlbi_mp_bin(c, &b, &n)) return false;
         } else if (t == 0xca || t == 0xcb) {
             double d;
-            if (!mp_f64(c, &d)) return false;
+            if (!rlbi_mp_f64(c, &d)) return false;
         } else if ((t >= 0xcc && t <= 0xcf) || (t >= 0xd0 && t <= 0xd3)) {
             bool neg;
             uint64_t u;
@@ -280,26 +280,32 @@ static int wb_write(void *data, const char *buf, size_t len) {
     msgpack_packer pk; \
     msgpack_packer_init(&pk, (w), wb_write)
 
-void wb_init(wbuf *w, void *buf, size_t cap) {
+void rlbi_wb_init(wbuf *w, void *buf, size_t cap) {
     w->buf = buf;
     w->cap = cap;
     w->len = 0;
     w->overflow = false;
 }
-void wb_array(wbuf *w, uint32_t n) { PACKER(w); msgpack_pack_array(&pk, n); }
-void wb_map(wbuf *w, uint32_t n) { PACKER(w); msgpack_pack_map(&pk, n); }
-void wb_u64(wbuf *w, uint64_t v) { PACKER(w); msgpack_pack_uint64(&pk, v); }
-void wb_i64(wbuf *w, int64_t v) { PACKER(w); msgpack_pack_int64(&pk, v); }
-void wb_f64(wbuf *w, double v) { PACKER(w); msgpack_pack_double(&pk, v); }
-void wb_bool(wbuf *w, bool v) {
+void rlbi_wb_array(wbuf *w, uint32_t n) { PACKER(w); msgpack_pack_array(&pk, n); }
+void rlbi_wb_map(wbuf *w, uint32_t n) { PACKER(w); msgpack_pack_map(&pk, n); }
+void rlbi_wb_u64(wbuf *w, uint64_t v) { PACKER(w); msgpack_pack_uint64(&pk, v); }
+void rlbi_wb_i64(wbuf *w, int64_t v) { PACKER(w); msgpack_pack_int64(&pk, v); }
+void rlbi_wb_f64(wbuf *w, double v) { PACKER(w); msgpack_pack_double(&pk, v); }
+void rlbi_wb_bool(wbuf *w, bool v) {
     PACKER(w);
     if (v) msgpack_pack_true(&pk);
     else msgpack_pack_false(&pk);
 }
-void wb_nil(wbuf *w) { PACKER(w); msgpack_pack_nil(&pk); }
-void wb_str(wbuf *w, const char *s, size_t len) { PACKER(w); msgpack_pack_str_with_body(&pk, s, len); }
-void wb_bin(wbuf *w, const uint8_t *b, size_t len) { PACKER(w); msgpack_pack_bin_with_body(&pk, b, len); }
-void wb_raw(wbuf *w, const void *b, size_t len) { wb_write(w, b, len); }
+void rlbi_wb_nil(wbuf *w) { PACKER(w); msgpack_pack_nil(&pk); }
+void rlbi_wb_str(wbuf *w, const char *s, size_t len) {
+    PACKER(w);
+    msgpack_pack_str_with_body(&pk, s, len);
+}
+void rlbi_wb_bin(wbuf *w, const uint8_t *b, size_t len) {
+    PACKER(w);
+    msgpack_pack_bin_with_body(&pk, b, len);
+}
+void rlbi_wb_raw(wbuf *w, const void *b, size_t len) { wb_write(w, b, len); }
 
 /* -- the public map builder and accessors ------------------------------------------------ */
 
@@ -316,12 +322,20 @@ void rlb_msg_init(rlb_msg *m, void *buf, size_t cap) {
     (m)->len = w.len; \
     (m)->overflow = w.overflow
 
-void rlb_msg_map(rlb_msg *m, uint32_t pairs) { MSGBUF(m); wb_map(&w, pairs); MSGDONE(m); }
-void rlb_msg_key(rlb_msg *m, const char *key) { MSGBUF(m); wb_str(&w, key, strlen(key)); MSGDONE(m); }
-void rlb_msg_f64(rlb_msg *m, double v) { MSGBUF(m); wb_f64(&w, v); MSGDONE(m); }
-void rlb_msg_i64(rlb_msg *m, int64_t v) { MSGBUF(m); wb_i64(&w, v); MSGDONE(m); }
-void rlb_msg_bool(rlb_msg *m, bool v) { MSGBUF(m); wb_bool(&w, v); MSGDONE(m); }
-void rlb_msg_str(rlb_msg *m, const char *s) { MSGBUF(m); wb_str(&w, s, strlen(s)); MSGDONE(m); }
+void rlb_msg_map(rlb_msg *m, uint32_t pairs) { MSGBUF(m); rlbi_wb_map(&w, pairs); MSGDONE(m); }
+void rlb_msg_key(rlb_msg *m, const char *key) {
+    MSGBUF(m);
+    rlbi_wb_str(&w, key, strlen(key));
+    MSGDONE(m);
+}
+void rlb_msg_f64(rlb_msg *m, double v) { MSGBUF(m); rlbi_wb_f64(&w, v); MSGDONE(m); }
+void rlb_msg_i64(rlb_msg *m, int64_t v) { MSGBUF(m); rlbi_wb_i64(&w, v); MSGDONE(m); }
+void rlb_msg_bool(rlb_msg *m, bool v) { MSGBUF(m); rlbi_wb_bool(&w, v); MSGDONE(m); }
+void rlb_msg_str(rlb_msg *m, const char *s) {
+    MSGBUF(m);
+    rlbi_wb_str(&w, s, strlen(s));
+    MSGDONE(m);
+}
 
 int rlb_msg_end(const rlb_msg *m) {
     if (m->overflow || m->len > INT32_MAX) return RLB_E_TOOBIG;
@@ -334,14 +348,14 @@ static int find_path(mp_cur *c, const char *path) {
         const char *dot = strchr(path, '.');
         size_t klen = dot ? (size_t)(dot - path) : strlen(path);
         uint32_t pairs;
-        if (!mp_map(c, &pairs)) return RLB_E_TYPE;
+        if (!rlbi_mp_map(c, &pairs)) return RLB_E_TYPE;
         bool found = false;
         for (uint32_t i = 0; i < pairs && !found; i++) {
             const char *k = NULL;
             uint32_t kl = 0;
-            if (!mp_str(c, &k, &kl)) return RLB_E_TYPE;
+            if (!rlbi_mp_str(c, &k, &kl)) return RLB_E_TYPE;
             if (kl == klen && memcmp(k, path, klen) == 0) found = true;
-            else if (!mp_skip(c)) return RLB_E_TYPE;
+            else if (!rlbi_mp_skip(c)) return RLB_E_TYPE;
         }
         if (!found) return RLB_E_NOVALUE;
         path = dot ? dot + 1 : path + klen;
@@ -351,24 +365,24 @@ static int find_path(mp_cur *c, const char *path) {
 
 int rlb_msg_get_f64(const void *msg, size_t len, const char *path, double *v) {
     mp_cur c;
-    mp_init(&c, msg, len);
+    rlbi_mp_init(&c, msg, len);
     int rc = find_path(&c, path);
     if (rc != RLB_OK) return rc;
-    return mp_f64(&c, v) ? RLB_OK : RLB_E_TYPE;
+    return rlbi_mp_f64(&c, v) ? RLB_OK : RLB_E_TYPE;
 }
 
 int rlb_msg_get_i64(const void *msg, size_t len, const char *path, int64_t *v) {
     mp_cur c;
-    mp_init(&c, msg, len);
+    rlbi_mp_init(&c, msg, len);
     int rc = find_path(&c, path);
     if (rc != RLB_OK) return rc;
-    return mp_i64(&c, v) ? RLB_OK : RLB_E_TYPE;
+    return rlbi_mp_i64(&c, v) ? RLB_OK : RLB_E_TYPE;
 }
 
 int rlb_msg_get_bool(const void *msg, size_t len, const char *path, bool *v) {
     mp_cur c;
-    mp_init(&c, msg, len);
+    rlbi_mp_init(&c, msg, len);
     int rc = find_path(&c, path);
     if (rc != RLB_OK) return rc;
-    return mp_bool(&c, v) ? RLB_OK : RLB_E_TYPE;
+    return rlbi_mp_bool(&c, v) ? RLB_OK : RLB_E_TYPE;
 }

@@ -7,7 +7,7 @@
 
 /* -- packets we receive -------------------------------------------------------------------- */
 
-void conn_malformed(rlb_conn *k) { k->conn_malformed++; }
+void rlbi_conn_malformed(rlb_conn *k) { k->malformed++; }
 
 static void deliver(rlb_channel *ch, uint64_t seq, int64_t stamp, const uint8_t *v, size_t len) {
     if (ch->has_highest && seq <= ch->highest) {
@@ -18,38 +18,38 @@ static void deliver(rlb_channel *ch, uint64_t seq, int64_t stamp, const uint8_t 
         atomic_fetch_add_explicit(&ch->n_lost, seq - ch->highest - 1, memory_order_relaxed);
     ch->has_highest = true;
     ch->highest = seq;
-    chan_deliver(ch, stamp, v, len);
+    rlbi_chan_deliver(ch, stamp, v, len);
 }
 
 /* A Value or Batch body (tag already read). */
 static bool values(rlb_client *c, mp_cur *m, uint64_t tag) {
     uint64_t id, seq;
-    if (!mp_u64(m, &id) || !mp_u64(m, &seq)) return false;
-    rlb_channel *ch = conn_channel(c, id);
+    if (!rlbi_mp_u64(m, &id) || !rlbi_mp_u64(m, &seq)) return false;
+    rlb_channel *ch = rlbi_conn_channel(c, id);
     /* BIND_SENT too: over UDP a value can overtake the TopicAck that travels over TCP */
     bool ours = ch != NULL && ch->dir == DIR_SUBSCRIBE &&
                 (ch->bind == BIND_ACKED || ch->bind == BIND_SENT);
     if (tag == T_VALUE) {
         int64_t stamp;
-        if (!mp_i64(m, &stamp)) return false;
+        if (!rlbi_mp_i64(m, &stamp)) return false;
         const uint8_t *v = m->p;
-        if (!mp_skip(m)) return false;
+        if (!rlbi_mp_skip(m)) return false;
         if (ours) deliver(ch, seq, stamp, v, (size_t)(m->p - v));
         return true;
     }
     uint32_t ns, nv;
-    if (!mp_array(m, &ns)) return false;
+    if (!rlbi_mp_array(m, &ns)) return false;
     mp_cur stamps = *m;
     for (uint32_t i = 0; i < ns; i++) {
         int64_t st;
-        if (!mp_i64(m, &st)) return false;
+        if (!rlbi_mp_i64(m, &st)) return false;
     }
-    if (!mp_array(m, &nv) || nv != ns) return false;
+    if (!rlbi_mp_array(m, &nv) || nv != ns) return false;
     for (uint32_t i = 0; i < nv; i++) {
         int64_t stamp;
-        mp_i64(&stamps, &stamp);
+        rlbi_mp_i64(&stamps, &stamp);
         const uint8_t *v = m->p;
-        if (!mp_skip(m)) return false;
+        if (!rlbi_mp_skip(m)) return false;
         if (ours) deliver(ch, seq + i, stamp, v, (size_t)(m->p - v));
     }
     return true;
@@ -61,14 +61,17 @@ static void on_error(rlb_client *c, mp_cur *m, bool topic) {
     uint32_t rlen = 0;
     char text[256];
     if (topic) { /* TopicError [6, channel, code, reason] */
-        if (!mp_u64(m, &id) || !mp_u64(m, &code)) return conn_malformed(c->conn);
-        mp_str(m, &reason, &rlen);
+        if (!rlbi_mp_u64(m, &id) || !rlbi_mp_u64(m, &code)) {
+            rlbi_conn_malformed(c->conn);
+            return;
+        }
+        rlbi_mp_str(m, &reason, &rlen);
     } else {     /* Error [12, code, reason, channel|nil, values] */
-        if (!mp_u64(m, &code)) return conn_malformed(c->conn);
-        if (mp_str(m, &reason, &rlen) && !mp_nil(m)) mp_u64(m, &id);
+        if (!rlbi_mp_u64(m, &code)) { rlbi_conn_malformed(c->conn); return; }
+        if (rlbi_mp_str(m, &reason, &rlen) && !rlbi_mp_nil(m)) rlbi_mp_u64(m, &id);
     }
     snprintf(text, sizeof text, "%.*s", (int)(rlen < 255 ? rlen : 255), reason);
-    rlb_channel *ch = conn_channel(c, id);
+    rlb_channel *ch = rlbi_conn_channel(c, id);
     if (ch != NULL) {
         atomic_fetch_add_explicit(&ch->n_errors, 1, memory_order_relaxed);
         atomic_store_explicit(&ch->last_error, (int)code, memory_order_relaxed);
@@ -80,19 +83,20 @@ static void on_error(rlb_client *c, mp_cur *m, bool topic) {
 static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     rlb_conn *k = c->conn;
     int64_t now = rlb_mono_ns();
-    if (in_bundle && tag != T_VALUE && tag != T_BATCH) return conn_malformed(k);
+    if (in_bundle && tag != T_VALUE && tag != T_BATCH) { rlbi_conn_malformed(k); return; }
     switch (tag) {
     case T_VALUE:
     case T_BATCH:
-        if (!values(c, m, tag)) conn_malformed(k);
+        if (!values(c, m, tag)) rlbi_conn_malformed(k);
         break;
     case T_TOPICACK: {
         uint64_t id, credit = UINT64_MAX;
         const char *type;
         uint32_t tl;
-        if (!mp_u64(m, &id) || !mp_str(m, &type, &tl)) return conn_malformed(k);
-        if (mp_skip(m) && mp_skip(m) && !mp_nil(m)) mp_u64(m, &credit); /* initial, schema */
-        rlb_channel *ch = conn_channel(c, id);
+        if (!rlbi_mp_u64(m, &id) || !rlbi_mp_str(m, &type, &tl)) { rlbi_conn_malformed(k); return; }
+        /* initial, schema, then the credit of a flow-controlled publish channel */
+        if (rlbi_mp_skip(m) && rlbi_mp_skip(m) && !rlbi_mp_nil(m)) rlbi_mp_u64(m, &credit);
+        rlb_channel *ch = rlbi_conn_channel(c, id);
         if (ch == NULL || ch->bind != BIND_SENT) break;
         ch->bind = BIND_ACKED;
         ch->credit = ch->dir == DIR_PUBLISH && ch->flow ? credit : UINT64_MAX;
@@ -103,12 +107,23 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     case T_ERROR: on_error(c, m, false); break;
     case T_HEARTBEAT: {
         int64_t sent_ns = 0, echo = 0, wall = 0;
-        if (!mp_i64(m, &sent_ns)) return conn_malformed(k);
-        uint32_t left = 0;
-        (void)left;
-        if (mp_i64(m, &echo) && mp_i64(m, &wall)) {
+        if (!rlbi_mp_i64(m, &sent_ns)) { rlbi_conn_malformed(k); return; }
+        bool has_echo = rlbi_mp_i64(m, &echo);
+        if (has_echo && rlbi_mp_i64(m, &wall)) {
             k->peer_wall = wall;
             k->peer_wall_rx = rlb_wall_ns();
+        }
+        if (has_echo && echo > 0 && echo <= now) { /* our sent_ns, aged by the peer (11) */
+            int64_t sample = now - echo;
+            if (k->srtt == 0) {
+                k->srtt = sample;
+                k->rttvar = sample / 2;
+            } else {
+                int64_t d = k->srtt > sample ? k->srtt - sample : sample - k->srtt;
+                k->rttvar += (d - k->rttvar) / 4;
+                k->srtt += (sample - k->srtt) / 8;
+            }
+            atomic_store_explicit(&c->rtt_ns, k->srtt, memory_order_relaxed);
         }
         k->peer_sent = sent_ns;
         k->peer_rx = now;
@@ -119,41 +134,45 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
         const char *reason = "";
         uint32_t rl = 0;
         char text[256];
-        if (mp_u64(m, &code)) mp_str(m, &reason, &rl);
+        if (rlbi_mp_u64(m, &code)) rlbi_mp_str(m, &reason, &rl);
         snprintf(text, sizeof text, "%.*s", (int)(rl < 255 ? rl : 255), reason);
         rlb_emit(c, RLB_EV_DISCONNECT, (int)code, 0, text);
-        conn_lost(c, text);
+        rlbi_conn_lost(c, text);
         return;
     }
     case T_BUNDLE: {
         uint32_t n;
-        if (!mp_array(m, &n)) return conn_malformed(k);
+        if (!rlbi_mp_array(m, &n)) { rlbi_conn_malformed(k); return; }
         for (uint32_t i = 0; i < n; i++) {
             const uint8_t *part = m->p;
-            if (!mp_skip(m)) return conn_malformed(k);
-            conn_packet(c, part, (size_t)(m->p - part), true);
+            if (!rlbi_mp_skip(m)) { rlbi_conn_malformed(k); return; }
+            rlbi_conn_packet(c, part, (size_t)(m->p - part), true);
         }
         break;
     }
     case T_CREDIT: {
         uint64_t id, limit;
-        if (!mp_u64(m, &id) || !mp_u64(m, &limit)) return conn_malformed(k);
-        rlb_channel *ch = conn_channel(c, id);
-        if (ch && ch->dir == DIR_PUBLISH && ch->flow && (ch->credit == UINT64_MAX || limit > ch->credit))
+        if (!rlbi_mp_u64(m, &id) || !rlbi_mp_u64(m, &limit)) { rlbi_conn_malformed(k); return; }
+        rlb_channel *ch = rlbi_conn_channel(c, id);
+        bool more = ch && ch->dir == DIR_PUBLISH && ch->flow; /* cumulative: only raises */
+        if (more && (ch->credit == UINT64_MAX || limit > ch->credit))
             ch->credit = limit;
         break;
     }
     case T_LOSS: {
         uint32_t n, f;
-        if (!mp_array(m, &n)) return conn_malformed(k);
+        if (!rlbi_mp_array(m, &n)) { rlbi_conn_malformed(k); return; }
         for (uint32_t i = 0; i < n; i++) {
             uint64_t id, received, lost;
-            if (!mp_array(m, &f) || f < 4 || !mp_u64(m, &id) || !mp_u64(m, &received) ||
-                !mp_u64(m, &lost))
-                return conn_malformed(k);
+            if (!rlbi_mp_array(m, &f) || f < 4 || !rlbi_mp_u64(m, &id) ||
+                !rlbi_mp_u64(m, &received) ||
+                !rlbi_mp_u64(m, &lost)) {
+                rlbi_conn_malformed(k);
+                return;
+            }
             for (uint32_t j = 3; j < f; j++)
-                if (!mp_skip(m)) return conn_malformed(k);
-            rlb_channel *ch = conn_channel(c, id);
+                if (!rlbi_mp_skip(m)) { rlbi_conn_malformed(k); return; }
+            rlb_channel *ch = rlbi_conn_channel(c, id);
             if (ch && ch->dir == DIR_PUBLISH) {
                 atomic_store_explicit(&ch->n_srv_received, received, memory_order_relaxed);
                 atomic_store_explicit(&ch->n_lost, lost, memory_order_relaxed);
@@ -166,12 +185,15 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
     }
 }
 
-void conn_packet(rlb_client *c, const uint8_t *body, size_t len, bool in_bundle) {
+void rlbi_conn_packet(rlb_client *c, const uint8_t *body, size_t len, bool in_bundle) {
     mp_cur m;
     uint32_t n;
     uint64_t tag;
-    mp_init(&m, body, len);
-    if (!mp_array(&m, &n) || n < 1 || !mp_u64(&m, &tag)) return conn_malformed(c->conn);
+    rlbi_mp_init(&m, body, len);
+    if (!rlbi_mp_array(&m, &n) || n < 1 || !rlbi_mp_u64(&m, &tag)) {
+        rlbi_conn_malformed(c->conn);
+        return;
+    }
     if (!in_bundle) c->conn->last_rx = rlb_mono_ns();
     dispatch(c, &m, tag, in_bundle);
 }
@@ -186,7 +208,7 @@ void rlb_debug_bind_all(rlb_client *c, uint64_t token) {
 void rlb_debug_feed_datagram(rlb_client *c, const uint8_t *d, size_t n) {
     if (n > RX_DGRAM) return;
     memcpy(c->conn->dg_rx, d, n);
-    udp_datagram(c, c->conn->dg_rx, n);
+    rlbi_udp_datagram(c, c->conn->dg_rx, n);
 }
 
 void rlb_debug_feed_stream(rlb_client *c, const uint8_t *bytes, size_t n) {
@@ -205,16 +227,16 @@ void rlb_debug_feed_stream(rlb_client *c, const uint8_t *bytes, size_t n) {
         for (;;) {
             size_t len;
             bool bad;
-            const uint8_t *f = tcp_next_frame(k, &len, &bad);
+            const uint8_t *f = rlbi_tcp_next_frame(k, &len, &bad);
             if (bad) { /* the framing is lost: a real connection would end here */
                 k->in_off = k->in_len = k->skip = 0;
                 break;
             }
             if (f == NULL) break;
-            conn_packet(c, f, len, false);
+            rlbi_conn_packet(c, f, len, false);
         }
     }
 }
 
-uint64_t rlb_debug_malformed(const rlb_client *c) { return c->conn->conn_malformed; }
+uint64_t rlb_debug_malformed(const rlb_client *c) { return c->conn->malformed; }
 

@@ -21,7 +21,7 @@
 #include "conn.h"
 
 
-rlb_status conn_new(rlb_client *c) {
+rlb_status rlbi_conn_new(rlb_client *c) {
     rlb_conn *k = calloc(1, sizeof *k);
     if (k == NULL) return RLB_E_NOMEM;
     k->tcp = k->udp = -1;
@@ -43,29 +43,33 @@ rlb_status conn_new(rlb_client *c) {
     return RLB_OK;
 }
 
-void conn_close_sockets(rlb_conn *k) {
+void rlbi_conn_close_sockets(rlb_conn *k) {
+    rlbi_tls_close(k);
     if (k->tcp >= 0) close(k->tcp);
     if (k->udp >= 0) close(k->udp);
     k->tcp = k->udp = -1;
     k->up = false;
-    k->sealed = false;
+    k->sealed = k->records = false;
     sodium_memzero(&k->keys, sizeof k->keys);
 }
 
-void conn_free(rlb_client *c) {
+void rlbi_conn_free(rlb_client *c) {
     rlb_conn *k = c->conn;
     if (k == NULL) return;
-    conn_close_sockets(k);
+    rlbi_conn_close_sockets(k);
+    rlbi_tls_free(c);
     free(k->out), free(k->wire), free(k->in), free(k->rec), free(k->dg_tx), free(k->dg_rx);
     free(k);
     c->conn = NULL;
 }
 
-size_t conn_pending_bytes(const rlb_conn *k) { return k->out_len + (k->wire_len - k->wire_off); }
+size_t rlbi_conn_pending_bytes(const rlb_conn *k) {
+    return k->out_len + (k->wire_len - k->wire_off);
+}
 
-size_t conn_unsent(rlb_client *c) { return conn_pending_bytes(c->conn); }
+size_t rlbi_conn_unsent(rlb_client *c) { return rlbi_conn_pending_bytes(c->conn); }
 
-rlb_channel *conn_channel(rlb_client *c, uint64_t id) {
+rlb_channel *rlbi_conn_channel(rlb_client *c, uint64_t id) {
     if (id == 0 || id > c->n_channels) return NULL;
     return c->channels[id - 1];
 }
@@ -90,7 +94,7 @@ static rlb_status open_sockets(rlb_client *c, int64_t deadline) {
         k->udp = socket(a->ai_family, SOCK_DGRAM | SOCK_CLOEXEC, 0);
         if ((tcp && (k->tcp < 0 || set_nonblock(k->tcp) < 0)) || k->udp < 0 ||
             set_nonblock(k->udp) < 0 || connect(k->udp, a->ai_addr, a->ai_addrlen) < 0) {
-            conn_close_sockets(k);
+            rlbi_conn_close_sockets(k);
             continue;
         }
         if (!tcp) { /* a UDP-only session (protocol.md 8.2) */
@@ -98,7 +102,7 @@ static rlb_status open_sockets(rlb_client *c, int64_t deadline) {
             continue;
         }
         if (connect(k->tcp, a->ai_addr, a->ai_addrlen) < 0 && errno != EINPROGRESS) {
-            conn_close_sockets(k);
+            rlbi_conn_close_sockets(k);
             continue;
         }
         struct pollfd p = {k->tcp, POLLOUT, 0};
@@ -107,7 +111,7 @@ static rlb_status open_sockets(rlb_client *c, int64_t deadline) {
         socklen_t el = sizeof err;
         if (left <= 0 || poll(&p, 1, (int)left) != 1 ||
             getsockopt(k->tcp, SOL_SOCKET, SO_ERROR, &err, &el) < 0 || err != 0) {
-            conn_close_sockets(k);
+            rlbi_conn_close_sockets(k);
             continue;
         }
         int one = 1; /* values go out when written, not when Nagle lets them (docs) */
@@ -131,34 +135,36 @@ static void reset_bindings(rlb_client *c) {
 
 static bool spin_io(rlb_client *c, int timeout_ms);
 
-rlb_status conn_open(rlb_client *c) {
+rlb_status rlbi_conn_open(rlb_client *c) {
     rlb_conn *k = c->conn;
     int64_t start = rlb_mono_ns();
     int64_t deadline = start + (int64_t)c->cfg.connect_timeout_ms * 1000000;
-    conn_close_sockets(k);
+    rlbi_conn_close_sockets(k);
     k->out_len = k->wire_off = k->wire_len = k->in_off = k->in_len = k->rec_len = k->skip = 0;
     k->dgram_tx = k->rec_tx = k->rec_rx = k->replay_top = 0;
     memset(k->replay_bits, 0, sizeof k->replay_bits);
-    k->peer_sent = k->peer_wall = 0;
+    k->peer_sent = k->peer_wall = k->srtt = k->rttvar = 0;
     reset_bindings(c);
     rlb_status rc = open_sockets(c, deadline);
+    if (rc == RLB_OK && c->cfg.tls) rc = rlbi_tls_connect(c, deadline);
     if (rc == RLB_OK)
-        rc = c->cfg.control == RLB_UDP ? handshake_udp(c, deadline) : handshake_tcp(c, deadline);
+        rc = c->cfg.control == RLB_UDP ? rlbi_handshake_udp(c, deadline)
+                                       : rlbi_handshake_tcp(c, deadline);
     if (rc != RLB_OK) {
-        conn_close_sockets(k);
+        rlbi_conn_close_sockets(k);
         return rc;
     }
     k->up = true;
     k->last_rx = k->last_hb = rlb_mono_ns();
-    send_udp_heartbeat(k, k->last_hb); /* registers our UDP address (protocol.md 8.3) */
+    rlbi_send_udp_heartbeat(k, k->last_hb); /* registers our UDP address (protocol.md 8.3) */
     int64_t resend = 0;
     for (uint32_t i = 0; i < c->n_channels; i++) c->channels[i]->bind = BIND_SENT;
     for (;;) {
         if (rlb_mono_ns() >= resend) { /* once over TCP; over UDP until answered (9) */
             for (uint32_t i = 0; i < c->n_channels; i++) {
                 if (c->channels[i]->bind != BIND_SENT) continue;
-                if (!send_topic_connect(k, c->channels[i])) {
-                    conn_close_sockets(k);
+                if (!rlbi_send_topic_connect(k, c->channels[i])) {
+                    rlbi_conn_close_sockets(k);
                     return RLB_E_NOMEM; /* more bindings than the TCP buffer holds */
                 }
             }
@@ -171,14 +177,20 @@ rlb_status conn_open(rlb_client *c) {
         }
         if (!pending) {
             if (refused && !c->connected_once) {
-                conn_close_sockets(k);
+                rlbi_conn_close_sockets(k);
                 return RLB_E_REFUSED;
             }
             break;
         }
-        int64_t left = (deadline - rlb_mono_ns()) / 1000000;
+        int64_t now = rlb_mono_ns(), left = (deadline - now) / 1000000;
+        /* a slow binding (a ROS type to load) must not starve the server's watchdog */
+        if (now >= k->last_hb + (int64_t)k->hb_ms * 1000000) {
+            k->last_hb = now;
+            if (k->tcp >= 0) rlbi_send_tcp_heartbeat(k, now);
+            rlbi_send_udp_heartbeat(k, now);
+        }
         if (left <= 0 || !spin_io(c, (int)(left < 50 ? left : 50)) || !k->up) {
-            conn_close_sockets(k);
+            rlbi_conn_close_sockets(k);
             return RLB_E_CONNECT;
         }
     }
@@ -198,53 +210,62 @@ static uint64_t next_random(rlb_client *c) { /* xorshift64: jitter of the backof
     return c->rng;
 }
 
-void conn_lost(rlb_client *c, const char *why) {
+/* The next attempt: the backoff, +-20 % jitter so that clients of one server spread out. */
+static void schedule_retry(rlb_client *c) {
+    rlb_conn *k = c->conn;
+    uint32_t b = k->backoff_ms ? k->backoff_ms : 1;
+    uint64_t jitter = next_random(c) % (b / 5 * 2 + 1);
+    k->retry_at = rlb_mono_ns() + (int64_t)(b - b / 5 + jitter) * 1000000;
+}
+
+void rlbi_conn_lost(rlb_client *c, const char *why) {
     rlb_conn *k = c->conn;
     (void)why;
     if (!k->up) return;
-    conn_close_sockets(k);
+    rlbi_conn_close_sockets(k);
     reset_bindings(c);
     rlb_set_link(c, RLB_LINK_LOST);
     if (!c->cfg.reconnect) {
         k->closed = true;
         return;
     }
-    uint32_t b = k->backoff_ms ? k->backoff_ms : 1;
-    k->retry_at = rlb_mono_ns() + (int64_t)(b - b / 5 + next_random(c) % (b / 5 * 2 + 1)) * 1000000;
+    schedule_retry(c);
 }
 
 /* Receives (waiting up to timeout_ms) and dispatches; false when the session broke. */
 static bool spin_io(rlb_client *c, int timeout_ms) {
     rlb_conn *k = c->conn;
-    if (!tcp_flush(k)) {
-        conn_lost(c, "send failed");
+    if (!rlbi_tcp_flush(k)) {
+        rlbi_conn_lost(c, "send failed");
         return false;
     }
     struct pollfd p[2] = {{k->tcp, POLLIN, 0}, {k->udp, POLLIN, 0}};
     if (k->wire_off < k->wire_len) p[0].events |= POLLOUT;
-    int r = poll(p, 2, timeout_ms);
+    bool held = rlbi_tls_pending(k); /* bytes TLS has decrypted already: no wait for them */
+    int r = poll(p, 2, held ? 0 : timeout_ms);
     if (r < 0 && errno != EINTR) return true;
+    if (held) p[0].revents |= POLLIN;
     if (p[0].revents & (POLLIN | POLLHUP | POLLERR)) {
-        bool ok = tcp_read(k);
+        bool ok = rlbi_tcp_read(k);
         for (;;) {
             size_t len;
             bool bad;
-            const uint8_t *f = tcp_next_frame(k, &len, &bad);
+            const uint8_t *f = rlbi_tcp_next_frame(k, &len, &bad);
             if (bad) ok = false;
             if (f == NULL || !k->up) break;
             if (len > 1 && (f[1] == T_VALUE || f[1] == T_BATCH)) k->tcp_data = true;
-            conn_packet(c, f, len, false);
+            rlbi_conn_packet(c, f, len, false);
         }
         if (!ok && k->up) {
-            conn_lost(c, "connection closed");
+            rlbi_conn_lost(c, "connection closed");
             return false;
         }
     }
-    if (k->up && (p[1].revents & POLLIN)) udp_read(c);
+    if (k->up && (p[1].revents & POLLIN)) rlbi_udp_read(c);
     return k->up;
 }
 
-rlb_status conn_spin(rlb_client *c, uint32_t timeout_ms) {
+rlb_status rlbi_conn_spin(rlb_client *c, uint32_t timeout_ms) {
     rlb_conn *k = c->conn;
     if (k->closed) return RLB_E_CLOSED;
     int64_t now = rlb_mono_ns();
@@ -257,12 +278,11 @@ rlb_status conn_spin(rlb_client *c, uint32_t timeout_ms) {
             return RLB_OK;
         }
         rlb_set_link(c, RLB_LINK_CONNECTING);
-        if (conn_open(c) != RLB_OK) {
+        if (rlbi_conn_open(c) != RLB_OK) {
             rlb_set_link(c, RLB_LINK_LOST);
             uint32_t b = k->backoff_ms * 2;
             k->backoff_ms = b > c->cfg.backoff_max_ms ? c->cfg.backoff_max_ms : b;
-            b = k->backoff_ms;
-            k->retry_at = rlb_mono_ns() + (int64_t)(b - b / 5 + next_random(c) % (b / 5 * 2 + 1)) * 1000000;
+            schedule_retry(c);
         }
         return RLB_OK;
     }
@@ -271,45 +291,45 @@ rlb_status conn_spin(rlb_client *c, uint32_t timeout_ms) {
     if (until < 0) until = 0;
     int wait = (int)(until < (int64_t)timeout_ms ? until : (int64_t)timeout_ms);
     if (!spin_io(c, wait)) return RLB_OK;
-    send_udp_round(c);
-    send_tcp_round(c);
-    send_credits(c);
+    rlbi_send_udp_round(c);
+    rlbi_send_tcp_round(c);
+    rlbi_send_credits(c);
     now = rlb_mono_ns();
     if (now >= next_hb) {
         k->last_hb = now;
         /* Not amid a TCP stream: a heartbeat segment there would put the peer's kernel into
          * delayed-ACK mode (protocol.md 11); the UDP heartbeat and the data prove liveness. */
-        if (!k->tcp_data && k->tcp >= 0) send_tcp_heartbeat(k, now);
+        if (!k->tcp_data && k->tcp >= 0) rlbi_send_tcp_heartbeat(k, now);
         k->tcp_data = false;
-        send_udp_heartbeat(k, now);
+        rlbi_send_udp_heartbeat(k, now);
     }
     int64_t silence = now - k->last_rx;
     if (silence >= (int64_t)k->timeout_ms * 1000000) {
-        conn_lost(c, "watchdog: the server is silent");
+        rlbi_conn_lost(c, "watchdog: the server is silent");
         return RLB_OK;
     }
     rlb_set_link(c, silence * 2 < (int64_t)k->hb_ms * 3000000 ? RLB_LINK_CONNECTED
                                                                : RLB_LINK_DEGRADED);
-    if (!tcp_flush(k)) conn_lost(c, "send failed");
+    if (!rlbi_tcp_flush(k)) rlbi_conn_lost(c, "send failed");
     return RLB_OK;
 }
 
-void conn_goodbye(rlb_client *c) {
+void rlbi_conn_goodbye(rlb_client *c) {
     rlb_conn *k = c->conn;
     if (k == NULL || !k->up) return;
     /* A goodbye on UDP follows the session's value datagrams on their own path, so the
      * server has read them all before it closes the session; then the same on TCP. */
     wbuf w;
-    wb_init(&w, k->dg_tx + udp_body_at(k), udp_body_cap(k));
-    wb_array(&w, 3);
-    wb_u64(&w, T_DISCONNECT);
-    wb_u64(&w, 0);
-    wb_str(&w, "bye", 3);
+    rlbi_wb_init(&w, k->dg_tx + rlbi_udp_body_at(k), rlbi_udp_body_cap(k));
+    rlbi_wb_array(&w, 3);
+    rlbi_wb_u64(&w, T_DISCONNECT);
+    rlbi_wb_u64(&w, 0);
+    rlbi_wb_str(&w, "bye", 3);
     bool any_udp = false;
     for (uint32_t i = 0; i < c->n_channels; i++)
         any_udp |= c->channels[i]->dir == DIR_PUBLISH && c->channels[i]->transport == RLB_UDP;
     if (any_udp || k->tcp < 0) {
-        udp_send(k, w.len);
+        rlbi_udp_send(k, w.len);
         int64_t end = rlb_mono_ns() + 500000000; /* the server closes TCP once it read it */
         for (; k->tcp >= 0;) {
             int64_t left = (end - rlb_mono_ns()) / 1000000;
@@ -319,14 +339,14 @@ void conn_goodbye(rlb_client *c) {
             if (n == 0 || (n < 0 && errno != EAGAIN && errno != EINTR)) break;
         }
     } else {
-        tcp_frame_begin(k, &w);
-        wb_array(&w, 3);
-        wb_u64(&w, T_DISCONNECT);
-        wb_u64(&w, 0);
-        wb_str(&w, "bye", 3);
-        tcp_frame_end(k, &w);
-        tcp_flush_blocking(k, rlb_mono_ns() + 500000000);
+        rlbi_tcp_frame_begin(k, &w);
+        rlbi_wb_array(&w, 3);
+        rlbi_wb_u64(&w, T_DISCONNECT);
+        rlbi_wb_u64(&w, 0);
+        rlbi_wb_str(&w, "bye", 3);
+        rlbi_tcp_frame_end(k, &w);
+        rlbi_tcp_flush_blocking(k, rlb_mono_ns() + 500000000);
     }
     if (k->tcp >= 0) shutdown(k->tcp, SHUT_WR);
-    conn_close_sockets(k);
+    rlbi_conn_close_sockets(k);
 }

@@ -9,13 +9,13 @@
 /* -- TCP output -------------------------------------------------------------------------- */
 
 /* Starts a frame: the body is written into w; tcp_frame_end commits it (false: no room). */
-void tcp_frame_begin(rlb_conn *k, wbuf *w) {
+void rlbi_tcp_frame_begin(rlb_conn *k, wbuf *w) {
     size_t room = k->cap > k->out_len + 8 ? k->cap - k->out_len - 8 : 0;
-    wb_init(w, k->out + k->out_len + 8, room);
+    rlbi_wb_init(w, k->out + k->out_len + 8, room);
     if (room == 0) w->overflow = true;
 }
 
-bool tcp_frame_end(rlb_conn *k, const wbuf *w) {
+bool rlbi_tcp_frame_end(rlb_conn *k, const wbuf *w) {
     if (w->overflow) return false;
     uint8_t *h = k->out + k->out_len;
     h[0] = 'R', h[1] = 'B', h[2] = RLB_PROTOCOL_VERSION, h[3] = 0;
@@ -28,7 +28,7 @@ bool tcp_frame_end(rlb_conn *k, const wbuf *w) {
 /* Moves the pending frames into the wire buffer (as sealed records on a keyed session). */
 static void stage(rlb_conn *k) {
     if (k->wire_off < k->wire_len || k->out_len == 0) return;
-    if (!k->sealed) {
+    if (!k->records) {
         uint8_t *t = k->wire;
         k->wire = k->out;
         k->out = t;
@@ -54,12 +54,11 @@ static void stage(rlb_conn *k) {
 }
 
 /* Writes what the socket takes now; false when the connection broke. */
-bool tcp_flush(rlb_conn *k) {
+bool rlbi_tcp_flush(rlb_conn *k) {
     for (int i = 0; i < 4; i++) {
         stage(k);
         if (k->wire_off >= k->wire_len) return true;
-        ssize_t n = send(k->tcp, k->wire + k->wire_off, k->wire_len - k->wire_off,
-                         MSG_NOSIGNAL | MSG_DONTWAIT);
+        ssize_t n = rlbi_stream_send(k, k->wire + k->wire_off, k->wire_len - k->wire_off);
         if (n < 0) return errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR;
         k->wire_off += (size_t)n;
         if (k->wire_off == k->wire_len) k->wire_off = k->wire_len = 0;
@@ -67,9 +66,9 @@ bool tcp_flush(rlb_conn *k) {
     return true;
 }
 
-bool tcp_flush_blocking(rlb_conn *k, int64_t deadline) {
-    while (conn_pending_bytes(k) > 0) {
-        if (!tcp_flush(k)) return false;
+bool rlbi_tcp_flush_blocking(rlb_conn *k, int64_t deadline) {
+    while (rlbi_conn_pending_bytes(k) > 0) {
+        if (!rlbi_tcp_flush(k)) return false;
         if (k->out_len == 0 && k->wire_off >= k->wire_len) break;
         int64_t left = (deadline - rlb_mono_ns()) / 1000000;
         if (left <= 0) return false;
@@ -82,7 +81,7 @@ bool tcp_flush_blocking(rlb_conn *k, int64_t deadline) {
 /* -- TCP input ----------------------------------------------------------------------------- */
 
 /* Opens complete sealed records from rec into in; false: the stream cannot be trusted. */
-bool tcp_open_records(rlb_conn *k) {
+bool rlbi_tcp_open_records(rlb_conn *k) {
     size_t at = 0;
     while (k->rec_len - at >= 8) {
         const uint8_t *h = k->rec + at;
@@ -113,16 +112,16 @@ bool tcp_open_records(rlb_conn *k) {
 }
 
 /* Reads what the socket has; false on EOF or error. */
-bool tcp_read(rlb_conn *k) {
+bool rlbi_tcp_read(rlb_conn *k) {
     for (int i = 0; i < 8; i++) {
         ssize_t n;
-        if (k->sealed) {
+        if (k->records) {
             size_t room = RECORD_MAX + 24 + 8 - k->rec_len;
-            if (room == 0) return tcp_open_records(k);
-            n = recv(k->tcp, k->rec + k->rec_len, room, MSG_DONTWAIT);
+            if (room == 0) return rlbi_tcp_open_records(k);
+            n = rlbi_stream_recv(k, k->rec + k->rec_len, room);
             if (n > 0) {
                 k->rec_len += (size_t)n;
-                if (!tcp_open_records(k)) return false;
+                if (!rlbi_tcp_open_records(k)) return false;
             }
         } else {
             if (k->in_off > 0) {
@@ -131,7 +130,7 @@ bool tcp_read(rlb_conn *k) {
                 k->in_off = 0;
             }
             if (k->in_len == k->cap) return true;
-            n = recv(k->tcp, k->in + k->in_len, k->cap - k->in_len, MSG_DONTWAIT);
+            n = rlbi_stream_recv(k, k->in + k->in_len, k->cap - k->in_len);
             if (n > 0) k->in_len += (size_t)n;
         }
         if (n == 0) return false;
@@ -141,8 +140,8 @@ bool tcp_read(rlb_conn *k) {
 }
 
 /* The next complete frame's body in in, or NULL; consumed by the caller via in_off. A frame
- * larger than the buffer is skipped (counted conn_malformed); -1 in *bad: the framing is lost. */
-const uint8_t *tcp_next_frame(rlb_conn *k, size_t *len, bool *bad) {
+ * larger than the buffer is skipped (counted malformed); -1 in *bad: the framing is lost. */
+const uint8_t *rlbi_tcp_next_frame(rlb_conn *k, size_t *len, bool *bad) {
     *bad = false;
     while (k->skip > 0 && k->in_off < k->in_len) {
         size_t n = k->in_len - k->in_off < k->skip ? k->in_len - k->in_off : k->skip;
@@ -159,8 +158,8 @@ const uint8_t *tcp_next_frame(rlb_conn *k, size_t *len, bool *bad) {
     if (n > k->cap - 8) {
         k->in_off += 8;
         k->skip = n;
-        conn_malformed(k);
-        return tcp_next_frame(k, len, bad);
+        rlbi_conn_malformed(k);
+        return rlbi_tcp_next_frame(k, len, bad);
     }
     if (k->in_len - k->in_off < 8 + n) return NULL;
     k->in_off += 8 + n;

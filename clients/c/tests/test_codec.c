@@ -31,17 +31,17 @@ static void batch_of_section_14_5(void **state) {
     uint64_t tag, ch, seq;
     int64_t st;
     double v;
-    mp_init(&c, b, n);
-    assert_true(mp_array(&c, &len) && len == 5);
-    assert_true(mp_u64(&c, &tag) && tag == 9);
-    assert_true(mp_u64(&c, &ch) && ch == 2);
-    assert_true(mp_u64(&c, &seq) && seq == 10);
-    assert_true(mp_array(&c, &ns) && ns == 2);
-    assert_true(mp_i64(&c, &st) && st == 1700000000000000000LL);
-    assert_true(mp_i64(&c, &st) && st == 1700000000001000000LL);
-    assert_true(mp_array(&c, &nv) && nv == 2);
-    assert_true(mp_f64(&c, &v) && v == 0.25);
-    assert_true(mp_f64(&c, &v) && v == -2.0);
+    rlbi_mp_init(&c, b, n);
+    assert_true(rlbi_mp_array(&c, &len) && len == 5);
+    assert_true(rlbi_mp_u64(&c, &tag) && tag == 9);
+    assert_true(rlbi_mp_u64(&c, &ch) && ch == 2);
+    assert_true(rlbi_mp_u64(&c, &seq) && seq == 10);
+    assert_true(rlbi_mp_array(&c, &ns) && ns == 2);
+    assert_true(rlbi_mp_i64(&c, &st) && st == 1700000000000000000LL);
+    assert_true(rlbi_mp_i64(&c, &st) && st == 1700000000001000000LL);
+    assert_true(rlbi_mp_array(&c, &nv) && nv == 2);
+    assert_true(rlbi_mp_f64(&c, &v) && v == 0.25);
+    assert_true(rlbi_mp_f64(&c, &v) && v == -2.0);
     assert_true(c.p == c.end && !c.err);
 }
 
@@ -51,31 +51,31 @@ static void truncated_and_hostile_input_is_an_error(void **state) {
     size_t n = unhex("9509020a92cf17979cfe362a0000cf17979cfe3639424092cb3fd0000000000000cbc000000000000000", b);
     for (size_t cut = 0; cut < n; cut++) { /* every prefix fails cleanly */
         mp_cur c;
-        mp_init(&c, b, cut);
-        assert_false(mp_skip(&c) && c.p == c.end && cut == n);
+        rlbi_mp_init(&c, b, cut);
+        assert_false(rlbi_mp_skip(&c) && c.p == c.end && cut == n);
     }
     uint8_t huge[] = {0xdd, 0xff, 0xff, 0xff, 0xff, 0x01}; /* array32 claims 4 G elements */
     mp_cur c;
-    mp_init(&c, huge, sizeof huge);
-    assert_false(mp_skip(&c));
+    rlbi_mp_init(&c, huge, sizeof huge);
+    assert_false(rlbi_mp_skip(&c));
     uint8_t deep[4096];
     memset(deep, 0x91, sizeof deep); /* 4096 nested arrays, no leaf: no recursion, an error */
-    mp_init(&c, deep, sizeof deep);
-    assert_false(mp_skip(&c));
+    rlbi_mp_init(&c, deep, sizeof deep);
+    assert_false(rlbi_mp_skip(&c));
     deep[sizeof deep - 1] = 0x01;
-    mp_init(&c, deep, sizeof deep);
-    assert_true(mp_skip(&c) && c.p == c.end);
+    rlbi_mp_init(&c, deep, sizeof deep);
+    assert_true(rlbi_mp_skip(&c) && c.p == c.end);
     uint8_t neg_uint[] = {0xd3, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff}; /* -1 as u64 */
     uint64_t u;
-    mp_init(&c, neg_uint, sizeof neg_uint);
-    assert_false(mp_u64(&c, &u));
+    rlbi_mp_init(&c, neg_uint, sizeof neg_uint);
+    assert_false(rlbi_mp_u64(&c, &u));
     srand(7);
     for (int i = 0; i < 20000; i++) { /* random bytes never read past the end */
         uint8_t r[32];
         size_t len = (size_t)(rand() % 32);
         for (size_t j = 0; j < len; j++) r[j] = (uint8_t)rand();
-        mp_init(&c, r, len);
-        if (mp_skip(&c)) assert_true(c.p <= c.end);
+        rlbi_mp_init(&c, r, len);
+        if (rlbi_mp_skip(&c)) assert_true(c.p <= c.end);
     }
 }
 
@@ -83,16 +83,16 @@ static void encoder_matches_section_14(void **state) {
     (void)state;
     uint8_t b[64], want[64];
     wbuf w;
-    wb_init(&w, b, sizeof b);
-    wb_array(&w, 3);
-    wb_u64(&w, 34);
-    wb_u64(&w, 4);
-    wb_u64(&w, 1280);
+    rlbi_wb_init(&w, b, sizeof b);
+    rlbi_wb_array(&w, 3);
+    rlbi_wb_u64(&w, 34);
+    rlbi_wb_u64(&w, 4);
+    rlbi_wb_u64(&w, 1280);
     size_t n = unhex("9322" "04cd0500", want);
     assert_int_equal(w.len, n);
     assert_memory_equal(b, want, n);
-    wb_init(&w, b, 3); /* overflow is reported, never written past cap */
-    wb_f64(&w, 1.5);
+    rlbi_wb_init(&w, b, 3); /* overflow is reported, never written past cap */
+    rlbi_wb_f64(&w, 1.5);
     assert_true(w.overflow);
 }
 
@@ -172,8 +172,8 @@ static void rings_and_triple_buffer(void **state) {
         uint64_t bits;
         memcpy(&bits, &d, 8);
         for (int j = 0; j < 8; j++) enc[1 + j] = (uint8_t)(bits >> (56 - 8 * j));
-        assert_true(chan_deliver(q, 0, enc, 9));
-        assert_true(chan_deliver(l, 0, enc, 9));
+        assert_true(rlbi_chan_deliver(q, 0, enc, 9));
+        assert_true(rlbi_chan_deliver(l, 0, enc, 9));
     }
     /* the queue returns every value in order, then the last one again, not new */
     for (int i = 1; i <= 3; i++) {
@@ -270,6 +270,19 @@ static void received_packets_of_section_14(void **state) {
     assert_int_equal(rlb_read_f64(ch[1], &v), RLB_NEW); /* only the seq-15 value */
     assert_true(v == 1.0);
     assert_int_equal(rlb_read_f64(ch[1], &v), 0);
+    /* a heartbeat echoing our clock 5 ms ago: one RTT sample of at least 5 ms */
+    assert_int_equal(rlb_rtt_ns(c), -1);
+    wbuf w;
+    rlbi_wb_init(&w, d + 8, sizeof d - 8);
+    rlbi_wb_array(&w, 3);
+    rlbi_wb_u64(&w, 10);
+    rlbi_wb_i64(&w, 1);
+    rlbi_wb_i64(&w, rlb_mono_ns() - 5000000);
+    n = unhex("5242010000000000", d);
+    d[7] = (uint8_t)w.len;
+    rlb_debug_feed_stream(c, d, 8 + w.len);
+    assert_true(rlb_rtt_ns(c) >= 5000000);
+    assert_true(rlb_rtt_ns(c) < 5000000000LL);
     rlb_close(c);
 }
 

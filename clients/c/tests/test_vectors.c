@@ -75,13 +75,13 @@ static void sealed_datagram(void **state) {
     /* header (flags SEALED), token, counter 1, then the Value body encoded by the library */
     size_t n = unhex("52420101" "0102030405060708" "0000000000000001", d);
     wbuf w;
-    wb_init(&w, d + n, sizeof d - n);
-    wb_array(&w, 5);
-    wb_u64(&w, 8);
-    wb_u64(&w, 1);
-    wb_u64(&w, 0);
-    wb_i64(&w, 0);
-    wb_f64(&w, 1.5);
+    rlbi_wb_init(&w, d + n, sizeof d - n);
+    rlbi_wb_array(&w, 5);
+    rlbi_wb_u64(&w, 8);
+    rlbi_wb_u64(&w, 1);
+    rlbi_wb_u64(&w, 0);
+    rlbi_wb_i64(&w, 0);
+    rlbi_wb_f64(&w, 1.5);
     assert_hex(d + n, w.len, "9508010000cb3ff8000000000000");
     rlb_seal(k.kc2s, 1, d, 20, d + 20, w.len, d + 20 + w.len);
     size_t total = 20 + w.len + 16;
@@ -106,12 +106,23 @@ static void sealed_record(void **state) {
     assert_hex(r, 8 + m + 16, "524201010000001fca15266c928933a65cc37cf162090c99662dc5a776da74b09b203704f7b3df");
 }
 
+static void tls_datagram_keys(void **state) {
+    (void)state;
+    uint8_t s[32];
+    seq_bytes(s, 32, 0x40);
+    rlb_keys k;
+    rlb_derive_tls(s, 32, 0x0102030405060708ULL, &k);
+    assert_hex(k.kc2s, 32, "5a58f53f05a892fb2469d003b250bdae04f893c757df3ebcbbdf832bcce033ed");
+    assert_hex(k.ks2c, 32, "9cf139d34df410d8571444e72a9dacd9d2ec3664924dc29a1e2f4bafc7d032c7");
+}
+
 int main(void) {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(transcript_and_proofs),
         cmocka_unit_test(session_keys),
         cmocka_unit_test(sealed_datagram),
         cmocka_unit_test(sealed_record),
+        cmocka_unit_test(tls_datagram_keys),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }
