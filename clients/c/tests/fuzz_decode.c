@@ -14,10 +14,10 @@
  *     as a plain and as a keyed client; the corpus and every 8th generated input also as the
  *     UDP-only handshake's datagrams (handshake_udp, bounded by a 1 ms deadline).
  *
- * The I/O side is the library's own code (its internal functions, src/conn.h): tcp_read,
- * tcp_next_frame and conn_packet as the session's receive step calls them, udp_read, and
- * conn_lost when the stream cannot go on. Subscribe channels are bound so
- * that values reach their rings, and the reader side then reads them (as numbers, arrays, raw
+ * The I/O side is the library's own code (its internal functions, src/conn.h, prefixed
+ * rlbi_): tcp_read, tcp_next_frame and conn_packet as the session's receive step calls them,
+ * udp_read, and conn_lost when the stream cannot go on. Subscribe channels are bound so that
+ * values reach their rings, and the reader side then reads them (as numbers, arrays, raw
  * bytes and message fields). A malformed packet must be a count (conn->malformed, a dropped
  * datagram, a lost session), never a crash: under -DRLB_SANITIZE=ON AddressSanitizer and
  * UndefinedBehaviorSanitizer abort on the first invalid access, overflow or leak, and the
@@ -106,16 +106,16 @@ static void set_nonblock(int fd) { (void)fcntl(fd, F_SETFL, fcntl(fd, F_GETFL, 0
 /* The session's receive step on its TCP socket (session.c's spin_io, without the poll). */
 static void receive_tcp(rlb_client *c) {
     rlb_conn *k = c->conn;
-    bool ok = tcp_read(k);
+    bool ok = rlbi_tcp_read(k);
     for (;;) {
         size_t len;
         bool bad;
-        const uint8_t *f = tcp_next_frame(k, &len, &bad);
+        const uint8_t *f = rlbi_tcp_next_frame(k, &len, &bad);
         if (bad) ok = false;
         if (f == NULL || !k->up) break;
-        conn_packet(c, f, len, false);
+        rlbi_conn_packet(c, f, len, false);
     }
-    if (!ok && k->up) conn_lost(c, "connection closed");
+    if (!ok && k->up) rlbi_conn_lost(c, "connection closed");
 }
 
 /* A live session on socketpairs: every channel bound, the client's socket ends in k. */
@@ -138,7 +138,8 @@ static void session_up(rlb_client *c, int *peer_tcp, int *peer_udp, bool sealed)
     k->timeout_ms = 600;
     k->up = true;
     k->closed = false;
-    k->sealed = sealed;
+    k->sealed = sealed;  /* datagrams */
+    k->records = sealed; /* the TCP stream */
     memset(&k->keys, 0, sizeof k->keys);
     memcpy(k->keys.rs2c, KEY_B, 32);
     memcpy(k->keys.ks2c, KEY_B, 32);
@@ -156,7 +157,7 @@ static void session_down(rlb_client *c, int peer_tcp, int peer_udp) {
     if (!k->up) T.sessions_lost++;
     T.records += k->rec_rx;         /* sealed records that opened */
     T.sealed_dgrams += k->replay_top > 0; /* a sealed datagram that opened */
-    conn_close_sockets(k); /* idempotent: a lost session closed them already */
+    rlbi_conn_close_sockets(k); /* idempotent: a lost session closed them already */
     close(peer_tcp);
     close(peer_udp);
 }
@@ -165,10 +166,10 @@ static void invariants(const rlb_client *c) {
     const rlb_conn *k = c->conn;
     check(k->in_off <= k->in_len && k->in_len <= k->cap, "TCP input buffer bounds");
     check(k->rec_len <= RECORD_MAX + 24 + 8, "record buffer bounds");
-    check(conn_pending_bytes(k) <= k->wire_cap, "output buffer bounds");
+    check(rlbi_conn_pending_bytes(k) <= k->wire_cap, "output buffer bounds");
     for (uint32_t i = 0; i < c->n_channels; i++) {
         const rlb_channel *ch = c->channels[i];
-        if (ch->mode == RLB_QUEUE) check(ring_count(&ch->ring) <= ch->ring.cap, "ring bounds");
+        if (ch->mode == RLB_QUEUE) check(rlbi_ring_count(&ch->ring) <= ch->ring.cap, "ring bounds");
     }
 }
 
@@ -217,7 +218,7 @@ static void as_datagram(rlb_client *c, const uint8_t *data, size_t len, bool sea
     int pt, pu;
     session_up(c, &pt, &pu, sealed);
     if (len > 0) check(send(pu, data, len, 0) == (ssize_t)len, "datagram send");
-    udp_read(c);
+    rlbi_udp_read(c);
     invariants(c);
     session_down(c, pt, pu);
 }
@@ -225,8 +226,8 @@ static void as_datagram(rlb_client *c, const uint8_t *data, size_t len, bool sea
 static void as_body(rlb_client *c, const uint8_t *data, size_t len) {
     int pt, pu;
     session_up(c, &pt, &pu, false);
-    conn_packet(c, data, len, false);
-    if (c->conn->up) conn_packet(c, data, len, true);
+    rlbi_conn_packet(c, data, len, false);
+    if (c->conn->up) rlbi_conn_packet(c, data, len, true);
     invariants(c);
     session_down(c, pt, pu);
 }
@@ -241,11 +242,11 @@ static void as_handshake(rlb_client *c, const uint8_t *data, size_t len, bool ud
     rlb_status rc;
     if (udp) {
         if (len > 0) check(send(pu, data, len, 0) == (ssize_t)len, "datagram send");
-        rc = handshake_udp(c, rlb_mono_ns() + 1000000);
+        rc = rlbi_handshake_udp(c, rlb_mono_ns() + 1000000);
     } else {
         if (len > 1) check(write(pt, data + 1, len - 1) == (ssize_t)(len - 1), "stream write");
         shutdown(pt, SHUT_WR);
-        rc = handshake_tcp(c, rlb_mono_ns() + 5000000); /* see the note above main */
+        rc = rlbi_handshake_tcp(c, rlb_mono_ns() + 5000000); /* see the note above main */
     }
     check(rc <= RLB_OK, "a handshake status");
     T.handshakes++;
@@ -257,7 +258,7 @@ static void as_handshake(rlb_client *c, const uint8_t *data, size_t len, bool ud
 
 static void one_input(rlb_client *c, rlb_client *keyed, const uint8_t *data, size_t len,
                       bool udp_handshake) {
-    uint64_t before = c->conn->conn_malformed;
+    uint64_t before = c->conn->malformed;
     T.inputs++;
     as_stream(c, data, len, false);
     as_stream(c, data, len, true);
@@ -273,7 +274,7 @@ static void one_input(rlb_client *c, rlb_client *keyed, const uint8_t *data, siz
         as_handshake(keyed, data + (len > 0), len - (len > 0), true);
     }
     drain(c);
-    T.malformed += c->conn->conn_malformed - before;
+    T.malformed += c->conn->malformed - before;
 }
 
 static uint64_t rng_state = 0x9e3779b97f4a7c15ULL;
@@ -291,44 +292,44 @@ static uint64_t rnd(void) {
 static size_t structured(uint8_t *buf, size_t cap) {
     static uint8_t body[2048], filler[512];
     wbuf w;
-    wb_init(&w, body, sizeof body);
+    rlbi_wb_init(&w, body, sizeof body);
     unsigned parts = rnd() % 3 == 0 ? (unsigned)(rnd() % 4) + 1 : 0;
     if (parts) { /* a bundle of values */
-        wb_array(&w, 2);
-        wb_u64(&w, 32);
-        wb_array(&w, parts);
+        rlbi_wb_array(&w, 2);
+        rlbi_wb_u64(&w, 32);
+        rlbi_wb_array(&w, parts);
     }
     for (unsigned p = 0; p < (parts ? parts : 1); p++) {
         bool batch = rnd() % 4 == 0;
         uint32_t n = batch ? (uint32_t)(rnd() % 5) : 1;
-        wb_array(&w, 5);
-        wb_u64(&w, batch ? 9 : 8);
-        wb_u64(&w, rnd() % (N_CHANNELS + 2));
-        wb_u64(&w, rnd() % 4 ? rnd() % 64 : rnd());
+        rlbi_wb_array(&w, 5);
+        rlbi_wb_u64(&w, batch ? 9 : 8);
+        rlbi_wb_u64(&w, rnd() % (N_CHANNELS + 2));
+        rlbi_wb_u64(&w, rnd() % 4 ? rnd() % 64 : rnd());
         if (batch) {
-            wb_array(&w, n);
-            for (uint32_t i = 0; i < n; i++) wb_i64(&w, (int64_t)rnd());
-            wb_array(&w, n);
+            rlbi_wb_array(&w, n);
+            for (uint32_t i = 0; i < n; i++) rlbi_wb_i64(&w, (int64_t)rnd());
+            rlbi_wb_array(&w, n);
         } else {
-            wb_i64(&w, (int64_t)rnd());
+            rlbi_wb_i64(&w, (int64_t)rnd());
         }
         for (uint32_t i = 0; i < n; i++) {
             size_t len = rnd() % 400;
             for (size_t b = 0; b < len; b++) filler[b] = (uint8_t)rnd();
             switch (rnd() % 5) {
-            case 0: wb_f64(&w, (double)(int64_t)rnd()); break;
-            case 1: wb_str(&w, (const char *)filler, len); break;
-            case 2: wb_bin(&w, filler, len); break;
+            case 0: rlbi_wb_f64(&w, (double)(int64_t)rnd()); break;
+            case 1: rlbi_wb_str(&w, (const char *)filler, len); break;
+            case 2: rlbi_wb_bin(&w, filler, len); break;
             case 3:
-                wb_array(&w, (uint32_t)(len % 40));
-                for (size_t j = 0; j < len % 40; j++) wb_f64(&w, (double)j);
+                rlbi_wb_array(&w, (uint32_t)(len % 40));
+                for (size_t j = 0; j < len % 40; j++) rlbi_wb_f64(&w, (double)j);
                 break;
             default:
-                wb_map(&w, 1);
-                wb_str(&w, "linear", 6);
-                wb_map(&w, 1);
-                wb_str(&w, "x", 1);
-                wb_f64(&w, 1.5);
+                rlbi_wb_map(&w, 1);
+                rlbi_wb_str(&w, "linear", 6);
+                rlbi_wb_map(&w, 1);
+                rlbi_wb_str(&w, "x", 1);
+                rlbi_wb_f64(&w, 1.5);
             }
         }
     }

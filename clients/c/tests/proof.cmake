@@ -3,7 +3,6 @@
 #
 #  - rt_seccomp: the loop thread under a seccomp filter (tests/c_client/test_c_realtime.py).
 #  - fuzz_decode: the fuzz corpus and random bytes through the receive path (ctest).
-#  - alloc_fail: every failed allocation at creation and declare time is an error (ctest).
 #  - rlb_rt_bench: benchmarks/c_client_rt.py's loop, jitter and latency program.
 #
 # -DRLB_SANITIZE=ON builds everything (the library included) with AddressSanitizer and
@@ -39,31 +38,21 @@ endif()
 rlb_proof_program(rlb_rt_bench ${RLB_REPO_ROOT}/benchmarks/c_client/rlb_rt_bench.c)
 target_link_libraries(rlb_rt_bench PRIVATE rlbridge)
 
-# The receive path through the library's internal functions (src/conn.h).
-rlb_proof_program(fuzz_decode ${RLB_PROOF_DIR}/fuzz_decode.c)
-target_include_directories(fuzz_decode PRIVATE src)
-target_link_libraries(fuzz_decode PRIVATE rlbridge)
-
-if(CMAKE_SYSTEM_NAME STREQUAL "Linux") # --wrap: GNU ld and lld
-  rlb_proof_program(alloc_fail ${RLB_PROOF_DIR}/alloc_fail.c)
-  target_link_libraries(alloc_fail PRIVATE rlbridge)
-  target_link_options(alloc_fail PRIVATE -Wl,--wrap=malloc,--wrap=calloc,--wrap=realloc)
+# The receive path through the library's internal functions (src/conn.h): the static
+# library only (a shared one exports rlb_* alone).
+if(NOT BUILD_SHARED_LIBS)
+  rlb_proof_program(fuzz_decode ${RLB_PROOF_DIR}/fuzz_decode.c)
+  target_include_directories(fuzz_decode PRIVATE src)
+  target_link_libraries(fuzz_decode PRIVATE rlbridge)
 endif()
 
-if(RLB_TESTS)
+if(RLB_TESTS AND TARGET fuzz_decode)
   enable_testing()
   set(RLB_FUZZ_RANDOM 2000 CACHE STRING "fuzz_decode: generated inputs after the corpus")
   add_test(NAME fuzz_decode COMMAND fuzz_decode --random ${RLB_FUZZ_RANDOM}
     ${RLB_REPO_ROOT}/fuzz/corpus/decoder ${RLB_REPO_ROOT}/fuzz/corpus/server)
-  if(TARGET alloc_fail)
-    add_test(NAME alloc_fail COMMAND alloc_fail)
-  endif()
   if(RLB_SANITIZE)
     set_tests_properties(fuzz_decode PROPERTIES ENVIRONMENT
-      "ASAN_OPTIONS=halt_on_error=1:detect_leaks=1:abort_on_error=1;UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1")
-  endif()
-  if(RLB_SANITIZE AND TARGET alloc_fail)
-    set_tests_properties(alloc_fail PROPERTIES ENVIRONMENT
       "ASAN_OPTIONS=halt_on_error=1:detect_leaks=1:abort_on_error=1;UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1")
   endif()
 endif()
