@@ -25,7 +25,7 @@ def _unavailable(why: str) -> None:
     if REQUIRE:
         pytest.fail(f"the C client cannot be built ({why}) and RLBRIDGE_TEST_REQUIRE_C=1")
     pytest.skip(f"the C client cannot be built here: {why} "
-                "(apt-get install cmake gcc libmsgpack-dev libsodium-dev)")
+                "(apt-get install cmake gcc libmsgpack-dev libsodium-dev libssl-dev)")
 
 
 @pytest.fixture(scope="session")

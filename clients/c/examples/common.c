@@ -24,6 +24,15 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
                 exit(2);
             }
             a->channels = (unsigned)n;
+        } else if (strcmp(argv[i], "--redundancy") == 0 && strstr(usage, "--redundancy") &&
+                   i + 1 < argc) {
+            char *end;
+            unsigned long k = strtoul(argv[++i], &end, 10);
+            if (*end || k > 16) {
+                fprintf(stderr, "%s: --redundancy takes 0..16, not %s\n", argv[0], argv[i]);
+                exit(2);
+            }
+            a->redundancy = (unsigned)k;
         } else if (strcmp(argv[i], "--udp-only") == 0 && strstr(usage, "--udp-only")) {
             a->udp_only = true;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
@@ -88,6 +97,10 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
     cfg->tls_fingerprint = a->tls_fingerprint;
     cfg->tls_cert_file = a->tls_cert;
     cfg->tls_key_file = a->tls_key;
+    if (a->redundancy && a->tcp) {
+        fprintf(stderr, "%s: --redundancy is for UDP: not with --tcp\n", prog);
+        exit(2);
+    }
     if (a->udp_only && a->tcp) {
         fprintf(stderr, "%s: --tcp needs a TCP session: not with --udp-only\n", prog);
         exit(2);

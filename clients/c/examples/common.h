@@ -18,7 +18,8 @@ typedef struct args {
     bool tcp;
     bool spin; /* rlb_sub --spin: no I/O thread, rlb_spin_once from the reading thread */
     bool udp_only; /* --udp-only: a UDP-only session (for a server without TCP) */
-    unsigned channels; /* rlb_pub --channels N: TOPIC_0 .. TOPIC_{N-1}, default 1: TOPIC */
+    unsigned channels;
+    unsigned redundancy; /* --redundancy K: UDP datagrams repeat the previous K values */ /* rlb_pub --channels N: TOPIC_0 .. TOPIC_{N-1}, default 1: TOPIC */
 } args;
 
 /* Parses HOST PORT TOPIC COUNT [NUMBER] [--tcp] [--psk-file FILE] [--spin] [--channels N] [--udp-only] [--tls-ca FILE] [--tls-fingerprint HEX] (the options the

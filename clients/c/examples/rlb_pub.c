@@ -7,7 +7,8 @@
  * same values on N channels, topics TOPIC_0 .. TOPIC_{N-1} (over UDP, one datagram per round
  * carries them all). --udp-only: a UDP-only session (protocol.md 8.2), for a server without
  * TCP. --tls-ca FILE / --tls-fingerprint HEX: TLS, the server verified by that CA or pinned;
- * --tls-cert/--tls-key: a client certificate (a server with --tls-client-ca).
+ * --tls-cert/--tls-key: a client certificate (a server with --tls-client-ca). --redundancy K:
+ * each datagram repeats the previous K values (protocol.md 10.3).
  * The loop thread makes no system call but its sleep (clock_nanosleep) and clock reads.
  */
 #include <stdio.h>
@@ -60,6 +61,7 @@ int main(int argc, char **argv) {
     args a;
     parse_args(argc, argv,
                "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only] "
+               "[--redundancy K] "
                "[--tls-ca FILE | --tls-fingerprint HEX] [--tls-cert FILE --tls-key FILE]",
                &a);
     rlb_config cfg;
@@ -87,6 +89,7 @@ int main(int argc, char **argv) {
         rlb_channel_opts_init(&o, topic, "std_msgs/msg/Float64", "data");
         o.transport = a.tcp ? RLB_TCP : RLB_UDP;
         o.capacity = 4096;
+        o.redundancy = (uint8_t)a.redundancy;
         if ((rc = rlb_publish(c, &o, &l.ch[k])) != RLB_OK) {
             fprintf(stderr, "rlb_pub: bad channel %s: %s\n", topic, rlb_status_text(rc));
             rlb_close(c);

@@ -8,7 +8,8 @@
  * "connected"); the client reconnects by itself. --spin: no I/O thread, the reading thread
  * runs the I/O itself (rlb_spin_once, what a single-threaded target does). --udp-only: a
  * UDP-only session (protocol.md 8.2), for a server without TCP. --tls-ca FILE /
- * --tls-fingerprint HEX: TLS, the server verified by that CA or pinned.
+ * --tls-fingerprint HEX: TLS, the server verified by that CA or pinned. --redundancy K: the
+ * server repeats the previous K values in each datagram; the duplicates are dropped, counted.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -34,6 +35,7 @@ int main(int argc, char **argv) {
     args a;
     parse_args(argc, argv,
                "HOST PORT TOPIC COUNT TIMEOUT_S [--tcp] [--psk-file FILE] [--spin] [--udp-only] "
+               "[--redundancy K] "
                "[--tls-ca FILE | --tls-fingerprint HEX]",
                &a);
     rlb_config cfg;
@@ -52,6 +54,7 @@ int main(int argc, char **argv) {
     rlb_channel_opts_init(&o, a.topic, "std_msgs/msg/Float64", "data");
     o.transport = a.tcp ? RLB_TCP : RLB_UDP;
     o.mode = RLB_QUEUE;
+    o.redundancy = (uint8_t)a.redundancy;
     o.capacity = a.tcp || a.count < 64 ? 64 : a.count > (1u << 20) ? (1u << 20) : (uint32_t)a.count;
     rlb_channel *ch;
     if ((rc = rlb_subscribe(c, &o, &ch)) != RLB_OK) {

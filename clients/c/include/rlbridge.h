@@ -126,11 +126,16 @@ typedef struct rlb_channel_opts {
     rlb_transport transport;   /* how the server sends this channel's values; default UDP */
     rlb_mode mode;             /* incoming channels only; default RLB_LATEST */
     uint32_t capacity;         /* values the ring holds (publish, RLB_QUEUE), default 64 */
-    uint32_t value_bytes;      /* largest encoded value, default 16 (any scalar); arrays:
-                                  rlb_array_bytes(n); whole messages: what they need */
+    uint32_t value_bytes;      /* largest encoded value, default 16: any number or bool;
+                                  strings: length + 5; arrays: rlb_array_bytes(n); whole
+                                  messages: what they need. Larger values are refused
+                                  (write: RLB_E_TOOBIG; received: dropped, counted) */
     int flow;                  /* credit flow control: -1 default (on for TCP every-value
                                   channels: publish, and RLB_QUEUE subscribe), 0 off, 1 on */
     uint16_t qos_depth;        /* middleware history depth, default 10 */
+    uint8_t redundancy;        /* UDP, 0..16: each datagram repeats the channel's previous k
+                                  values (protocol.md 10.3); publish: this client does it,
+                                  subscribe: the server does; a lost datagram loses nothing */
     void *storage;             /* optional user buffer for the ring (see rlb_channel_storage) */
     size_t storage_bytes;
 } rlb_channel_opts;

@@ -116,6 +116,7 @@ void rlbi_chan_free(rlb_channel *ch) {
     free(ch->msg_type);
     free(ch->field);
     free(ch->cur);
+    free(ch->hist);
     if (!ch->user_storage) free(ch->ring.mem ? ch->ring.mem : ch->triple.mem);
     free(ch);
 }
@@ -135,6 +136,10 @@ static rlb_status declare(rlb_client *c, const rlb_channel_opts *o, int dir, rlb
     bool flow = o->flow == -1 ? (o->transport == RLB_TCP && every) : o->flow == 1;
     if (flow && (o->transport != RLB_TCP || !every)) return RLB_E_INVAL; /* protocol.md 10.5 */
     if (c->cfg.control == RLB_UDP && o->transport == RLB_TCP) return RLB_E_INVAL; /* 8.2 */
+    if (o->redundancy > 16 || (o->redundancy && o->transport != RLB_UDP)) return RLB_E_INVAL;
+    /* the repeated values and a new one must fit one sealed datagram (1400 bytes) */
+    if (o->redundancy && (o->redundancy + 1u) * (9u + o->value_bytes) + 40u > 1340u)
+        return RLB_E_INVAL;
     if (c->started || c->connected_once) return RLB_E_STATE;
     if (c->n_channels >= c->cfg.max_channels) return RLB_E_INVAL;
     size_t need = storage_for(o, dir);
@@ -148,6 +153,9 @@ static rlb_status declare(rlb_client *c, const rlb_channel_opts *o, int dir, rlb
     ch->mode = dir == DIR_PUBLISH ? RLB_QUEUE : o->mode;
     ch->flow = flow;
     ch->qos_depth = o->qos_depth;
+    ch->redundancy = o->redundancy;
+    if (dir == DIR_PUBLISH && o->redundancy)
+        ch->hist = malloc((size_t)o->redundancy * stride_of(o->value_bytes));
     ch->value_bytes = o->value_bytes;
     ch->topic = dup_str(o->topic);
     ch->msg_type = dup_str(o->msg_type);
@@ -170,7 +178,7 @@ static rlb_status declare(rlb_client *c, const rlb_channel_opts *o, int dir, rlb
         atomic_init(&ch->ring.tail, 0);
     }
     if (ch->topic == NULL || ch->msg_type == NULL || (o->field && ch->field == NULL) ||
-        ch->cur == NULL || mem == NULL) {
+        ch->cur == NULL || mem == NULL || (dir == DIR_PUBLISH && o->redundancy && !ch->hist)) {
         rlbi_chan_free(ch);
         return RLB_E_NOMEM;
     }

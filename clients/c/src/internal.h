@@ -114,6 +114,7 @@ struct rlb_channel {
     rlb_mode mode;
     bool flow;
     uint16_t qos_depth;
+    uint8_t redundancy;
     char *topic, *msg_type, *field; /* field NULL: whole messages */
     uint32_t value_bytes;
     bool user_storage;
@@ -133,6 +134,8 @@ struct rlb_channel {
     uint64_t pushed;       /* subscribe: values pushed into the ring, ever */
     uint64_t credit_base;  /* subscribe+flow: credit = consumed - credit_base */
     uint64_t credit_sent;
+    uint8_t *hist;          /* publish redundancy: the last values sent (I/O side) */
+    uint32_t hist_n, hist_at; /* how many, and the slot of the oldest */
     /* counters, relaxed atomics */
     _Atomic uint64_t n_values, n_lost, n_duplicates, n_dropped, n_errors, n_srv_received;
     _Atomic uint64_t n_consumed; /* subscribe: values the reader took from the ring */

@@ -32,7 +32,44 @@ void rlbi_send_udp_heartbeat(rlb_conn *k, int64_t now) {
 }
 
 /* The value part of k values of a publish channel: Value for one, Batch for more. */
+static rlb_slot *hist_slot(const rlb_channel *ch, uint32_t i) { /* i = 0: the oldest */
+    size_t at = (ch->hist_at + i) % ch->redundancy;
+    return (rlb_slot *)(void *)(ch->hist + ch->ring.stride * at);
+}
+
+/* Bytes the repeated values add to a part: a stamp and a value each. */
+static size_t hist_bytes(const rlb_channel *ch) {
+    size_t n = 0;
+    for (uint32_t i = 0; i < ch->hist_n; i++) n += 9 + hist_slot(ch, i)->len;
+    return n;
+}
+
+/* With redundancy, a Batch that starts with the previous values (protocol.md 10.3). */
+static void enc_redundant(wbuf *w, rlb_channel *ch, size_t n) {
+    uint32_t h = ch->hist_n;
+    rlbi_wb_array(w, 5);
+    rlbi_wb_u64(w, T_BATCH);
+    rlbi_wb_u64(w, ch->id);
+    rlbi_wb_u64(w, ch->next_seq - h);
+    rlbi_wb_array(w, (uint32_t)(h + n));
+    for (uint32_t i = 0; i < h; i++) rlbi_wb_i64(w, hist_slot(ch, i)->stamp);
+    for (size_t i = 0; i < n; i++) rlbi_wb_i64(w, rlbi_ring_peek(&ch->ring, i)->stamp);
+    rlbi_wb_array(w, (uint32_t)(h + n));
+    for (uint32_t i = 0; i < h; i++) {
+        rlb_slot *s = hist_slot(ch, i);
+        rlbi_wb_raw(w, s->data, s->len);
+    }
+    for (size_t i = 0; i < n; i++) {
+        rlb_slot *s = rlbi_ring_peek(&ch->ring, i);
+        rlbi_wb_raw(w, s->data, s->len);
+    }
+}
+
 static void enc_part(wbuf *w, rlb_channel *ch, size_t n) {
+    if (ch->hist_n > 0) {
+        enc_redundant(w, ch, n);
+        return;
+    }
     if (n == 1) {
         rlb_slot *s = rlbi_ring_peek(&ch->ring, 0);
         rlbi_wb_array(w, 5);
@@ -57,6 +94,12 @@ static void enc_part(wbuf *w, rlb_channel *ch, size_t n) {
 }
 
 static void sent(rlb_channel *ch, size_t n) {
+    for (size_t i = 0; ch->hist && i < n; i++) { /* keep the last `redundancy` values */
+        rlb_slot *s = rlbi_ring_peek(&ch->ring, i);
+        if (ch->hist_n == ch->redundancy) ch->hist_at = (ch->hist_at + 1) % ch->redundancy;
+        else ch->hist_n++;
+        memcpy(hist_slot(ch, ch->hist_n - 1), s, sizeof *s + s->len);
+    }
     rlbi_ring_release(&ch->ring, n);
     ch->next_seq += n;
     atomic_fetch_add_explicit(&ch->n_values, n, memory_order_relaxed);
@@ -98,7 +141,8 @@ void rlbi_send_udp_round(rlb_client *c) {
         rlb_channel *ch = c->channels[(k->rr + j) % n];
         if (!ready_to_send(ch) || ch->transport != RLB_UDP) continue;
         for (;;) {
-            size_t avail = rlbi_ring_count(&ch->ring), take = 0, size = PART_FIXED;
+            size_t avail = rlbi_ring_count(&ch->ring), take = 0;
+            size_t size = PART_FIXED + hist_bytes(ch);
             while (take < avail && take < 65535) {
                 size_t more = 9 + rlbi_ring_peek(&ch->ring, take)->len;
                 if (used + size + more > budget) break;
@@ -215,7 +259,7 @@ bool rlbi_send_topic_connect(rlb_conn *k, rlb_channel *ch) {
     rlbi_wb_nil(&w);            /* reliability: by transport */
     rlbi_wb_u64(&w, ch->qos_depth);
     rlbi_wb_u64(&w, 0);         /* max_age_ms */
-    rlbi_wb_u64(&w, 0);         /* redundancy */
+    rlbi_wb_u64(&w, ch->redundancy);
     rlbi_wb_bool(&w, false);    /* latest */
     rlbi_wb_bool(&w, ch->flow);
     rlbi_wb_bool(&w, pub);      /* loss_report: the server's first-hop counts, publish only */

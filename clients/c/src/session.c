@@ -129,6 +129,7 @@ static void reset_bindings(rlb_client *c) {
         ch->next_seq = 0; /* every binding numbers from 0 (protocol.md 10.5) */
         ch->credit = UINT64_MAX;
         ch->has_highest = false;
+        ch->hist_n = ch->hist_at = 0; /* a new binding repeats nothing of the old one */
         atomic_store(&ch->bound, false);
     }
 }

@@ -210,6 +210,16 @@ static void bad_declarations_are_errors(void **state) {
     o.flow = -1;
     o.capacity = 0;
     assert_int_equal(rlb_publish(c, &o, &ch), RLB_E_INVAL);
+    o.capacity = 8;
+    o.redundancy = 2;
+    o.transport = RLB_TCP; /* redundancy is a UDP policy (protocol.md 10.3) */
+    assert_int_equal(rlb_publish(c, &o, &ch), RLB_E_INVAL);
+    o.transport = RLB_UDP;
+    o.redundancy = 17;
+    assert_int_equal(rlb_publish(c, &o, &ch), RLB_E_INVAL);
+    o.redundancy = 16;
+    o.value_bytes = 100; /* 17 values of 100 bytes do not fit a datagram */
+    assert_int_equal(rlb_publish(c, &o, &ch), RLB_E_INVAL);
     rlb_close(c);
     cfg.max_channels = 0;
     assert_int_equal(rlb_client_new(&cfg, &c), RLB_E_INVAL);
