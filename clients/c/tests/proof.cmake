@@ -5,28 +5,16 @@
 #  - fuzz_decode: the fuzz corpus and random bytes through the receive path (ctest).
 #  - rlb_rt_bench: benchmarks/c_client_rt.py's loop, jitter and latency program.
 #
-# -DRLB_SANITIZE=ON builds everything (the library included) with AddressSanitizer and
-# UndefinedBehaviorSanitizer, every report fatal (scripts/test.sh: build/c-asan).
-option(RLB_SANITIZE "Build with AddressSanitizer and UndefinedBehaviorSanitizer" OFF)
-if(RLB_SANITIZE)
-  set(RLB_SAN_FLAGS -fsanitize=address,undefined -fno-sanitize-recover=all
-      -fno-omit-frame-pointer)
-  foreach(target rlbridge rlb_pub rlb_sub rlb_twist rlb_array)
-    target_compile_options(${target} PRIVATE ${RLB_SAN_FLAGS})
-    target_link_options(${target} PRIVATE ${RLB_SAN_FLAGS})
-  endforeach()
-  # The library is static: whoever links it links the sanitizer runtime too.
-  target_link_options(rlbridge INTERFACE ${RLB_SAN_FLAGS})
-endif()
+# -DRLB_SANITIZE=ON (CMakeLists.txt) builds these under ASan and UBSan too; scripts/test.sh runs
+# fuzz_decode so in build/c-asan.
 
 set(RLB_PROOF_DIR ${CMAKE_CURRENT_LIST_DIR})
 set(RLB_REPO_ROOT ${CMAKE_CURRENT_LIST_DIR}/../../..)
 
 function(rlb_proof_program name)
   add_executable(${name} ${ARGN})
-  target_compile_options(${name} PRIVATE ${RLB_WARNINGS} ${RLB_SAN_FLAGS})
+  target_compile_options(${name} PRIVATE ${RLB_WARNINGS})
   target_compile_definitions(${name} PRIVATE _POSIX_C_SOURCE=200809L _DEFAULT_SOURCE)
-  target_link_options(${name} PRIVATE ${RLB_SAN_FLAGS})
   set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR})
 endfunction()
 
