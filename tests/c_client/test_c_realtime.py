@@ -1,16 +1,19 @@
 """The real-time rule of the C client, proven by the kernel (issue 28, point 6).
 
 ``rt_seccomp`` (clients/c/tests/rt_seccomp.c) runs a 1 kHz loop that writes to 10 publish
-channels (even ones UDP, odd ones TCP) under a seccomp filter installed on the loop thread
-only, which kills the process on any system call but ``clock_nanosleep`` and
+channels (even ones UDP, odd ones TCP) and reads two subscriptions (the server's echo of two
+of them: the newest value, and every value over TCP) under a seccomp filter installed on the
+loop thread only, which kills the process on any system call but ``clock_nanosleep`` and
 ``clock_gettime``; the library's I/O thread streams the values to a real ``rlbridge serve``.
-The program must run to its end and exit 0, and a Python SDK subscriber must receive every
-value of every channel, in order. The negative control makes one ``write(2)`` from the same
-loop and must be killed by SIGSYS: the filter is there and enforced.
+The program must run to its end and exit 0, a Python SDK subscriber must receive every value
+of every channel, in order, and the loop must have read its own values back. The negative
+control makes one ``write(2)`` from the same loop and must be killed by SIGSYS: the filter is
+there and enforced.
 """
 
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import threading
@@ -61,6 +64,11 @@ def test_the_loop_runs_to_its_end_under_the_filter(c_build: Path, cli_server: Se
     assert f"{COUNT} values x {CHANNELS} channels written, {COUNT * CHANNELS} sent" in run.stderr
     for i in range(CHANNELS):
         assert got[i] == [float(v) for v in range(COUNT)], f"channel {i}: {len(got[i])} values"
+    read_back = re.search(r"read back (\d+) new latest values, (\d+) FIFO values in order",
+                          run.stderr)
+    assert read_back is not None, run.stderr
+    assert int(read_back[1]) > 0
+    assert int(read_back[2]) == COUNT
 
 
 def test_one_forbidden_call_in_the_loop_is_killed(c_build: Path, cli_server: Server) -> None:

@@ -4,7 +4,9 @@
  * The proof of the real-time rule (issue 28, point 6): a periodic loop thread writes the
  * values 0 .. COUNT-1 to CHANNELS publish channels PREFIX0 .. PREFIX<n-1> at RATE_HZ (the
  * even channels over UDP, the odd ones over TCP) while the library's I/O thread streams them
- * to the server. Before its first period the loop thread installs a seccomp filter on itself
+ * to the server. The same loop reads what the server sends back of PREFIX0 (a latest-value
+ * subscription, UDP) and PREFIX1 (every value, a FIFO over TCP with credit), and calls the
+ * other real-time functions (rlb_link_state, rlb_channel_stats_get, rlb_read_stamp). Before its first period the loop thread installs a seccomp filter on itself
  * alone (no TSYNC: the I/O thread and main are not filtered) that kills the whole process
  * (SIGSYS) on every system call but clock_nanosleep and clock_gettime. The loop therefore
  * runs to its end only if rlb_write_f64 makes no system call. After the last value the loop
@@ -14,7 +16,8 @@
  * --forbidden: the negative control, the same loop with one write(2) to stderr in its 10th
  * period; the process must die of SIGSYS, proving that the filter is installed and enforced.
  *
- * stderr: "filter installed" once the loop thread is filtered, then a summary line.
+ * stderr: "filter installed" once the loop thread is filtered, then a summary line; with
+ * "in order" when the FIFO subscription read every value 0 .. COUNT-1 in order.
  */
 #include <errno.h>
 #include <pthread.h>
@@ -52,7 +55,10 @@
                   BPF_STMT(BPF_RET | BPF_K, SECCOMP_RET_ALLOW)
 
 typedef struct loop {
+    rlb_client *client;
     rlb_channel *ch[MAX_CHANNELS];
+    rlb_channel *latest, *fifo; /* subscriptions to PREFIX0 and PREFIX1 */
+    unsigned long latest_new, fifo_read, fifo_wrong;
     unsigned n;
     unsigned long count;
     long period_ns;
@@ -103,8 +109,13 @@ static void *run(void *arg) {
     clock_gettime(CLOCK_MONOTONIC, &next);
     unsigned long next_value[MAX_CHANNELS] = {0}, done = 0;
     /* Bounded: a ring that stays full (an I/O side that stopped) ends the loop early, and the
-     * values missing at the server say so. */
-    for (unsigned long period = 0; done < l->n && period < 4 * l->count + 1000; period++) {
+     * values missing at the server say so. After the writes, up to 2 s more to read the FIFO's
+     * last values as they come back. */
+    unsigned long grace = 2 * (1000000000UL / (unsigned long)l->period_ns);
+    for (unsigned long period = 0, after = 0;
+         (done < l->n || (l->fifo_read < l->count && after++ < grace)) &&
+         period < 4 * l->count + 1000 + grace;
+         period++) {
         next.tv_nsec += l->period_ns;
         while (next.tv_nsec >= 1000000000) {
             next.tv_nsec -= 1000000000;
@@ -115,6 +126,14 @@ static void *run(void *arg) {
             static const char msg[] = "rt_seccomp: a write(2) from the loop thread\n";
             (void)!write(2, msg, sizeof msg - 1); /* the filter kills the process here */
         }
+        double v;
+        if (rlb_read_f64(l->latest, &v) == 1) l->latest_new++;
+        for (int k = 0; k < 64 && rlb_read_f64(l->fifo, &v) == 1; k++) /* every value, in order */
+            l->fifo_wrong += v != (double)l->fifo_read++;
+        l->fifo_wrong += rlb_read_stamp(l->fifo) < 0;
+        rlb_channel_stats st;
+        rlb_channel_stats_get(l->ch[0], &st);
+        l->fifo_wrong += rlb_link_state(l->client) > RLB_LINK_LOST;
         for (unsigned c = 0; c < l->n; c++) {
             if (next_value[c] == l->count) continue;
             if (rlb_write_f64(l->ch[c], (double)next_value[c]) != RLB_OK) {
@@ -165,8 +184,8 @@ int main(int argc, char **argv) {
     l.count = number(argv[5], "COUNT");
     l.period_ns = (long)(1000000000UL / number(argv[6], "RATE_HZ"));
     l.forbidden = argc == 8;
-    if (l.n > MAX_CHANNELS) {
-        fprintf(stderr, "rt_seccomp: at most %d channels\n", MAX_CHANNELS);
+    if (l.n > MAX_CHANNELS || l.n < 2) {
+        fprintf(stderr, "rt_seccomp: 2 to %d channels\n", MAX_CHANNELS);
         return 2;
     }
     rlb_client *c;
@@ -180,6 +199,15 @@ int main(int argc, char **argv) {
         o.capacity = 1024;
         rc = rlb_publish(c, &o, &l.ch[i]);
     }
+    rlb_channel_opts o;
+    rlb_channel_opts_init(&o, topics[0], "std_msgs/msg/Float64", "data");
+    if (rc == RLB_OK) rc = rlb_subscribe(c, &o, &l.latest);
+    rlb_channel_opts_init(&o, topics[1], "std_msgs/msg/Float64", "data");
+    o.transport = RLB_TCP;
+    o.mode = RLB_QUEUE;
+    o.capacity = 4096;
+    if (rc == RLB_OK) rc = rlb_subscribe(c, &o, &l.fifo);
+    l.client = c;
     if (rc == RLB_OK) rc = rlb_connect(c);
     if (rc == RLB_OK) rc = rlb_start(c);
     if (rc != RLB_OK) {
@@ -218,7 +246,9 @@ int main(int argc, char **argv) {
         sent += st.values;
     }
     fprintf(stderr, "rt_seccomp: loop done, %lu values x %u channels written, %llu sent, "
-            "ring full %lu times\n", l.count, l.n, sent, l.full);
+            "ring full %lu times; read back %lu new latest values, %lu FIFO values%s\n",
+            l.count, l.n, sent, l.full, l.latest_new, l.fifo_read,
+            l.fifo_read == l.count && l.fifo_wrong == 0 ? " in order" : "");
     rlb_close(c);
     if (rc != RLB_OK) {
         fprintf(stderr, "rt_seccomp: not everything was sent: %s\n", rlb_status_text(rc));
