@@ -112,6 +112,16 @@ if command -v clang >/dev/null 2>&1; then
   CC=clang cmake -S clients/c -B build/c-clang -DRLB_WERROR=ON >/dev/null
   cmake --build build/c-clang -j 2 >/dev/null
 fi
+# -- the C client's hardening (issue 28, point 7): the library, the fuzz corpus's harness
+# (clients/c/tests/fuzz_decode.c: fuzz/corpus and 20000 mutated and random inputs through the
+# receive path, the handshake) and the unit tests (the failing allocator's leaks included) built
+# with AddressSanitizer and UndefinedBehaviorSanitizer into build/c-asan; the first report
+# aborts and fails the run. The seccomp proof of the real-time rule (point 6) is
+# tests/c_client/test_c_realtime.py, in the suite.
+cmake -S clients/c -B build/c-asan -DRLB_SANITIZE=ON -DRLB_WERROR=ON -DRLB_FUZZ_RANDOM=20000 >/dev/null
+cmake --build build/c-asan -j 2 >/dev/null
+(cd build/c-asan && ASAN_OPTIONS=halt_on_error=1:abort_on_error=1:detect_leaks=1 \
+  UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 ctest --output-on-failure)
 export RLBRIDGE_C_BUILD="$PWD/build/c" RLBRIDGE_TEST_REQUIRE_C=1
 mkdir -p .test-logs
 start=$SECONDS

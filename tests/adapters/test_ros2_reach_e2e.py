@@ -167,7 +167,7 @@ def test_a_latched_value_from_the_sdk_reaches_a_late_rclpy_subscriber(
         reach: World, sdk: Bridge, transport: Any) -> None:
     topic = f"/reach/sdk_map_{transport}"
     out = sdk.publish(topic, "std_msgs/msg/String", transport=transport,
-                      durability="transient_local")
+                      qos=QoS(durability="transient_local"))
     deadline = time.monotonic() + 30
     while not _published(sdk, topic):  # a lost datagram is written again
         assert time.monotonic() < deadline, f"the server never published on {topic}"
