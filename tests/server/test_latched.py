@@ -64,7 +64,7 @@ def test_values_of_a_udp_channel_bound_before_the_address_is_known_wait_for_it(
     tcp = raw_tcp()
     ack = tcp.hello()
     tcp.send(TopicConnect(1, "subscribe", "/latched", "std_msgs/msg/Float64", "data", "udp",
-                          qos=QoS(durability="transient_local")))
+                          durability="transient_local"))
     tcp.expect(TopicAck)
     stats = tcp.stats()["session"]["channels"]["1"]
     assert (stats["values_out"], stats["dropped"]) == (1, 0)  # sent into the wait
