@@ -14,10 +14,10 @@ import argparse
 import statistics
 import timeit
 
-from rlbridge.csp.bridge_channels import IncomingChannel
+from rlbridge.client.channels.failsafe import GuardedChannel, SafeValue, fail_safe
+from rlbridge.client.channels.incoming import IncomingChannel
+from rlbridge.client.session.link_events import LinkEvents
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.failsafe import GuardedChannel, SafeValue, fail_safe
-from rlbridge.csp.link_events import LinkEvents
 
 
 def main() -> None:

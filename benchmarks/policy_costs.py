@@ -14,7 +14,7 @@ import time
 import timeit
 from collections.abc import Callable
 
-from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
+from rlbridge.client.channels.incoming import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Channel, Doorbell
 
 

@@ -37,7 +37,7 @@ F64 = "std_msgs/msg/Float64"
 
 def client(port: int, seconds: float, rate: float) -> None:
     """The three sessions (the tree on PYTHONPATH); prints one JSON line of % of a core."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     out: dict[str, float] = {}
     for label, idle, subscribe in ROWS:

@@ -6,7 +6,8 @@
 
 The shape of ``rlbridge bench cpu`` as the receive thread sees it: one bundle datagram per tick
 carrying one value for each of ``--channels`` channels. A real
-:class:`~rlbridge.csp.connection.Connection` (not opened) gets a UDP socket connected to a
+:class:`~rlbridge.client.session.connection.Connection` (not opened) gets a UDP socket connected to
+a
 socket of this script, which plays the server; each tick sends one real datagram, then times
 (``time.thread_time``) what the receive thread does once ``poll`` says it is readable: the
 ``poll`` itself, ``Receiver._receive_datagrams`` (``recv``, decode, gather), ``_flush_values``
@@ -42,9 +43,9 @@ TOKEN = 0x5EED
 
 def client(channels: int, wakeups: int) -> None:
     """One measurement with the tree on ``PYTHONPATH``; prints one JSON line."""
-    from rlbridge.csp.bridge_channels import IncomingChannel
-    from rlbridge.csp.connection import Connection
-    from rlbridge.csp.receiver import Receiver
+    from rlbridge.client.channels.incoming import IncomingChannel
+    from rlbridge.client.session.connection import Connection
+    from rlbridge.client.session.receiver import Receiver
     from rlbridge.wire import Bundle, PacketCodec, Value
     from rlbridge.wire.link import LinkMonitor
 

@@ -3,7 +3,7 @@
 With ``redundancy=k`` every datagram also carries the previous k values of its channel, so a
 value is lost only when k + 1 consecutive datagrams are: at independent loss ``p`` the
 residual loss is ``p ** (k + 1)``. The price is bytes. This measures it on the real code
-path, not a formula: an :class:`~rlbridge.csp.bridge_channels.OutgoingChannel` with that k
+path, not a formula: an :class:`~rlbridge.client.channels.incoming.OutgoingChannel` with that k
 takes one value per send (a set-point stream), the send thread's packet builder makes the
 packet and the codec encodes the datagram; sizes are taken once the history is full.
 Nothing here reads a clock for timing, so the figures are exact and machine-independent.
@@ -17,9 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from rlbridge.csp.bridge_channels import OutgoingChannel
+from rlbridge.client.channels.incoming import OutgoingChannel
+from rlbridge.client.session.sender import packets_for
 from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.sender import packets_for
 from rlbridge.wire import PacketCodec
 
 #: IPv4 (20) + UDP (8) header bytes around every datagram.

@@ -96,7 +96,7 @@ def main() -> None:
                 break
         assert port is not None, "the server did not start"
         threading.Thread(target=server.stderr.read, daemon=True).start()
-        from rlbridge.csp.bridge import Bridge
+        from rlbridge.client.bridge import Bridge
 
         direct = rclpy_rounds(args.calls)
         with Bridge.connect("127.0.0.1", port, name="bench", reconnect=False) as bridge:

@@ -48,7 +48,7 @@ def _thread_clock(name: str) -> int:
 
 def client(port: int, channels: int, rate: float, seconds: float) -> None:
     """One SDK client (the tree on PYTHONPATH); prints one JSON line of CPU seconds."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     b = Bridge.connect("127.0.0.1", port, name="sdk-ab", timeout=30)
     topics = [f"/ab/c{i}" for i in range(channels)]

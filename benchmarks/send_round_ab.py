@@ -4,7 +4,8 @@
     .venv/bin/python benchmarks/send_round_ab.py --a /tmp/rlbridge-base/src --b src \
         [--repeats 10] [--channels 10] [--rounds 20000]
 
-What ``take_plain`` (rlbridge/csp/plain_round.py) costs the send thread per round, without a
+What ``take_plain`` (rlbridge/client/session/plain_round.py) costs the send thread per round,
+without a
 socket, a server or a second thread: ``--channels`` plain UDP outgoing channels, and per round
 the control loop's writes (not timed) then one ``take_plain`` (timed, ``time.thread_time``:
 CPU time, robust to the machine's load). Three cases:
@@ -36,9 +37,9 @@ CASES = ("one each", "three each", "empty")
 def child(channels: int, rounds: int) -> None:
     """One run in the tree on ``PYTHONPATH``: one JSON line, ns per round per case."""
     from rlbridge._compiled import STATE
+    from rlbridge.client.channels.outgoing import OutgoingChannel
+    from rlbridge.client.session.plain_round import take_plain
     from rlbridge.csp.bell import SendBell
-    from rlbridge.csp.outgoing import OutgoingChannel
-    from rlbridge.csp.plain_round import take_plain
     from rlbridge.wire.bundle import Part
 
     bell = SendBell()

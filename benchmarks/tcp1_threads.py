@@ -50,7 +50,7 @@ def server(port: int, _seconds: float) -> None:
 
 
 def publisher(port: int, seconds: float) -> None:
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     bridge = Bridge.connect("127.0.0.1", port, name="tcp1-pub")
     out = bridge.publish(TOPIC, F64, "data", transport="tcp", buffer_size=1 << 16)
@@ -71,7 +71,7 @@ def publisher(port: int, seconds: float) -> None:
 
 
 def subscriber(port: int, seconds: float) -> None:
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     bridge = Bridge.connect("127.0.0.1", port, name="tcp1-sub")
     ch = bridge.subscribe(TOPIC, F64, "data", transport="tcp", blocking=True,

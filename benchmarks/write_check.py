@@ -21,7 +21,7 @@ import timeit
 from typing import Any
 
 from rlbridge.adapters.inproc import InProcessBus
-from rlbridge.csp.bridge_channels import OutgoingChannel
+from rlbridge.client.channels.incoming import OutgoingChannel
 from rlbridge.csp.channel import Doorbell
 from rlbridge.errors import ChannelClosed
 from rlbridge.server.admission import value_schema

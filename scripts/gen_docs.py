@@ -7,7 +7,7 @@
 docs/cli.md is every command's ``--help`` (nested groups too), rendered by click's plain
 formatter as a terminal of 100 columns or more shows it (the app's help is plain text, wrapped
 at 98: rlbridge.cli), so the output does not depend on the terminal it runs in. The command
-tree is the one ``rlbridge`` itself builds: :func:`rlbridge.cli.build_app` (the ``bench``,
+tree is the one ``rlbridge`` itself builds: :func:`rlbridge.cli.commands.build_app` (the ``bench``,
 ``demo`` and ``netem`` groups added), walked depth first.
 
 docs/api.md is the public SDK and server API, rendered by ``scripts/api_reference.py`` from
@@ -53,7 +53,7 @@ def _cli_root() -> Any:
     """The click command tree of ``rlbridge``, with every group :func:`build_app` adds."""
     import typer.main
 
-    from rlbridge.cli import build_app
+    from rlbridge.cli.commands import build_app
 
     return typer.main.get_command(build_app())
 

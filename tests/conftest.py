@@ -29,7 +29,7 @@ from typing import Any, Protocol, TypeVar
 import pytest
 
 from localhost import free_port, rlbridge_command
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
 from rlbridge.wire import (
     PROTOCOL_VERSION,

@@ -13,7 +13,7 @@ import msgspec
 
 from rlbridge import WrongValueType
 from rlbridge.adapters.base import ValueSpec
-from rlbridge.csp.bridge_channels import OutgoingChannel
+from rlbridge.client.channels.incoming import OutgoingChannel
 from rlbridge.csp.channel import Doorbell
 from rlbridge.server.admission import value_converter, value_schema
 from rlbridge.wire import TopicAck

@@ -68,6 +68,6 @@ def availability(row: PolicyRow, policy: type | None = None,
 
 def has_health() -> bool:
     """Whether incoming channels report ``health()`` (RTT, jitter, loss per channel)."""
-    from rlbridge.csp.bridge_channels import IncomingChannel
+    from rlbridge.client.channels.incoming import IncomingChannel
 
     return callable(getattr(IncomingChannel, "health", None))

@@ -99,8 +99,8 @@ def python_module(*args: str) -> list[str]:
 
 
 def _wait_for_server(port: int, timeout: float = 15.0) -> None:
-    from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.connection import ConnectionFailed
+    from rlbridge.client.bridge import Bridge
+    from rlbridge.client.session.connection import ConnectionFailed
 
     deadline = time.monotonic() + timeout
     while True:

@@ -1,9 +1,9 @@
 """The ``shm-*`` scenarios: the HRT loop in its own process, values through shared memory.
 
 The worker process becomes the SDK process: a ``Bridge`` (non-blocking subscription in, SDK
-send loop at 1 kHz out) and a 1 kHz pump (:func:`rlbridge.csp.shm.forwarder`) between the
-bridge channels and a :class:`~rlbridge.csp.shm.ShmLink`. The measured loop runs in an
-:class:`~rlbridge.csp.shm.HrtProcess` with the same treatment as every other loop
+send loop at 1 kHz out) and a 1 kHz pump (:func:`rlbridge.hrt.shm.forwarder`) between the
+bridge channels and a :class:`~rlbridge.hrt.shm.ShmLink`. The measured loop runs in an
+:class:`~rlbridge.hrt.shm.HrtProcess` with the same treatment as every other loop
 (:func:`~benchmarks.jitter.worker.prepare_process`, ``PriParallel``, ``--cpu``); its
 interpreter holds nothing but the loop, so no SDK thread can hold its GIL.
 """
@@ -26,10 +26,10 @@ from benchmarks.jitter.worker import (
     send_law,
     wait_first_value,
 )
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.coupling import Coupling, Ticker
+from rlbridge.client.bridge import Bridge
 from rlbridge.csp.process import Parallel
-from rlbridge.csp.shm import HrtProcess, ShmLink, forwarder
+from rlbridge.hrt.coupling import Coupling, Ticker
+from rlbridge.hrt.shm import HrtProcess, ShmLink, forwarder
 
 PUMP_HZ = 1000.0
 

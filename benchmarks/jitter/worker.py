@@ -27,11 +27,11 @@ from benchmarks.jitter.config import (
     TOPIC_IN_FAST,
     TOPIC_OUT,
 )
-from rlbridge.csp import patterns
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.gil import HRT_SWITCH_INTERVAL
-from rlbridge.csp.isolated import IsolatedCoupling, Layout
-from rlbridge.csp.rtenv import prepare_hrt_process, thread_scheduling
+from rlbridge.client.bridge import Bridge
+from rlbridge.hrt import patterns
+from rlbridge.hrt.gil import HRT_SWITCH_INTERVAL
+from rlbridge.hrt.isolated import IsolatedCoupling, Layout
+from rlbridge.hrt.rtenv import prepare_hrt_process, thread_scheduling
 
 
 def prepare_process(mlock: bool) -> dict[str, Any]:
@@ -117,7 +117,7 @@ _NO_BRIDGE = ("reference", "pyburn", "sendto-1000")
 
 def _coupling(name: str, bridge: Bridge | None, info: dict[str, Any],
               loop: dict[str, Any]) -> patterns.BaseCoupling:
-    """The scenario's coupling: a pattern of :mod:`rlbridge.csp.patterns` or a GIL condition.
+    """The scenario's coupling: a pattern of :mod:`rlbridge.hrt.patterns` or a GIL condition.
 
     A ``-process`` scenario is the pattern's default layout (the loop in its own process,
     which records its own scheduling); the others run in-process with probed laws.

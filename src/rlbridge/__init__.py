@@ -31,35 +31,16 @@ from rlbridge._version import __version__
 
 if TYPE_CHECKING:
     from rlbridge.adapters.base import QoS
-    from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.bridge_channels import AgedValue, IncomingChannel, OutgoingChannel
+    from rlbridge.client.bridge import Bridge
+    from rlbridge.client.channels.failsafe import SafeValue
+    from rlbridge.client.channels.health import ChannelHealth
+    from rlbridge.client.channels.incoming import AgedValue, IncomingChannel, OutgoingChannel
+    from rlbridge.client.options import Policy, Psk, Tls, Tuning
+    from rlbridge.client.session.link_events import LinkEvent
+    from rlbridge.client.session.reconnect import Backoff
     from rlbridge.csp.channel import Channel
-    from rlbridge.csp.coupling import BaseCoupling, ControlLoop, Coupling, LoopOptions, Pump, Ticker
-    from rlbridge.csp.failsafe import SafeValue
-    from rlbridge.csp.gil import (
-        HRT_SWITCH_INTERVAL,
-        realtime_switch_interval,
-        shorter_switch_interval,
-    )
-    from rlbridge.csp.health import ChannelHealth
     from rlbridge.csp.idle import IdleStrategy
-    from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling
-    from rlbridge.csp.link_events import LinkEvent
-    from rlbridge.csp.options import Policy, Psk, Tls, Tuning
-    from rlbridge.csp.patterns import (
-        receive_blocking,
-        receive_naive,
-        receive_nonblocking,
-        reference,
-        send_buffered,
-        send_loop,
-        send_naive,
-        send_sampled,
-    )
     from rlbridge.csp.process import Code, Parallel, PriParallel, Process, Recursion, Sequential
-    from rlbridge.csp.reconnect import Backoff
-    from rlbridge.csp.rtenv import prepare_hrt_process, thread_scheduling
-    from rlbridge.csp.shm import HrtProcess, ShmLink, forwarder
     from rlbridge.csp.statistics import ChannelStatistics
     from rlbridge.csp.timer import PeriodicTimer, Timed
     from rlbridge.errors import (
@@ -100,24 +81,43 @@ if TYPE_CHECKING:
         WouldBlock,
         WrongValueType,
     )
+    from rlbridge.hrt.coupling import BaseCoupling, ControlLoop, Coupling, LoopOptions, Pump, Ticker
+    from rlbridge.hrt.gil import (
+        HRT_SWITCH_INTERVAL,
+        realtime_switch_interval,
+        shorter_switch_interval,
+    )
+    from rlbridge.hrt.isolated import DEFAULT_LAYOUT, IsolatedCoupling
+    from rlbridge.hrt.patterns import (
+        receive_blocking,
+        receive_naive,
+        receive_nonblocking,
+        reference,
+        send_buffered,
+        send_loop,
+        send_naive,
+        send_sampled,
+    )
+    from rlbridge.hrt.rtenv import prepare_hrt_process, thread_scheduling
+    from rlbridge.hrt.shm import HrtProcess, ShmLink, forwarder
     from rlbridge.wire.link import LinkState
 
 #: Each public name and the module that defines it (loaded on first use).
 _HOMES: dict[str, str] = {
-    'Bridge': 'rlbridge.csp.bridge',
+    'Bridge': 'rlbridge.client.bridge',
     'QoS': 'rlbridge.adapters.base',
-    'Policy': 'rlbridge.csp.options',
-    'Psk': 'rlbridge.csp.options',
-    'Tls': 'rlbridge.csp.options',
-    'Tuning': 'rlbridge.csp.options',
-    'Backoff': 'rlbridge.csp.reconnect',
-    'SafeValue': 'rlbridge.csp.failsafe',
+    'Policy': 'rlbridge.client.options',
+    'Psk': 'rlbridge.client.options',
+    'Tls': 'rlbridge.client.options',
+    'Tuning': 'rlbridge.client.options',
+    'Backoff': 'rlbridge.client.session.reconnect',
+    'SafeValue': 'rlbridge.client.channels.failsafe',
     'LinkState': 'rlbridge.wire.link',
-    'LinkEvent': 'rlbridge.csp.link_events',
-    'IncomingChannel': 'rlbridge.csp.bridge_channels',
-    'OutgoingChannel': 'rlbridge.csp.bridge_channels',
-    'AgedValue': 'rlbridge.csp.bridge_channels',
-    'ChannelHealth': 'rlbridge.csp.health',
+    'LinkEvent': 'rlbridge.client.session.link_events',
+    'IncomingChannel': 'rlbridge.client.channels.incoming',
+    'OutgoingChannel': 'rlbridge.client.channels.incoming',
+    'AgedValue': 'rlbridge.client.channels.incoming',
+    'ChannelHealth': 'rlbridge.client.channels.health',
     'ChannelStatistics': 'rlbridge.csp.statistics',
     'Channel': 'rlbridge.csp.channel',
     'Process': 'rlbridge.csp.process',
@@ -129,30 +129,30 @@ _HOMES: dict[str, str] = {
     'PeriodicTimer': 'rlbridge.csp.timer',
     'Timed': 'rlbridge.csp.timer',
     'IdleStrategy': 'rlbridge.csp.idle',
-    'ControlLoop': 'rlbridge.csp.coupling',
-    'Coupling': 'rlbridge.csp.coupling',
-    'BaseCoupling': 'rlbridge.csp.coupling',
-    'LoopOptions': 'rlbridge.csp.coupling',
-    'Ticker': 'rlbridge.csp.coupling',
-    'Pump': 'rlbridge.csp.coupling',
-    'IsolatedCoupling': 'rlbridge.csp.isolated',
-    'DEFAULT_LAYOUT': 'rlbridge.csp.isolated',
-    'reference': 'rlbridge.csp.patterns',
-    'receive_nonblocking': 'rlbridge.csp.patterns',
-    'receive_blocking': 'rlbridge.csp.patterns',
-    'receive_naive': 'rlbridge.csp.patterns',
-    'send_naive': 'rlbridge.csp.patterns',
-    'send_buffered': 'rlbridge.csp.patterns',
-    'send_sampled': 'rlbridge.csp.patterns',
-    'send_loop': 'rlbridge.csp.patterns',
-    'HrtProcess': 'rlbridge.csp.shm',
-    'ShmLink': 'rlbridge.csp.shm',
-    'forwarder': 'rlbridge.csp.shm',
-    'HRT_SWITCH_INTERVAL': 'rlbridge.csp.gil',
-    'shorter_switch_interval': 'rlbridge.csp.gil',
-    'realtime_switch_interval': 'rlbridge.csp.gil',
-    'prepare_hrt_process': 'rlbridge.csp.rtenv',
-    'thread_scheduling': 'rlbridge.csp.rtenv',
+    'ControlLoop': 'rlbridge.hrt.coupling',
+    'Coupling': 'rlbridge.hrt.coupling',
+    'BaseCoupling': 'rlbridge.hrt.coupling',
+    'LoopOptions': 'rlbridge.hrt.coupling',
+    'Ticker': 'rlbridge.hrt.coupling',
+    'Pump': 'rlbridge.hrt.coupling',
+    'IsolatedCoupling': 'rlbridge.hrt.isolated',
+    'DEFAULT_LAYOUT': 'rlbridge.hrt.isolated',
+    'reference': 'rlbridge.hrt.patterns',
+    'receive_nonblocking': 'rlbridge.hrt.patterns',
+    'receive_blocking': 'rlbridge.hrt.patterns',
+    'receive_naive': 'rlbridge.hrt.patterns',
+    'send_naive': 'rlbridge.hrt.patterns',
+    'send_buffered': 'rlbridge.hrt.patterns',
+    'send_sampled': 'rlbridge.hrt.patterns',
+    'send_loop': 'rlbridge.hrt.patterns',
+    'HrtProcess': 'rlbridge.hrt.shm',
+    'ShmLink': 'rlbridge.hrt.shm',
+    'forwarder': 'rlbridge.hrt.shm',
+    'HRT_SWITCH_INTERVAL': 'rlbridge.hrt.gil',
+    'shorter_switch_interval': 'rlbridge.hrt.gil',
+    'realtime_switch_interval': 'rlbridge.hrt.gil',
+    'prepare_hrt_process': 'rlbridge.hrt.rtenv',
+    'thread_scheduling': 'rlbridge.hrt.rtenv',
     'RlbridgeError': 'rlbridge.errors',
     'RealTimeWarning': 'rlbridge.errors',
     'SessionError': 'rlbridge.errors',

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.netem import netns
 
 SERVING = re.compile(r"rlbridge listening on [^ ]+ port (\d+) ")

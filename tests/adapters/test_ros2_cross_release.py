@@ -31,7 +31,7 @@ import pytest
 import test_ros2_e2e as e2e
 from ros_peers import PEER_SCRIPT, PeerProcess, env_for
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 
 OTHER_PYTHON = os.environ.get("RLBRIDGE_ROS_OTHER_PYTHON", "")
 

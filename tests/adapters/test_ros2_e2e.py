@@ -29,7 +29,7 @@ from ros_peers import env_for
 
 from localhost import rlbridge_command
 from rlbridge import QoS
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
 from waiting import wait_until
 

@@ -24,8 +24,8 @@ from collections.abc import Iterator
 import pytest
 from reach_netns import World, world
 
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_channels import IncomingChannel
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.incoming import IncomingChannel
 
 pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(240)]
 

@@ -17,7 +17,7 @@ from collections.abc import Callable
 import pytest
 
 from rlbridge.adapters.base import QoS
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.server.report import format_stats
 from waiting import wait_until

@@ -23,7 +23,7 @@ pytest.importorskip("test_msgs.action", reason="needs ros-test-msgs")
 pytest.importorskip("std_srvs.srv", reason="needs ros-std-srvs")
 
 from rlbridge import ParameterError, QoS
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.errors import (
     BadValueError,
     NoServiceError,

@@ -16,7 +16,7 @@ from contextlib import suppress
 import pytest
 from reach_netns import remove_namespace, require_netns, ros_env, start_server
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.netem import netns
 from waiting import wait_until
 

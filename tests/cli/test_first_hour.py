@@ -17,8 +17,8 @@ import pytest
 import typer
 from test_cli_e2e import assert_one_line_error
 
-from rlbridge.cli import build_app
-from rlbridge.csp.bridge import Bridge
+from rlbridge.cli.commands import build_app
+from rlbridge.client.bridge import Bridge
 
 F64 = "std_msgs/msg/Float64"
 ROOT = Path(__file__).resolve().parents[2]
@@ -39,7 +39,7 @@ def test_pyyaml_is_a_dependency_of_every_install_not_of_an_extra() -> None:
 
 
 def test_pub_count_without_rate_publishes_count(cli: Any, shared_cli_server: int) -> None:
-    """Exit 0 means the server counted every one of the five (rlbridge.cli_delivery)."""
+    """Exit 0 means the server counted every one of the five (rlbridge.cli.delivery)."""
     result = cli.run("topic", "pub", "/first/count", F64, "1.5", "--count", "5", "-t", "tcp",
                      "-p", str(shared_cli_server))
     assert result.returncode == 0, result.stderr
@@ -134,7 +134,7 @@ def test_dash_h_prints_docs_cli_md_for_every_command() -> None:
     assert len(paths) > 30
     script = (
         "import contextlib, io, json, sys\n"
-        "from rlbridge.cli import build_app\n"
+        "from rlbridge.cli.commands import build_app\n"
         "out = {}\n"
         f"for path in {[list(p) for p in paths]!r}:\n"
         "    buf = io.StringIO()\n"

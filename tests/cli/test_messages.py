@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 import typer
 
-from rlbridge.cli_errors import one_line_errors
+from rlbridge.cli.errors import one_line_errors
 from rlbridge.csp.channel import Channel
 from rlbridge.errors import NoValueYet
 

@@ -9,8 +9,8 @@ from typing import Any
 
 import typer
 
-from rlbridge.cli import build_app
-from rlbridge.cli_options import SHORT_OPTIONS, ServerTarget
+from rlbridge.cli.commands import build_app
+from rlbridge.cli.options import SHORT_OPTIONS, ServerTarget
 
 
 def _commands(group: Any, path: str = "rlbridge") -> Iterator[tuple[str, Any]]:
@@ -81,7 +81,7 @@ def test_every_command_that_opens_a_session_takes_the_same_server_options() -> N
 def test_the_channel_options_are_the_fields_of_qos_and_policy_one_to_one() -> None:
     """``--help`` and the API cannot drift: one option per field, the SDK's defaults."""
     from rlbridge import Policy, QoS
-    from rlbridge.cli_options import DEFAULT_CHANNEL, ChannelChoice
+    from rlbridge.cli.options import DEFAULT_CHANNEL, ChannelChoice
 
     options = {f.name for f in fields(ChannelChoice)}
     assert options == {f.name for f in fields(QoS)} | {f.name for f in fields(Policy)}

@@ -14,7 +14,7 @@ from typing import Any
 
 from test_cli_e2e import assert_one_line_error
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 
 SET_BOOL = "std_srvs/srv/SetBool"
 

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from rlbridge import ConnectionClosed, ConnectionFailed, ErrorCode, Policy, RemoteError, Tuning
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.errors import (
     BindingRefused,
     ChannelClosed,

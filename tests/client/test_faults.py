@@ -23,9 +23,9 @@ from collections.abc import Callable, Iterator
 import pytest
 from link_helpers import WAIT, roundtrip, wait_for
 
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.link_events import LinkEvent
-from rlbridge.csp.reconnect import Backoff, ClientState
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.session.link_events import LinkEvent
+from rlbridge.client.session.reconnect import Backoff, ClientState
 from rlbridge.server import ServerConfig
 from rlbridge.wire.link import LinkState
 

@@ -8,7 +8,7 @@ import threading
 import pytest
 
 from rlbridge import Policy
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.server.flow import BACKLOG_SOFT
 

@@ -17,7 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rlbridge.csp.bridge_channels import IncomingChannel
+from rlbridge.client.channels.incoming import IncomingChannel
 from rlbridge.errors import ChannelMisuseError
 from rlbridge.wire.clock import InterarrivalJitter
 from rlbridge.wire.sequence import SequenceTracker

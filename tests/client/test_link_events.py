@@ -7,8 +7,8 @@ import threading
 import pytest
 
 from rlbridge import LinkLost, WouldBlock
-from rlbridge.csp.failsafe import FailSafe, SafeValue, fail_safe
-from rlbridge.csp.link_events import LinkEvents
+from rlbridge.client.channels.failsafe import FailSafe, SafeValue, fail_safe
+from rlbridge.client.session.link_events import LinkEvents
 from rlbridge.errors import ChannelClosed
 from rlbridge.wire.link import LinkState
 

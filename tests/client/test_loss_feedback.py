@@ -18,8 +18,8 @@ import pytest
 from link_helpers import wait_for
 
 from rlbridge import Policy
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_channels import OutgoingChannel
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.incoming import OutgoingChannel
 from rlbridge.server import ServerThread
 
 F64 = "std_msgs/msg/Float64"

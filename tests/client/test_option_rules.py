@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from rlbridge import Backoff, Bridge, Policy, Psk, QoS, SafeValue, Tls, Tuning
-from rlbridge.csp.option_table import RULES, refuse
+from rlbridge.client.option_table import RULES, refuse
 from rlbridge.server import ServerThread
 
 F64 = "std_msgs/msg/Float64"

@@ -1,6 +1,7 @@
 """The receive thread's datagram path: a bundle's short path against the general one, the drain.
 
-A real :class:`~rlbridge.csp.connection.Connection` (not opened: no server needed) gets a UDP
+A real :class:`~rlbridge.client.session.connection.Connection` (not opened: no server needed) gets
+a UDP
 socket connected to a socket of the test, which plays the server and sends real datagrams.
 The receiver reads them as its thread does after ``poll``: ``_receive_datagrams`` with the
 UDP-only "is another one queued?" poll, then ``_flush_values`` at the end of the wake-up.
@@ -21,8 +22,8 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from rlbridge.csp.connection import Connection
-from rlbridge.csp.receiver import RUN_DATAGRAMS, Receiver
+from rlbridge.client.session.connection import Connection
+from rlbridge.client.session.receiver import RUN_DATAGRAMS, Receiver
 from rlbridge.wire import Batch, Bundle, Packet, PacketCodec, Value
 from rlbridge.wire.link import LinkMonitor
 

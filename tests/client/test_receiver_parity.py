@@ -5,7 +5,8 @@ calling ``_gather`` (once per value): ``_bundle`` for a bundle's parts and ``_st
 one TCP read's packets. For any sequence of values and batches (several channels, gaps,
 duplicates, empty batches) each must hand ``on_values`` exactly the runs the general path
 hands it: ``_gather`` per part, ``_dispatch`` per packet. The receiver belongs to a real
-:class:`~rlbridge.csp.connection.Connection`, not opened (no server: nothing is read from a
+:class:`~rlbridge.client.session.connection.Connection`, not opened (no server: nothing is read
+from a
 socket here; tests/client/test_receive_datagrams.py reads real datagrams).
 """
 
@@ -19,8 +20,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rlbridge.csp.connection import Connection
-from rlbridge.csp.receiver import Receiver
+from rlbridge.client.session.connection import Connection
+from rlbridge.client.session.receiver import Receiver
 from rlbridge.wire import Batch, Value
 from rlbridge.wire.link import LinkMonitor
 
@@ -73,7 +74,7 @@ def _general(program: list[list[Value | Batch]]) -> list[Run]:
         return runs
 
 
-@pytest.mark.parity("rlbridge.csp.receiver.Receiver._bundle")
+@pytest.mark.parity("rlbridge.client.session.receiver.Receiver._bundle")
 @PROPS
 @given(st.lists(st.lists(packets(), max_size=8), max_size=5))
 def test_a_bundle_gathers_runs_as_its_parts_one_by_one(
@@ -85,7 +86,7 @@ def test_a_bundle_gathers_runs_as_its_parts_one_by_one(
     assert runs == _general(program)
 
 
-@pytest.mark.parity("rlbridge.csp.receiver.Receiver._stream")
+@pytest.mark.parity("rlbridge.client.session.receiver.Receiver._stream")
 @PROPS
 @given(st.lists(st.lists(packets(), max_size=8), max_size=5))
 def test_a_tcp_read_gathers_runs_as_its_packets_dispatched_one_by_one(

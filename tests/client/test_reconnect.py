@@ -20,10 +20,10 @@ import pytest
 from link_helpers import WAIT, roundtrip, wait_for
 
 from rlbridge import LinkLost, Policy, Psk, Tuning, WouldBlock
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.failsafe import SafeValue
-from rlbridge.csp.link_events import LinkEvent
-from rlbridge.csp.reconnect import Backoff, ClientState
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.failsafe import SafeValue
+from rlbridge.client.session.link_events import LinkEvent
+from rlbridge.client.session.reconnect import Backoff, ClientState
 from rlbridge.errors import ChannelClosed
 from rlbridge.wire.link import LinkState
 

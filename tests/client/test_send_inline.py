@@ -22,11 +22,11 @@ import pytest
 from link_helpers import WAIT, wait_for
 
 from rlbridge import Policy, Psk, RealTimeWarning, Tuning
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
-from rlbridge.csp.connection import Connection
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.incoming import IncomingChannel, OutgoingChannel
+from rlbridge.client.session.connection import Connection
+from rlbridge.client.session.sender import SendLoop
 from rlbridge.csp.process import Code
-from rlbridge.csp.sender import SendLoop
 from rlbridge.server import ServerThread
 from rlbridge.wire import Batch, Bundle, Value
 from rlbridge.wire.bundle import DatagramPacker

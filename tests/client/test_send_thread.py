@@ -14,9 +14,9 @@ import threading
 
 from link_helpers import WAIT, roundtrip, wait_for
 
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.pacing import Pacing
-from rlbridge.csp.reconnect import Backoff
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.pacing import Pacing
+from rlbridge.client.session.reconnect import Backoff
 from rlbridge.server import ServerThread
 
 F64 = "std_msgs/msg/Float64"

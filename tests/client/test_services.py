@@ -15,9 +15,9 @@ import pytest
 from test_reconnect import Serve, bridges, lost, reconnected, serve, wait_for
 
 from rlbridge import LocalProtocolError
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_services import CallResult
-from rlbridge.csp.services import ServiceRequests
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.bridge_services import CallResult
+from rlbridge.client.session.services import ServiceRequests
 from rlbridge.errors import (
     BadValueError,
     BindingRefused,

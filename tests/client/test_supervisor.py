@@ -7,7 +7,7 @@ import threading
 from link_helpers import WAIT, wait_for
 
 from rlbridge import ConnectionFailed
-from rlbridge.csp.reconnect import Backoff, ReconnectSupervisor
+from rlbridge.client.session.reconnect import Backoff, ReconnectSupervisor
 
 
 class ScriptedConnection:

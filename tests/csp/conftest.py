@@ -13,7 +13,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
 
 _topics = itertools.count()

@@ -7,8 +7,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_channels import IncomingChannel
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.incoming import IncomingChannel
 from waiting import WAIT, wait_until
 
 F64 = "std_msgs/msg/Float64"

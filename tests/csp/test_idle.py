@@ -11,7 +11,7 @@ import pytest
 from pattern_support import wait_until
 
 from rlbridge import Tuning
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.csp.idle import BusySpin, Park, SpinThenPark, idle_pair, idle_strategy
 from rlbridge.server import ServerThread
 

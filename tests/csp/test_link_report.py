@@ -3,7 +3,7 @@ for the owner until its channels are bound again."""
 
 from __future__ import annotations
 
-from rlbridge.csp.link_report import LinkReport
+from rlbridge.client.session.link_report import LinkReport
 from rlbridge.wire.link import LinkState
 
 C, D, L = LinkState.CONNECTED, LinkState.DEGRADED, LinkState.LOST

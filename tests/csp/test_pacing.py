@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from rlbridge.csp.pacing import BURST_S, MIN_RATE_FRACTION, UNLIMITED, Pacing
+from rlbridge.client.channels.pacing import BURST_S, MIN_RATE_FRACTION, UNLIMITED, Pacing
 from rlbridge.csp.stamped_ring import StampedRing
 
 MS = 1_000_000

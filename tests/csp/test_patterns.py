@@ -19,12 +19,12 @@ import pytest
 from pattern_support import F64, WAIT, collect, drain, publish_until, wait_until
 
 from rlbridge import Tuning
-from rlbridge.csp import patterns
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_channels import IncomingChannel
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.incoming import IncomingChannel
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.gil import shorter_switch_interval
 from rlbridge.errors import RealTimeWarning
+from rlbridge.hrt import patterns
+from rlbridge.hrt.gil import shorter_switch_interval
 
 # PriParallel says once per coupling when the OS refuses real-time priorities (no root).
 pytestmark = pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.errors.RealTimeWarning")

@@ -18,12 +18,12 @@ from pattern_laws import Counter, FailsAt, Recorder, double, not_a_number
 from pattern_support import F64, WAIT, collect, drain, wait_until
 
 from proc_children import children, cmdline
-from rlbridge.csp import patterns
-from rlbridge.csp import shm as shm_module
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_channels import IncomingChannel
-from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling
-from rlbridge.csp.shm import ShmLink
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.incoming import IncomingChannel
+from rlbridge.hrt import patterns
+from rlbridge.hrt import shm as shm_module
+from rlbridge.hrt.isolated import DEFAULT_LAYOUT, IsolatedCoupling
+from rlbridge.hrt.shm import ShmLink
 
 pytestmark = [
     pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.errors.RealTimeWarning"),

@@ -10,9 +10,9 @@ import pytest
 
 from benchmarks.redundancy import redundancy_cost
 from rlbridge import Policy, SecondWriterError
-from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
+from rlbridge.client.channels.health import ChannelHealth
+from rlbridge.client.channels.incoming import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.stamped_ring import StampedRing
 from rlbridge.errors import ChannelMisuseError
 from rlbridge.wire.link import LinkMonitor

@@ -11,8 +11,8 @@ from typing import Any
 import pytest
 
 from rlbridge import Policy, Tuning
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.health import ChannelHealth
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.channels.health import ChannelHealth
 from rlbridge.wire import (
     Batch,
     ConnectAck,

@@ -14,9 +14,9 @@ import sys
 
 import pytest
 
-from rlbridge.csp.rtenv import prepare_hrt_process, thread_scheduling
+from rlbridge.hrt.rtenv import prepare_hrt_process, thread_scheduling
 
-PROBE = "from rlbridge.csp.rtenv import prepare_hrt_process as p; print(p(True))"
+PROBE = "from rlbridge.hrt.rtenv import prepare_hrt_process as p; print(p(True))"
 
 
 def _probe(*prefix: str) -> dict[str, str]:

@@ -9,8 +9,8 @@ import msgspec
 import pytest
 
 from rlbridge import OutgoingChannel
+from rlbridge.client.session.plain_round import take_plain
 from rlbridge.csp.bell import SendBell
-from rlbridge.csp.plain_round import take_plain
 from rlbridge.wire import Batch, Value
 from rlbridge.wire.bundle import VALUE_TAG, Part, as_packet
 

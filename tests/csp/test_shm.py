@@ -1,4 +1,4 @@
-"""The shared-memory link between an HRT loop process and the SDK process (rlbridge.csp.shm).
+"""The shared-memory link between an HRT loop process and the SDK process (rlbridge.hrt.shm).
 
 Single-process tests pin the semantics (latest value, ring order, full ring, errors, lifetime);
 the cross-process tests run a real spawned loop process against this one with both sides
@@ -13,10 +13,10 @@ from collections.abc import Iterator
 
 import pytest
 
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.coupling import Ticker
+from rlbridge.client.bridge import Bridge
 from rlbridge.csp.process import Parallel
-from rlbridge.csp.shm import HrtProcess, ShmLink, ShmLinkError, forwarder
+from rlbridge.hrt.coupling import Ticker
+from rlbridge.hrt.shm import HrtProcess, ShmLink, ShmLinkError, forwarder
 from rlbridge.server import ServerConfig, ServerThread
 
 F64 = "std_msgs/msg/Float64"

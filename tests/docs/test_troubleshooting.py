@@ -16,12 +16,12 @@ DOC = ROOT / "docs" / "troubleshooting.md"
 
 #: Module -> the calls whose message argument (index) reaches a user.
 SOURCES = {
-    "cli.py": {"fail": 0},
-    "cli_options.py": {"fail": 0},
-    "cli_errors.py": {"fail": 0},
-    "cli_delivery.py": {},
+    "cli/commands.py": {"fail": 0},
+    "cli/options.py": {"fail": 0},
+    "cli/errors.py": {"fail": 0},
+    "cli/delivery.py": {},
     "demo/cli.py": {"fail": 0},
-    "ping.py": {"NoAnswer": 0},
+    "cli/ping.py": {"NoAnswer": 0},
     "server/app.py": {"ServerError": 0},
     "server/notices.py": {},
     "server/gate.py": {"warn": 1},

@@ -39,7 +39,7 @@ SUFFIX = importlib.machinery.EXTENSION_SUFFIXES[0]
 _PROBE = """
 import importlib, json, sys, time
 from rlbridge._compiled import MODULES, STATE
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
 
 loaders = {m: type(importlib.import_module(m).__spec__.loader).__name__ for m in MODULES}

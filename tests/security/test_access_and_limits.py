@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from rlbridge import ErrorCode, Tuning
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.server.access import AllowList, KeyStore
 from rlbridge.server.ratelimit import RateLimiter

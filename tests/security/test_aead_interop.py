@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from rlbridge import ConnectionFailed, Psk
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import aead
 from rlbridge.wire.aead import AEAD_ENV, CRYPTOGRAPHY, IMPLEMENTATIONS, LIBSODIUM

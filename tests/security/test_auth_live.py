@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 
 from rlbridge import ConnectionFailed, ErrorCode, Psk, Tuning
-from rlbridge.csp.auth import AuthRefused, ClientAuth
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.session.auth import AuthRefused, ClientAuth
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
     PROTOCOL_VERSION,

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from rlbridge import ErrorCode, Psk, RemoteError, Tls
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.tls.certs import issue, make_ca
 

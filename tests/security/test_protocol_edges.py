@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from rlbridge.csp.auth import ClientAuth
+from rlbridge.client.session.auth import ClientAuth
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
     FRAME_HEADER,

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from rlbridge import ErrorCode, Psk, RemoteProtocolError
-from rlbridge.csp.auth import ClientAuth
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.session.auth import ClientAuth
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
     PROTOCOL_VERSION,

@@ -18,8 +18,8 @@ from typing import Any
 import pytest
 
 from rlbridge import Psk
-from rlbridge.csp.auth import AuthRefused, resolve_key
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.session.auth import AuthRefused, resolve_key
 from rlbridge.server import ServerError, ServerThread
 from rlbridge.server.config import is_loopback
 

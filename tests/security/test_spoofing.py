@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from rlbridge import Psk, Tuning
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import PROTOCOL_VERSION, Hello, PacketCodec, Value
 from rlbridge.wire.codec import FLAG_MAC, peek_header

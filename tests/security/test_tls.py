@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from rlbridge import Psk, Tls, TlsFailed
-from rlbridge.csp.auth import AuthRefused
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
+from rlbridge.client.session.auth import AuthRefused
 from rlbridge.server import ServerThread
 from rlbridge.tls.certs import Issued, init_server, issue, make_ca
 from rlbridge.wire import PROTOCOL_VERSION, ConnectError, Hello, PacketCodec, Value

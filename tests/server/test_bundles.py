@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from rlbridge import Policy, Psk, Tuning
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import Batch, Bundle, PacketCodec, Value
 from rlbridge.wire.codec import FLAG_BUNDLES, FLAG_MAC, peek_header

@@ -10,7 +10,7 @@ import warnings
 
 import pytest
 
-from rlbridge.csp.handshake import udp_socket
+from rlbridge.client.session.handshake import udp_socket
 from rlbridge.server import Server, ServerConfig, ServerError, ServerThread, new_event_loop
 from rlbridge.server.runner import run_on_loop
 
@@ -93,7 +93,8 @@ def test_a_udp_port_taken_leaves_no_socket_open(use_uvloop: bool) -> None:
 
 
 def test_the_client_udp_socket_is_closed_when_it_cannot_connect() -> None:
-    """csp.handshake.udp_socket: a socket whose connect fails is closed there, not left to GC."""
+    """client.session.handshake.udp_socket: a socket whose connect fails is closed there, not left
+    to GC."""
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always", ResourceWarning)
         with pytest.raises(OverflowError):

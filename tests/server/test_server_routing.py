@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from rlbridge import ErrorCode
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerError, ServerThread
 from rlbridge.wire import Batch, Disconnect, Heartbeat, TopicAck, TopicConnect, Value
 from rlbridge.wire.link import LinkState

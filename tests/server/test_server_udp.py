@@ -7,7 +7,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rlbridge import ErrorCode
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
     DATAGRAM_HEADER,

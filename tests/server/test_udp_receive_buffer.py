@@ -24,7 +24,7 @@ import pytest
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
-from rlbridge.cli import app, serve
+from rlbridge.cli.commands import app, serve
 from rlbridge.server import ServerConfig, ServerThread
 from rlbridge.server.config import UDP_RECEIVE_BUFFER
 from rlbridge.sockbuf import request_buffer

@@ -13,7 +13,7 @@ import pytest
 
 from rlbridge import RlbridgeError
 from rlbridge.adapters.inproc import InProcessBus
-from rlbridge.csp.bridge import Bridge
+from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
 
 F64 = "std_msgs/msg/Float64"

@@ -45,7 +45,7 @@ class QoS:
     durability: Durability = "volatile"
 
     def __post_init__(self) -> None:
-        # The words are rows of rlbridge.csp.option_table.RULES (a test keeps them equal).
+        # The words are rows of rlbridge.client.option_table.RULES (a test keeps them equal).
         if self.reliability not in (None, "reliable", "best_effort"):
             raise ValueError(f"QoS: reliability={self.reliability!r} must be 'reliable', "
                              "'best_effort' or None (by transport)")

@@ -48,7 +48,7 @@ from rlbridge.bench.common import (
     start_server,
     wait_for_go,
 )
-from rlbridge.csp.options import Tuning
+from rlbridge.client.options import Tuning
 
 MODULE = "rlbridge.bench.cpu"
 F64 = "std_msgs/msg/Float64"
@@ -85,7 +85,7 @@ def _threads_cpu_s(tids: Sequence[int | None]) -> float:
 
 def client_role(params: Params) -> None:
     """One SDK client: ``channels`` UDP channels published at ``rate_hz`` and read back."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     n, rate, seconds = int(params["channels"]), float(params["rate_hz"]), float(params["seconds"])

@@ -37,7 +37,7 @@ from rlbridge.bench.common import (
     start_server,
     wait_for_go,
 )
-from rlbridge.csp.options import Policy
+from rlbridge.client.options import Policy
 
 MODULE = "rlbridge.bench.feedback"
 TOPIC = "/bench/flood"
@@ -63,7 +63,7 @@ CASES = (
 
 def publisher(params: Params) -> None:
     """Flood for ``seconds``; note when health() first shows loss; report counts."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-flood")

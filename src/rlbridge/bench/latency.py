@@ -52,7 +52,7 @@ from rlbridge.bench.common import (
     select_cases,
     wait_for_go,
 )
-from rlbridge.csp.options import Tuning
+from rlbridge.client.options import Tuning
 
 MODULE = "rlbridge.bench.latency"
 TOPIC = "/bench/latency"
@@ -124,7 +124,7 @@ def paced_late(send: Callable[[int], object], rate_hz: float,
 
 def publisher(params: Params) -> None:
     """Writes ``time.time_ns()`` on schedule; ``write`` hands it to the SDK's send thread."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
@@ -156,7 +156,7 @@ def publisher(params: Params) -> None:
 
 def subscriber(params: Params) -> None:
     """Blocking reads; the latency of a value is taken as soon as ``read`` returns it."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),

@@ -48,8 +48,8 @@ from rlbridge.bench.common import (
     wait_for_go,
 )
 from rlbridge.bench.latency import MSG_TYPE, TOPIC, WARMUP, idle_param
+from rlbridge.client.options import Tuning
 from rlbridge.csp.idle import IdleStrategy, idle_pair
-from rlbridge.csp.options import Tuning
 
 MODULE = "rlbridge.bench.latency_stages"
 T = TypeVar("T")
@@ -87,7 +87,7 @@ class ProbeIdle:
 
 
 def _connect(params: Params, name: str) -> tuple[Any, ProbeIdle, ProbeIdle]:
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     send, receive = idle_pair(idle_param(str(params["idle"])))
     probes = ProbeIdle(send), ProbeIdle(receive)
@@ -98,9 +98,9 @@ def _connect(params: Params, name: str) -> tuple[Any, ProbeIdle, ProbeIdle]:
 
 def publisher(params: Params) -> None:
     """A paced writer; the send thread's wake-up and datagram times per value."""
-    from rlbridge.csp import plain_round
-    from rlbridge.csp import sender as send_module
-    from rlbridge.csp.outgoing import OutgoingChannel
+    from rlbridge.client.channels.outgoing import OutgoingChannel
+    from rlbridge.client.session import plain_round
+    from rlbridge.client.session import sender as send_module
     from rlbridge.wire.bundle import VALUE_TAG
 
     control = Control()

@@ -167,7 +167,7 @@ def run(settings: Settings, plan: Plan, progress: Callable[[str], None],
 
 def _run(group: ProcessGroup, s: Settings, plan: Plan, progress: Callable[[str], None],
          total_s: float, load_before: tuple[float, float, float]) -> Run:
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     server, host, port = start_server(group, max_write_buffer=s.max_write_buffer,
                                       heartbeat_ms=500, timeout_ms=5000,

@@ -33,7 +33,7 @@ from typing import Any, Protocol
 from rlbridge.bench.common import Control, Params, Role, emit, hold
 from rlbridge.bench.load_book import F64, Book, topic
 from rlbridge.bench.load_raw import RawSessions
-from rlbridge.csp.options import Tuning
+from rlbridge.client.options import Tuning
 from rlbridge.wire import PacketCodec
 
 BULK_TOPIC = "/load/bulk"
@@ -45,7 +45,7 @@ class _SdkSession(Book):
     """One SDK session: ``channels`` publishers and their subscriptions, and a probe thread."""
 
     def __init__(self, params: Params, index: int, phase: list[str]) -> None:
-        from rlbridge.csp.bridge import Bridge
+        from rlbridge.client.bridge import Bridge
 
         super().__init__(index, phase)
         transport = params["transport"]

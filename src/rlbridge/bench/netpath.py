@@ -196,8 +196,8 @@ def _await_values(control: Control, count: Callable[[], int]) -> None:
 # -- side b: the SDK client --------------------------------------------------------------------
 def client_side(params: Params) -> None:
     """The control application: a blocking incoming channel (down) or a paced writer (up)."""
-    from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.options import Policy
+    from rlbridge.client.bridge import Bridge
+    from rlbridge.client.options import Policy
 
     control = Control()
     send_rate = params.get("send_rate_hz")

@@ -117,7 +117,7 @@ def ros_publisher(params: Params) -> None:
 
 def sdk_publisher(params: Params) -> None:
     """An SDK publisher; ``write`` per value (flow-controlled by its ring in a flood)."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     buffer = 1 << 16
@@ -171,7 +171,7 @@ def ros_subscriber(params: Params) -> None:
 
 def sdk_subscriber(params: Params) -> None:
     """An SDK subscriber: blocking reads in a thread of its own, as a control loop would."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     tally = Tally(control, float(params["idle_s"]))

@@ -51,11 +51,11 @@ from rlbridge.bench.common import (
     start_server,
     wait_for_go,
 )
-from rlbridge.csp.options import Policy, Tuning
+from rlbridge.client.options import Policy, Tuning
 
 if TYPE_CHECKING:
-    from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.bridge_channels import OutgoingChannel
+    from rlbridge.client.bridge import Bridge
+    from rlbridge.client.channels.incoming import OutgoingChannel
 
 MODULE = "rlbridge.bench.throughput"
 TOPIC = "/bench/throughput"
@@ -174,7 +174,7 @@ def _send_loop(bridge: Bridge, out: OutgoingChannel, batch: int, count: int, sec
 
 def publisher(params: Params) -> None:
     """SDK publisher: ``write`` per value (batch 1) or ``write_many`` of ``batch`` values."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     batch = int(params["batch"])
@@ -215,7 +215,7 @@ def publisher(params: Params) -> None:
 
 def subscriber(params: Params) -> None:
     """SDK subscriber: blocking ``read`` then ``read_many`` of everything else waiting."""
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge.client.bridge import Bridge
 
     control = Control()
     sub_rate = float(params.get("sub_rate", 0.0))

@@ -73,7 +73,8 @@ _MISSING: Final = _Missing.MISSING
 _yield_cpu = os.sched_yield
 
 
-# Compiled by mypyc (rlbridge/_compiled.py); ServiceRequests (csp/services.py) subclasses it.
+# Compiled by mypyc (rlbridge/_compiled.py); ServiceRequests (client/session/services.py)
+# subclasses it.
 @mypyc_attr(allow_interpreted_subclasses=True)
 class Channel(Generic[T]):
     """A CSP channel; see the module docstring for the three kinds."""

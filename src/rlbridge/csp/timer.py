@@ -29,8 +29,8 @@ the waker asks for the GIL and the holder gives it up only at the next switch in
 lateness can reach 5 ms whatever the OS scheduler does. Threads blocked in I/O or C code
 release the GIL and do not cause this. ``sys.setswitchinterval(0.0005)`` shortens the
 worst case at some throughput cost; it is process-wide, so this module leaves it to the
-owner of the loop (:class:`~rlbridge.csp.coupling.ControlLoop` holds
-:data:`~rlbridge.csp.gil.HRT_SWITCH_INTERVAL` while it runs). ``spin`` (off by default)
+owner of the loop (:class:`~rlbridge.hrt.coupling.ControlLoop` holds
+:data:`~rlbridge.hrt.gil.HRT_SWITCH_INTERVAL` while it runs). ``spin`` (off by default)
 wakes ``spin`` seconds early and busy-waits on the clock until the deadline; it trims OS
 wake-up latency but holds the GIL while spinning, starving the I/O threads, so only use it
 with a core to spare.

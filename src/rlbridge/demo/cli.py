@@ -13,8 +13,8 @@ from typing import Annotated, Literal
 
 import typer
 
-from rlbridge.cli_errors import fail, one_line_errors
-from rlbridge.cli_options import option
+from rlbridge.cli.errors import fail, one_line_errors
+from rlbridge.cli.options import option
 from rlbridge.demo.plot import DEFAULT_NAME, resolve_path
 
 ROLES = ("all", "bridge", "controller")

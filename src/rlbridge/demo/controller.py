@@ -32,7 +32,7 @@ Why this shape:
 
 Lifetimes: :meth:`start` starts the composition's owner thread; :meth:`close` stops it, joins
 it (re-raising a process's error), and sends the final status and diagnostics if the link is
-up. The :class:`~rlbridge.csp.bridge.Bridge` belongs to the caller, who closes it afterwards.
+up. The :class:`~rlbridge.client.bridge.Bridge` belongs to the caller, who closes it afterwards.
 """
 
 from __future__ import annotations

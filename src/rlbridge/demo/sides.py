@@ -85,7 +85,8 @@ def connect_controller(host: str, port: int, *, timeout: float = 30.0,
                        psk_file: Path | None = None) -> Bridge:
     """``Bridge.connect`` again and again (backing off to 1 s) until it works or ``timeout``.
 
-    Raises :class:`~rlbridge.csp.connection.ConnectionFailed` with the last reason when the
+    Raises :class:`~rlbridge.client.session.connection.ConnectionFailed` with the last reason when
+    the
     time is up or ``stop`` is set. A key file that does not exist yet (the bridge side makes
     it when it starts) is waited for like a server that does not answer yet.
     """

@@ -182,7 +182,8 @@ class Inbound:
             raise
 
     def health(self, rtt_ns: int) -> dict[str, int]:
-        """Per-channel counters for ``Stats`` (names as in csp/health.py ChannelHealth)."""
+        """Per-channel counters for ``Stats`` (names as in client/channels/health.py
+        ChannelHealth)."""
         t = self.tracker
         return {"rtt_ns": rtt_ns, "one_way_ns": self.one_way_ns,
                 "jitter_ns": self.jitter.jitter_ns if self.values_in else -1, "lost": t.lost,

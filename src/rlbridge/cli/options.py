@@ -1,0 +1,262 @@
+"""The options several ``rlbridge`` commands share, defined once so they mean one thing.
+
+:data:`SHORT_OPTIONS` is the only place a short option is given out: ``-H`` is ``--host`` in
+every command that has a host (``serve`` and ``demo`` included), ``-t`` is ``--transport``
+wherever there is a transport, and no command gives either letter another meaning
+(``tests/cli/test_options.py`` walks every command to check). :func:`option` builds a
+``typer.Option`` with the long name, its short one if it has one, and the help text.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import json
+import logging
+import re
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, cast
+
+import typer
+
+from rlbridge.cli.errors import fail
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
+
+    from rlbridge.adapters.base import QoS
+    from rlbridge.client.bridge import Bridge
+    from rlbridge.client.options import Policy, Psk, Tls
+
+#: Long option -> its one short form, for every command.
+SHORT_OPTIONS: dict[str, str] = {
+    "--host": "-H",
+    "--port": "-p",
+    "--field": "-f",
+    "--transport": "-t",
+}
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+LOG_FORMAT = "%(asctime)s %(name)s %(levelname)s %(message)s"
+
+
+def option(long: str, help: str, **kwargs: Any) -> Any:
+    """``typer.Option(long, SHORT_OPTIONS[long], help=...)``; the short one only if it has one."""
+    short = SHORT_OPTIONS.get(long)
+    return typer.Option(long, *([short] if short else []), help=help, **kwargs)
+
+
+def check_log_level(value: str | None) -> str | None:
+    """A typer callback: one of :data:`LOG_LEVELS` (any case), else one error line, exit 2."""
+    if value is None:
+        return None
+    if value.lower() not in LOG_LEVELS:
+        raise fail(f"--log-level must be one of {', '.join(LOG_LEVELS)}, not '{value}'", 2)
+    return value.lower()
+
+
+def checked_transport(value: str) -> Literal["udp", "tcp"]:
+    """``udp`` or ``tcp``, else a one-line usage error (exit 2); also ``--transport``'s
+    callback, so a wrong one is refused before the command connects anywhere."""
+    if value not in ("udp", "tcp"):
+        raise fail(f"--transport must be 'udp' or 'tcp', not '{value}'", 2)
+    return cast(Literal["udp", "tcp"], value)
+
+
+def configure_logging(level: str) -> None:
+    """Log to stderr at ``level``; called again by ``serve`` with its own level (force)."""
+    logging.basicConfig(level=level.upper(), stream=sys.stderr, format=LOG_FORMAT, force=True)
+
+
+LOG_LEVEL_HELP = f"{', '.join(LOG_LEVELS)}."
+
+
+def config_error(exc: ValidationError) -> str:
+    """A config validation error in the command line's words: ``--timeout-ms``, not the
+    config field ``timeout_ms`` (the message names the options a user typed)."""
+    first = exc.errors()[0]
+    fields = [str(p) for p in first["loc"]]
+    message = str(first["msg"]).removeprefix("Value error, ")
+    message = re.sub(r"\b([a-z]+(?:_[a-z]+)+)\b",
+                     lambda m: "--" + m.group(1).replace("_", "-"), message)
+    where = ", ".join("--" + f.replace("_", "-") for f in fields)
+    return f"{where}: {message}" if where else message
+
+
+# -- the options of every command that talks to a running server ------------------------
+Host = Annotated[str, option("--host", "Bridge server address.")]
+Port = Annotated[int, option("--port", "Bridge server port.")]
+Field = Annotated[str, option("--field", "Field path ('data', 'linear.x'); '' = whole message.")]
+TransportOpt = Annotated[str, option("--transport", "udp or tcp.", callback=checked_transport)]
+TlsOpt = Annotated[bool, typer.Option("--tls", help="TLS, trusting the system's CAs.")]
+CaOpt = Annotated[str | None, typer.Option("--ca", help="TLS, trusting this CA file.")]
+FingerprintOpt = Annotated[str | None, typer.Option(
+    "--fingerprint", help="TLS, pinning this certificate fingerprint (`rlbridge tls init`).")]
+PskFileOpt = Annotated[str | None, typer.Option(
+    "--psk-file", help="Pre-shared key file (the server's format); else $RLBRIDGE_PSK.")]
+TlsCertOpt = Annotated[str | None, typer.Option(
+    "--tls-cert", help="Mutual TLS: this client's certificate (PEM; with --tls-key).")]
+TlsKeyOpt = Annotated[str | None, typer.Option(
+    "--tls-key", help="The key of --tls-cert (PEM).")]
+
+
+@dataclass(frozen=True)
+class ServerTarget:
+    """Where a command's session goes and how it proves itself: ``--host``, ``--port``,
+    ``--tls``, ``--ca``, ``--fingerprint``, ``--tls-cert``/``--tls-key`` (mutual TLS, the
+    server's option names), ``--psk-file``, the same in every command that talks to a running
+    server (see :func:`server_options`)."""
+
+    host: Host = "127.0.0.1"
+    port: Port = 7411
+    tls: TlsOpt = False
+    ca: CaOpt = None
+    fingerprint: FingerprintOpt = None
+    tls_cert: TlsCertOpt = None
+    tls_key: TlsKeyOpt = None
+    psk_file: PskFileOpt = None
+
+    def connect(self, name: str) -> Bridge:
+        """One session named ``name``, no reconnect: a command does one thing and exits.
+
+        ``--tls-cert`` and ``--tls-key`` go together (else a one-line usage error, exit 2)
+        and, like ``--ca`` and ``--fingerprint``, turn TLS on.
+        """
+        from rlbridge.client.bridge import Bridge
+
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise fail("--tls-cert and --tls-key go together: give both for mutual TLS, or "
+                       "neither", 2)
+        client_cert = (None if self.tls_cert is None or self.tls_key is None
+                       else (self.tls_cert, self.tls_key))
+        return Bridge.connect(self.host, self.port, name=name, reconnect=False,
+                              security=self.security(client_cert))
+
+    def security(self, client_cert: tuple[str, str] | None = None) -> Psk | Tls | None:
+        """The ``security=`` these options stand for, built here only: ``--psk-file`` is
+        ``Psk(file=...)``; ``--tls``, ``--ca``, ``--fingerprint`` and a client certificate
+        turn on ``Tls(...)`` (with the key inside it, if both are given)."""
+        from rlbridge.client.options import Psk, Tls
+
+        psk = None if self.psk_file is None else Psk(file=self.psk_file)
+        if not (self.tls or self.ca or self.fingerprint or client_cert):
+            return psk
+        return Tls(ca=self.ca, fingerprint=self.fingerprint, client_cert=client_cert, psk=psk)
+
+
+#: The ``server`` parameter's default, for calling a command function directly.
+LOCAL_SERVER = ServerTarget()
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _option_group(command: F, parameter: str, group: type[Any]) -> F:
+    """Give ``command`` the fields of dataclass ``group`` as options, in place of its
+    ``parameter``, which receives them as one ``group`` object."""
+    hints = inspect.signature(group, eval_str=True).parameters
+    added = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
+                               default=hints[name].default, annotation=hints[name].annotation)
+             for name in (f.name for f in fields(group))]
+    signature = inspect.signature(command, eval_str=True)
+    own = [p for name, p in signature.parameters.items() if name != parameter]
+
+    @functools.wraps(command)
+    def with_group(*args: Any, **kwargs: Any) -> Any:
+        value = group(**{p.name: kwargs.pop(p.name) for p in added})
+        return command(*args, **{parameter: value}, **kwargs)
+
+    with_group.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=[*own, *added])
+    with_group.__annotations__ = {p.name: p.annotation for p in (*own, *added)}
+    return cast(F, with_group)
+
+
+def server_options(command: F) -> F:
+    """Give ``command`` the :class:`ServerTarget` options in place of its ``server`` parameter.
+
+    Typer reads a command's options from its signature, so each command listed host, port,
+    TLS and key options and passed them on to ``Bridge.connect`` by hand (and the ``service``,
+    ``param`` and ``action`` commands had drifted to host and port only). Here the options are
+    the dataclass's fields, declared once; the command receives them as one ``ServerTarget``.
+    """
+    return _option_group(command, "server", ServerTarget)
+
+
+# -- the options of every command that binds a topic: QoS and Policy, one to one ---------
+ReliabilityOpt = Annotated[str | None, typer.Option(
+    "--reliability", help="QoS reliability: reliable or best_effort (default: by transport, "
+    "best effort for udp, reliable for tcp).")]
+DepthOpt = Annotated[int, typer.Option("--depth", help="QoS history depth.")]
+DurabilityOpt = Annotated[str, typer.Option(
+    "--durability", help="QoS durability: volatile, transient_local (a latched topic) or "
+    "match (subscribe: as the topic's publishers).")]
+LatestOpt = Annotated[bool, typer.Option("--latest", help="Only the newest value matters: a "
+                                         "backlog collapses to its newest value.")]
+MaxAgeOpt = Annotated[int, typer.Option("--max-age-ms", help="Drop values older than this "
+                                        "(0: no limit).")]
+RedundancyOpt = Annotated[int, typer.Option("--redundancy", help="UDP: repeat the previous K "
+                                            "values in each datagram (0..16).")]
+FlowOpt = Annotated[bool | None, typer.Option("--flow/--no-flow", help="TCP: credit flow "
+                                              "control, every value at the reader's pace "
+                                              "(default: on where every value is promised).")]
+MaxRateOpt = Annotated[float | None, typer.Option("--max-rate-hz", help="Publish: at most "
+                                                  "this many values per second leave.")]
+AdaptRateOpt = Annotated[bool, typer.Option("--adapt-rate", help="Publish, with --max-rate-hz: "
+                                            "lower the rate while the server reports loss.")]
+OnLostOpt = Annotated[str, typer.Option("--on-lost", help="Subscribe: "
+                                        "reads while the link is lost: hold, raise, or a JSON "
+                                        "safe value.")]
+
+
+@dataclass(frozen=True)
+class ChannelChoice:
+    """A command's ``--reliability``/``--depth``/``--durability`` (one to one the fields of
+    :class:`~rlbridge.QoS`) and ``--latest``, ``--max-age-ms``, ``--redundancy``,
+    ``--flow``, ``--max-rate-hz``, ``--adapt-rate``, ``--on-lost`` (those of
+    :class:`~rlbridge.Policy`), built into the SDK's objects here only (see
+    :func:`channel_options`); the SDK's rules then refuse what a channel cannot honour."""
+
+    reliability: ReliabilityOpt = None
+    depth: DepthOpt = 10
+    durability: DurabilityOpt = "volatile"
+    latest: LatestOpt = False
+    max_age_ms: MaxAgeOpt = 0
+    redundancy: RedundancyOpt = 0
+    flow: FlowOpt = None
+    max_rate_hz: MaxRateOpt = None
+    adapt_rate: AdaptRateOpt = False
+    on_lost: OnLostOpt = "hold"
+
+    def qos(self) -> QoS:
+        """The :class:`~rlbridge.QoS` of these options (``ValueError`` naming a bad one)."""
+        from rlbridge.adapters.base import QoS
+
+        return QoS(cast(Any, self.reliability), self.depth, cast(Any, self.durability))
+
+    def policy(self) -> Policy:
+        """The :class:`~rlbridge.Policy` of these options (``ValueError`` naming a bad one)."""
+        from rlbridge.client.channels.failsafe import SafeValue
+        from rlbridge.client.options import Policy
+
+        on_lost: str | SafeValue = self.on_lost
+        if on_lost not in ("hold", "raise"):
+            try:
+                on_lost = SafeValue(json.loads(self.on_lost))
+            except ValueError:
+                raise ValueError(f"--on-lost must be 'hold', 'raise' or a JSON value (the safe "
+                                 f"value), not '{self.on_lost}'") from None
+        return Policy(latest=self.latest, max_age_ms=self.max_age_ms,
+                      redundancy=self.redundancy, flow=self.flow, max_rate_hz=self.max_rate_hz,
+                      adapt_rate=self.adapt_rate, on_lost=cast(Any, on_lost))
+
+
+#: The ``channel`` parameter's default, for calling a command function directly.
+DEFAULT_CHANNEL = ChannelChoice()
+
+
+def channel_options(command: F) -> F:
+    """Give ``command`` the :class:`ChannelChoice` options in place of its ``channel``
+    parameter: every command that binds a topic takes the same QoS and policy options."""
+    return _option_group(command, "channel", ChannelChoice)
