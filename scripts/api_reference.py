@@ -29,8 +29,6 @@ API: list[tuple[str, str, list[str], str]] = [
      "Start here: `Bridge.connect` opens a session, `subscribe`/`publish` return channels."),
     ("", "rlbridge.client.options", ["Policy", "Psk", "Tls", "Tuning", "Transport"],
      "The grouped options of `connect`, `subscribe` and `publish` (with `QoS`)."),
-    ("", "rlbridge.client.bridge_status", ["BridgeStatus"],
-     "The Bridge's link state, session facts and counters (inherited by `Bridge`)."),
     ("I/O idle strategies", "rlbridge.csp.idle",
      ["IdleStrategy", "Park", "SpinThenPark", "BusySpin", "idle_strategy"],
      "`Bridge.connect(idle=...)`: how the SDK's send and receive threads wait for work "

@@ -16,7 +16,7 @@ from test_reconnect import Serve, bridges, lost, reconnected, serve, wait_for
 
 from rlbridge import LocalProtocolError
 from rlbridge.client.bridge import Bridge
-from rlbridge.client.bridge_services import CallResult
+from rlbridge.client.service_client import CallResult
 from rlbridge.client.session.services import ServiceRequests
 from rlbridge.errors import (
     BadValueError,

@@ -8,6 +8,11 @@ thread only moves values through ring buffers. With ``reconnect`` a
 :class:`~rlbridge.client.session.reconnect.ReconnectSupervisor` opens a new session when one ends
 and
 binds every channel again under its old id (docs/reliability.md).
+
+One facade, in sections: channels, the session's status (link state, counters; none of these
+blocks except ``server_stats``), the server's requests (services, actions, parameters: calls
+from a soft-real-time thread that may block; a loop uses :meth:`Bridge.service_client`,
+:mod:`rlbridge.client.service_client`), and the session's lifetime.
 """
 
 from __future__ import annotations
@@ -18,28 +23,32 @@ import logging
 import os
 import sys
 import threading
+from collections.abc import Callable
 from types import TracebackType
 from typing import Any
 
 from rlbridge.adapters.base import QoS
-from rlbridge.client.bridge_services import ServiceMethods
-from rlbridge.client.bridge_status import BridgeStatus
 from rlbridge.client.channels.failsafe import GuardedChannel, fail_safe
 from rlbridge.client.channels.incoming import IncomingChannel, OutgoingChannel
 from rlbridge.client.option_rules import check_connect, check_publish, check_subscribe
 from rlbridge.client.options import Policy, Psk, Tls, Transport, Tuning
+from rlbridge.client.service_client import DEFAULT_TIMEOUT, ServiceClient
+from rlbridge.client.session import parameters
+from rlbridge.client.session.actions import Goal
 from rlbridge.client.session.auth import resolve_key
 from rlbridge.client.session.connection import Connection
 from rlbridge.client.session.feedback import Feedback
 from rlbridge.client.session.io_priority import IoPriority
-from rlbridge.client.session.link_events import LinkEvents
-from rlbridge.client.session.reconnect import Backoff, ReconnectSupervisor
+from rlbridge.client.session.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
+from rlbridge.client.session.reconnect import Backoff, ClientState, ReconnectSupervisor
 from rlbridge.client.session.sender import SendLoop
-from rlbridge.csp.channel import _MISSING
+from rlbridge.client.session.services import ServiceRequests
+from rlbridge.csp.channel import _MISSING, Channel
 from rlbridge.csp.idle import idle_pair
-from rlbridge.errors import ConnectionClosed, RemoteError
+from rlbridge.errors import ConnectionClosed, ParameterError, RemoteError
 from rlbridge.tls import client_tls
-from rlbridge.wire import TopicClose, TopicConnect
+from rlbridge.wire import GoalSend, ServiceOffer, TopicClose, TopicConnect
+from rlbridge.wire.link import LinkState
 
 log = logging.getLogger("rlbridge.client")
 
@@ -48,7 +57,7 @@ _DEFAULT_POLICY = Policy()
 _DEFAULT_TUNING = Tuning()
 
 
-class Bridge(BridgeStatus, ServiceMethods):
+class Bridge:
     """A session with a bridge server, and the channels bound through it.
 
     ::
@@ -317,6 +326,208 @@ class Bridge(BridgeStatus, ServiceMethods):
         channel = self._incoming.get(ch)
         if channel is not None:
             channel.deliver(first_seq, stamps, values)
+
+    # -- status -----------------------------------------------------------------------------
+    @property
+    def link_state(self) -> LinkState:
+        """``connected``, ``degraded`` or ``lost``: read it from control code, it never blocks.
+
+        ``lost`` from the end of a session until its channels are bound again. The same
+        source as the fail-safes and the link events: once this says ``lost``, they have
+        engaged and the event is in every ``link_events()`` channel.
+        """
+        return self._events.last.state
+
+    @property
+    def state(self) -> ClientState:
+        """``connected``, ``reconnecting`` or ``closed`` (for good)."""
+        return self._conn.state
+
+    @property
+    def closed(self) -> bool:
+        """True once the bridge is closed for good: here, or its session ended without reconnect."""
+        return self._conn.closed.is_set()
+
+    @property
+    def close_reason(self) -> str:
+        """Why the last session ended (``""`` while the first one is open)."""
+        return self._conn.close_reason
+
+    @property
+    def reconnects(self) -> int:
+        """Sessions opened again after one ended (0 with ``reconnect=False``)."""
+        return 0 if self._supervisor is None else self._supervisor.reconnects
+
+    def on_link_change(self, callback: Callable[[LinkState], None]) -> None:
+        """Call ``callback(state)`` in the SDK thread that saw the change; keep it short."""
+        self._events.add_callback(callback)
+
+    def link_events(self, buffer_size: int = DEFAULT_EVENT_BUFFER) -> Channel[LinkEvent]:
+        """A FIFO of :class:`LinkEvent` values: every link change (and first-hop loss report),
+        each read once, in order.
+
+        Its first event is the current state. ``try_read()`` raises :class:`WouldBlock` when
+        nothing new is there, ``read(timeout)`` waits for the next event, ``read_many()``
+        takes every event not read yet (``[]`` when none). Events are not state: the state now
+        is :attr:`link_state`. A reader that falls ``buffer_size`` events behind loses the
+        oldest (``statistics().overwritten``). Closed with the bridge (events still buffered
+        stay readable, then ``ChannelClosed``).
+        """
+        return self._events.channel(buffer_size)
+
+    @property
+    def rtt_ns(self) -> int:
+        """Smoothed round-trip time from heartbeats (-1 until measured)."""
+        link = self._conn.link
+        return -1 if link is None else link.stats(0).rtt_ns
+
+    @property
+    def local_ports(self) -> dict[str, int]:
+        """The current session's local TCP and UDP ports (they change with every reconnect)."""
+        return self._conn.local_ports()
+
+    def server_stats(self) -> dict[str, Any]:
+        """The server's counters for this session, its totals, and the topics it knows."""
+        return dict(self._conn.request_stats())
+
+    @property
+    def session_id(self) -> int:
+        """The number the server gave this session: it names it in logs and ``rlbridge stats``."""
+        assert self._conn.ack is not None
+        return self._conn.ack.session
+
+    # -- services ------------------------------------------------------------------------
+    def call(self, service: str, srv_type: str, request: dict[str, Any] | None = None, *,
+             timeout: float = DEFAULT_TIMEOUT) -> dict[str, Any]:
+        """Call a middleware service and wait for its response (a dict of its fields).
+
+        ``srv_type`` as ``'std_srvs/srv/SetBool'``. Blocks up to ``timeout`` seconds (plus
+        the network): for soft-real-time threads; a loop uses :meth:`service_client`.
+        Raises ``UnknownTypeError``, ``BadValueError`` (the request does not fit the type),
+        ``NoServiceError`` (no server within the timeout), ``ServiceTimeout`` (no answer),
+        ``ServiceFailed`` (the server failed), all :class:`~rlbridge.wire.RemoteError`.
+        """
+        return self._conn.services.call(service, srv_type, request or {}, timeout)
+
+    def service_client(self, service: str, srv_type: str, *, buffer_size: int = 16,
+                       timeout: float = DEFAULT_TIMEOUT) -> ServiceClient:
+        """Calls for a loop that must not block: ``client.request(req)`` (or
+        ``client.requests.write``), later ``client.responses.try_read()`` ->
+        :class:`~rlbridge.client.service_client.CallResult`.
+        ``client.close()`` stops it."""
+        return ServiceClient(self._conn.services, service, srv_type, buffer_size=buffer_size,
+                             timeout=timeout)
+
+    def serve_service(self, service: str, srv_type: str) -> ServiceRequests:
+        """Provide ``service``: a channel of requests; ``req = requests.read(timeout=...)``,
+        then ``req.data`` (a dict) and ``req.reply(response_dict)`` (or ``req.fail(reason)``).
+
+        ``requests.close()`` withdraws the service. Raises ``UnknownTypeError`` for an
+        unknown type and ``BindingRefused`` when the service is provided already.
+        """
+        ch_id = next(self._ids)
+        requests = ServiceRequests(ch_id, service, srv_type)
+        conn = self._conn
+        conn.services.add_served(requests)
+        try:
+            conn.request_topic(ServiceOffer(ch_id, service, srv_type))
+        except BaseException:
+            conn.services.forget_served(ch_id)
+            raise
+
+        def withdraw() -> None:
+            conn.services.forget_served(ch_id)
+            conn.forget_topic(ch_id)
+            if conn.up:
+                with contextlib.suppress(OSError, ConnectionClosed):
+                    conn.send_control(TopicClose(ch_id))
+
+        requests._on_close = withdraw
+        return requests
+
+    def service_list(self) -> list[tuple[str, str]]:
+        """The services the server's middleware knows, as ``(name, type)``."""
+        body = self._conn.request_stats({"services": True})
+        found: Any = body.get("services", [])
+        return [(str(n), str(t)) for n, t in found]
+
+    # -- actions -----------------------------------------------------------------------
+    def send_goal(self, action: str, action_type: str, goal: dict[str, Any] | None = None, *,
+                  feedback_buffer: int = 1024, timeout: float = DEFAULT_TIMEOUT) -> Goal:
+        """Send an action goal; returns once the action server accepted it.
+
+        ``goal.feedback`` is a channel of feedback dicts, ``goal.result(timeout=...)`` waits
+        for the result dict (``goal.status``: ``succeeded``, ``canceled``, ``aborted``),
+        ``goal.cancel()`` asks for a cancel. Raises ``NoServiceError`` (no action server),
+        ``GoalRejected``, ``UnknownTypeError``, ``BadValueError``, ``ServiceTimeout``.
+        """
+        conn = self._conn
+        ch_id = next(self._ids)
+        feedback = IncomingChannel(ch_id, action, action_type, None, transport="tcp",
+                                   blocking=True, buffer_size=feedback_buffer,
+                                   link=conn.link)
+        handle = Goal(conn, ch_id, action, feedback)
+
+        def forget() -> None:
+            with self._lock:
+                self._incoming.pop(ch_id, None)
+
+        handle.on_finish = forget
+        with self._lock:
+            self._incoming[ch_id] = feedback
+        with conn.services.lock:
+            conn.services.goals[ch_id] = handle
+        try:
+            conn.request_topic(GoalSend(ch_id, action, action_type, goal or {},
+                                        max(1, round(timeout * 1000))))
+        except BaseException:
+            with conn.services.lock:
+                conn.services.goals.pop(ch_id, None)
+            with self._lock:
+                self._incoming.pop(ch_id, None)
+            raise
+        finally:
+            conn.forget_topic(ch_id)  # a goal is not sent again after a reconnect
+        return handle
+
+    # -- the server's own answers ---------------------------------------------------------
+    def _on_ros_loss(self, channel: int, ros_lost: int) -> None:
+        """Receive thread: the server counted ROS-side loss of a channel (``health()``)."""
+        found: IncomingChannel | OutgoingChannel | None = self._incoming.get(channel)
+        if found is None:  # not ``or``: an empty channel is falsy
+            found = self._outgoing.get(channel)
+        if found is not None:
+            found.ros_lost = ros_lost
+
+    # -- parameters --------------------------------------------------------------------
+    def get_parameter(self, node: str, name: str, *,
+                      timeout: float = DEFAULT_TIMEOUT) -> parameters.ParameterValue:
+        """The value of parameter ``name`` of ROS node ``node`` (``ParameterError`` if unset)."""
+        answer = self.call(parameters.node_service(node, "get_parameters"), parameters.GET,
+                           {"names": [name]}, timeout=timeout)
+        values = answer.get("values") or [{}]
+        value = parameters.from_ros(values[0])
+        if value is None:
+            raise ParameterError(f"node {node} has no parameter '{name}'")
+        return value
+
+    def set_parameter(self, node: str, name: str, value: Any, *,
+                      timeout: float = DEFAULT_TIMEOUT) -> None:
+        """Set parameter ``name`` of ``node``; ``ParameterError`` with the node's reason if it
+        refuses (undeclared, read-only, wrong type)."""
+        answer = self.call(parameters.node_service(node, "set_parameters"), parameters.SET,
+                           {"parameters": [{"name": name, "value": parameters.to_ros(value)}]},
+                           timeout=timeout)
+        result = (answer.get("results") or [{}])[0]
+        if not result.get("successful"):
+            raise ParameterError(
+                f"node {node} refused {name}={value!r}: {result.get('reason') or 'no reason'}")
+
+    def list_parameters(self, node: str, *, timeout: float = DEFAULT_TIMEOUT) -> list[str]:
+        """The names of every parameter of ``node``, sorted."""
+        answer = self.call(parameters.node_service(node, "list_parameters"), parameters.LIST,
+                           {"prefixes": [], "depth": 0}, timeout=timeout)
+        return sorted(answer.get("result", {}).get("names", []))
 
     # -- sessions --------------------------------------------------------------------------
     def _on_session_end(self, reason: str, final: bool) -> None:

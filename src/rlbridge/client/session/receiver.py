@@ -332,7 +332,7 @@ class Receiver:
     def _service_packet(self, packet: ServiceResult | ServiceRequest | GoalResult | RosLoss
                         ) -> None:
         """Services, goals and ROS-side loss (client/session/services.py,
-        client/bridge_services.py)."""
+        client/bridge.py)."""
         conn = self._conn
         if isinstance(packet, ServiceResult):
             conn.services.on_result(packet)

@@ -123,7 +123,7 @@ class ServiceCalls:
 
     def call(self, service: str, srv_type: str, request: dict[str, Any],
              timeout: float) -> dict[str, Any]:
-        """See :meth:`rlbridge.client.bridge_services.ServiceMethods.call`."""
+        """See :meth:`rlbridge.client.bridge.Bridge.call`."""
         conn = self._conn
         if timeout <= 0:
             raise ValueError(f"a service call needs a timeout > 0 s, not {timeout}")
