@@ -24,7 +24,7 @@ if [ "${1:-}" = "--quick" ]; then
     tests/architecture tests/wire
     tests/csp/test_ring.py tests/csp/test_ring_stamped.py tests/csp/test_channel.py
     tests/csp/test_doorbell.py
-    tests/csp/test_send_round.py tests/csp/test_policies.py tests/csp/test_pacing.py
+    tests/client/test_send_round.py tests/client/test_policies.py tests/client/test_pacing.py
     tests/server/test_server_udp.py tests/server/test_server_tcp.py
     tests/server/test_server_routing.py tests/server/test_bundles.py
     tests/server/test_value_path_parity.py tests/server/test_udp_sink.py

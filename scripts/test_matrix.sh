@@ -27,7 +27,7 @@ LOGS=.test-logs
 MAIN_VERSION=$(python3 -c 'import sys; print("%d.%d" % sys.version_info[:2])')
 VERSIONS=(3.10 3.11 3.12 3.13)
 JAZZY_PYTHON=3.12  # Ubuntu 24.04's, the Python Jazzy is built for
-SUBSET=(tests/wire tests/server tests/client tests/cli tests/csp tests/interop tests/docs
+SUBSET=(tests/wire tests/server tests/client tests/cli tests/csp tests/hrt tests/interop tests/docs
         tests/adapters)
 
 # A python executable of version $1 (X.Y), or nothing.

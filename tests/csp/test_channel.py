@@ -13,7 +13,6 @@ from typing import Any, overload
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from pattern_support import wait_until
 
 from rlbridge.csp.channel import Channel, Doorbell
 from rlbridge.csp.process import Code
@@ -24,6 +23,7 @@ from rlbridge.errors import (
     RealTimeWarning,
     WouldBlock,
 )
+from waiting import wait_until
 
 JOIN = 10.0  # generous bound for joins and waits; only reached when a test fails
 

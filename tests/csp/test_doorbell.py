@@ -5,11 +5,11 @@ from __future__ import annotations
 import threading
 
 import pytest
-from pattern_support import wait_until
 
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.doorbell import Doorbell
 from rlbridge.csp.idle import BusySpin, SpinThenPark
+from waiting import wait_until
 
 JOIN = 10.0  # generous bound for joins and waits; only reached when a test fails
 

@@ -8,12 +8,12 @@ from collections.abc import Callable
 from typing import TypeVar
 
 import pytest
-from pattern_support import wait_until
 
 from rlbridge import Tuning
 from rlbridge.client.bridge import Bridge
 from rlbridge.csp.idle import BusySpin, Park, SpinThenPark, idle_pair, idle_strategy
 from rlbridge.server import ServerThread
+from waiting import wait_until
 
 T = TypeVar("T")
 
