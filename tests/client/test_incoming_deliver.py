@@ -5,7 +5,8 @@ no ``max_age_ms``, not ``latest``): the sequence tracker's bookkeeping and the r
 Any program of runs (in order, after a gap, duplicated, overlapping, longer than the ring)
 interleaved with reads must end in the same state as a model built from the general path's
 parts: ``SequenceTracker.accept_run`` for what is new, a bounded deque for the ring,
-``InterarrivalJitter`` for the jitter. Every counter is compared, not only the values.
+``InterarrivalJitter`` for the jitter, ``moving_average`` for the one-way age. Every counter is
+compared, not only the values.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from hypothesis import strategies as st
 
 from rlbridge.client.channels.incoming import IncomingChannel
 from rlbridge.errors import ChannelMisuseError
-from rlbridge.wire.clock import InterarrivalJitter
+from rlbridge.wire.clock import InterarrivalJitter, moving_average
 from rlbridge.wire.sequence import SequenceTracker
 
 F64 = "std_msgs/msg/Float64"
@@ -41,6 +42,7 @@ def _channel(capacity: int) -> IncomingChannel:
                            buffer_size=capacity)
 
 
+@pytest.mark.parity("rlbridge.client.channels.incoming.IncomingChannel.deliver")
 @settings(max_examples=200, deadline=None)
 @given(capacity=st.integers(1, 5), program=programs)
 def test_any_program_of_runs_matches_the_general_path(capacity: int, program: list[Op]) -> None:
@@ -49,6 +51,8 @@ def test_any_program_of_runs_matches_the_general_path(capacity: int, program: li
     ring: deque[tuple[int, float]] = deque(maxlen=capacity)
     overwritten = delivered = arrived = 0
     last_stamp = 0
+    jitter = InterarrivalJitter()
+    one_way = -1
     stamp = 1_000  # stamps rise with every value sent: run order is not sequence order
     for op, arg, count in program:
         if op == "read":
@@ -69,6 +73,11 @@ def test_any_program_of_runs_matches_the_general_path(capacity: int, program: li
         arrived += len(new)
         if new:
             last_stamp = new[-1][0]
+            # The run's newest value, at the arrival time deliver read (its transit kept).
+            transit = ch._jitter.last_transit
+            assert transit is not None
+            jitter.add(last_stamp, last_stamp + transit)
+            one_way = moving_average(one_way, transit)
     health = ch.health()
     stats = ch.statistics()
     assert (ch.lost, ch.duplicates) == (tracker.lost, tracker.duplicates + tracker.stale)
@@ -78,6 +87,7 @@ def test_any_program_of_runs_matches_the_general_path(capacity: int, program: li
     assert (stats.overwritten, stats.buffered) == (overwritten, len(ring))
     assert stats.written == delivered
     assert ch.last_stamp_ns == last_stamp
+    assert (ch._jitter.jitter_ns, health.one_way_ns) == (jitter.jitter_ns, one_way)
     assert ch.credit_limit() == arrived - len(ring) + capacity
     assert ch.read_many() == [v for _, v in ring]
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
+from rlbridge.wire.clock import ClockOffset, InterarrivalJitter, moving_average
 from rlbridge.wire.link import LinkMonitor
 
 MS = 1_000_000
@@ -114,3 +116,24 @@ def test_interarrival_jitter_follows_rfc3550() -> None:
     for i in range(200, 600):
         jitter.add(i * 10 * MS, i * 10 * MS + 2 * MS + (4 * MS if i % 2 else 0))
     assert 3.9 * MS < jitter.jitter_ns <= 4 * MS
+
+
+def test_moving_average_starts_at_the_first_sample_then_moves_a_sixteenth() -> None:
+    assert moving_average(-1, 1_000) == 1_000
+    assert moving_average(1_000, 2_600) == 1_100
+    assert moving_average(1_000, 0) == 937  # floor division: rounds down, as the copies do
+
+
+@pytest.mark.parity("rlbridge.wire.clock.InterarrivalJitter.add")
+@given(st.lists(st.tuples(st.integers(0, 10**12), st.integers(-10**9, 10**9)), max_size=50))
+def test_jitter_is_the_moving_average_of_transit_differences(
+        values: list[tuple[int, int]]) -> None:
+    """``add`` inlines ``moving_average``: the same estimate for any stamps and transits."""
+    jitter = InterarrivalJitter()
+    expected, last = 0, None
+    for stamp, transit in values:
+        jitter.add(stamp, stamp + transit)
+        if last is not None:
+            expected = moving_average(expected, abs(transit - last))
+        last = transit
+        assert jitter.jitter_ns == expected >= 0

@@ -36,7 +36,7 @@ from rlbridge.server.admission import (
 from rlbridge.server.flow import InboundCredit, OutboundCredit
 from rlbridge.server.sinks import PacketSink
 from rlbridge.wire import Batch, ChannelLoss, TopicConnect, Value
-from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
+from rlbridge.wire.clock import ClockOffset, InterarrivalJitter, moving_average
 from rlbridge.wire.sequence import SequenceTracker
 
 #: How often a held latest value re-checks whether its TCP connection has drained.
@@ -97,7 +97,7 @@ class Inbound:
         value of the channel's type as it is) costs no Python call but the publish.
         """
         # inlines: Inbound._admit, Inbound._track_age
-        # inlines: SequenceTracker.accept, InterarrivalJitter.add
+        # inlines: SequenceTracker.accept, InterarrivalJitter.add, moving_average
         tracker = self.tracker
         seq = packet.seq
         if seq == tracker.highest + 1:  # in order: what SequenceTracker.accept does for it
@@ -169,8 +169,7 @@ class Inbound:
         self._publish(values)
 
     def _track_age(self, age: int) -> None:
-        self.one_way_ns = age if self.one_way_ns < 0 else self.one_way_ns + (
-            age - self.one_way_ns) // 16
+        self.one_way_ns = moving_average(self.one_way_ns, age)
 
     def _publish(self, values: list[Any]) -> None:
         """Publish the values of the channel's type; a bad one costs only itself (admission)."""

@@ -169,6 +169,7 @@ class IncomingChannel(Channel[Any]):
         once per channel per wake-up); ``tests/client/test_incoming_deliver.py`` checks it
         against the general path.
         """
+        # inlines: SequenceTracker.accept_run, Channel.deliver_many, moving_average
         n = len(values)
         tracker = self._tracker
         highest = tracker.highest
