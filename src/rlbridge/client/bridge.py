@@ -1,13 +1,11 @@
 """``Bridge``: the client SDK's front door, a small facade over its parts.
 
 ``connect`` opens a :class:`~rlbridge.client.session.connection.Connection` (sockets, receive
-thread,
-watchdog) and a :class:`~rlbridge.client.session.sender.SendLoop` (send thread); ``subscribe`` and
-``publish`` bind topics at run time and return CSP channels; after ``connect`` the caller's
-thread only moves values through ring buffers. With ``reconnect`` a
-:class:`~rlbridge.client.session.reconnect.ReconnectSupervisor` opens a new session when one ends
-and
-binds every channel again under its old id (docs/reliability.md).
+thread, watchdog) and a :class:`~rlbridge.client.session.sender.SendLoop` (send thread);
+``subscribe`` and ``publish`` bind topics at run time and return CSP channels; after
+``connect`` the caller's thread only moves values through ring buffers. With ``reconnect`` a
+:class:`~rlbridge.client.session.reconnect.ReconnectSupervisor` opens a new session when one
+ends and binds every channel again under its old id (docs/reliability.md).
 
 One facade, in sections: channels, the session's status (link state, counters; none of these
 blocks except ``server_stats``), the server's requests (services, actions, parameters: calls
