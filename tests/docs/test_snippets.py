@@ -29,9 +29,8 @@ How a block runs
 The address (the one change made to a block)
     The docs write the server as ``192.168.1.10`` or ``127.0.0.1``, port ``7411``. The runner
     replaces ``192.168.1.10`` with ``127.0.0.1`` and the word ``7411`` with the live server's
-    port. A ``needs: tls`` block shows the pinned fingerprint as ``sha256:`` and hex digits (or
-    the placeholder ``sha256:...``): it is replaced with the fingerprint of the certificate the
-    runner made.
+    port. In a ``needs: tls`` block, a fingerprint (64 hex digits, as ``rlbridge tls init``
+    prints it) is replaced with the one of the certificate the runner made.
 
 The servers (real ``rlbridge serve`` processes on loopback, see ``live_server.py``)
     default
@@ -71,7 +70,7 @@ from live_server import LiveServer, rlbridge_command
 BLOCK_TIMEOUT = 120.0
 DOC_HOST = "192.168.1.10"
 DOC_PORT = re.compile(r"\b7411\b")
-FINGERPRINT = re.compile(r"sha256:(?:[0-9A-Fa-f:]{16,}|\.\.\.)")
+FINGERPRINT = re.compile(r"\b[0-9a-f]{64}\b")
 CLIENT_COMMANDS = frozenset({"topic", "service", "param", "action", "stats", "ping"})
 NOT_RUN_COMMANDS = frozenset({"demo", "bench", "netem"})
 PEER = Path(__file__).with_name("docs_ros_peer.py")
