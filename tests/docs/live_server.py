@@ -44,7 +44,8 @@ class LiveServer:
         self.lines: list[str] = []
         self.port = 0
         self._ready = threading.Event()
-        threading.Thread(target=self._read, daemon=True).start()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
         if not self._ready.wait(START_TIMEOUT) or not self.port:
             self.stop()
             raise RuntimeError(f"{' '.join(self.command)} did not start:\n{self.log}")
@@ -72,6 +73,9 @@ class LiveServer:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(10.0)
+        self._reader.join(10.0)  # it reads to the end of the pipe, then the pipe is closed
+        if self.proc.stderr is not None and not self._reader.is_alive():
+            self.proc.stderr.close()
         return self.proc.returncode
 
     def __enter__(self) -> LiveServer:
