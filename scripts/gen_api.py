@@ -127,36 +127,41 @@ touched knobs (`Tuning`).
 
 """
 
-# The option rules: (call, why). Each call is code run against a connected ``bridge`` (F64 is
-# "std_msgs/msg/Float64"); tests/docs/test_api_doc.py checks that each raises ValueError.
-OPTION_RULES: list[tuple[str, str]] = [
+# The option rules: (call, the option its ValueError names, why). Each call is code run
+# against a connected ``bridge`` (F64 is "std_msgs/msg/Float64"); tests/docs/test_api_doc.py
+# checks that each raises ValueError naming the option. csp/option_rules.py holds the checks.
+OPTION_RULES: list[tuple[str, str, str]] = [
     ('bridge.subscribe("/t", F64, transport="tcp", policy=Policy(redundancy=2))',
-     "TCP loses no datagram for a repeat to replace"),
+     "redundancy", "TCP loses no datagram for a repeat to replace"),
     ('bridge.publish("/t", F64, transport="tcp", policy=Policy(redundancy=2))',
-     "the same, outgoing"),
-    ('bridge.subscribe("/t", F64, blocking=True, initial=0.0)',
+     "redundancy", "the same, outgoing"),
+    ('bridge.subscribe("/t", F64, blocking=True, initial=0.0)', "initial",
      "a blocking read waits for a value that arrives; it never returns a default"),
-    ('bridge.subscribe("/t", F64, transport="udp", policy=Policy(flow=True))',
+    ('bridge.subscribe("/t", F64, transport="udp", policy=Policy(flow=True))', "flow",
      "flow control is credit on the TCP stream"),
-    ('bridge.publish("/t", F64, transport="udp", policy=Policy(flow=True))',
+    ('bridge.publish("/t", F64, transport="udp", policy=Policy(flow=True))', "flow",
      "the same, outgoing"),
     ('bridge.publish("/t", F64, transport="tcp", policy=Policy(flow=True, latest=True))',
-     "latest drops what is old; flow control delivers every value"),
-    ('bridge.subscribe("/t", F64, policy=Policy(max_rate_hz=100))',
+     "latest", "latest drops what is old; flow control delivers every value"),
+    ('bridge.subscribe("/t", F64, policy=Policy(max_rate_hz=100))', "max_rate_hz",
      "the sender limits its rate: set it on publish"),
     ('bridge.subscribe("/t", F64, policy=Policy(max_rate_hz=100, adapt_rate=True))',
-     "the same"),
-    ('bridge.publish("/t", F64, policy=Policy(adapt_rate=True))',
+     "adapt_rate", "the same"),
+    ('bridge.publish("/t", F64, policy=Policy(adapt_rate=True))', "max_rate_hz",
      "adapting needs a rate to adapt (max_rate_hz)"),
-    ('bridge.publish("/t", F64, policy=Policy(on_lost="raise"))',
+    ('bridge.publish("/t", F64, policy=Policy(on_lost="raise"))', "on_lost",
      "a fail-safe is what reads do on a lost link; nothing reads a publisher"),
-    ('bridge.publish("/t", F64, qos=QoS(durability="match"))',
+    ('bridge.publish("/t", F64, qos=QoS(durability="match"))', "durability",
      "matching the publishers' durability is for subscriptions"),
-    ('Psk(key="00" * 32, file="robot.key")', "one key source, not two"),
-    ("Psk()", "a key, or the file that holds it"),
-    ('Tls(context=ssl.create_default_context(), ca="ca.crt")',
+    ('Bridge.connect("robot", security=Tls(), tuning=Tuning(control="udp"))', "Tls",
+     "TLS protects the TCP connection, and a UDP control channel has none"),
+    ('Bridge.connect("robot", nodelay=True, tuning=Tuning(control="udp"))', "nodelay",
+     "Nagle is a TCP matter, and a UDP control channel has no TCP connection"),
+    ('Psk(key="00" * 32, file="robot.key")', "Psk", "one key source, not two"),
+    ("Psk()", "Psk", "a key, or the file that holds it"),
+    ('Tls(context=ssl.create_default_context(), ca="ca.crt")', "context",
      "the context holds the trust settings already"),
-    ('Tls(ca="ca.crt", fingerprint="89a78d9b" * 8)',
+    ('Tls(ca="ca.crt", fingerprint="89a78d9b" * 8)', "fingerprint",
      "a pinned fingerprint replaces the CA check: one or the other"),
 ]
 
@@ -197,7 +202,7 @@ def _preface() -> list[str]:
              "naming it, so a setting you read in a program is one that holds (`F64` is "
              "`\"std_msgs/msg/Float64\"`; tests/docs/test_api_doc.py runs each row).", "",
              "| call | why it cannot hold |", "|---|---|"]
-    rules += [f"| `{code}` | {why} |" for code, why in OPTION_RULES]
+    rules += [f"| `{code}` | {why} |" for code, _, why in OPTION_RULES]
     table = ["## Incoming and outgoing channels: what differs", "", CHANNELS_TEXT, "",
              "| | incoming (`subscribe`) | outgoing (`publish`) |", "|---|---|---|"]
     table += [f"| {call} | {inc} | {out} |" for call, inc, out in DIRECTIONS]
