@@ -40,6 +40,7 @@ from pathlib import Path
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import AESGCM, ChaCha20Poly1305
 
+from rlbridge import Psk
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerConfig
 from rlbridge.server.app import ServerThread
@@ -62,9 +63,12 @@ def run_once(key_hex: str | None, key_file: Path | None, values: int,
              rate_hz: float) -> tuple[list[float], int]:
     """One run: (CPU ns per value of each of THREADS, values the subscriber read)."""
     config = ServerConfig(port=0, psk_file=key_file, heartbeat_ms=200, timeout_ms=5000)
+    key = None if key_hex is None else Psk(key=key_hex)
     with ServerThread(config) as server:
-        pub = Bridge.connect("127.0.0.1", server.port, name="seal-path-pub", psk=key_hex)
-        sub = Bridge.connect("127.0.0.1", server.port, name="seal-path-sub", psk=key_hex)
+        pub = Bridge.connect("127.0.0.1", server.port, name="seal-path-pub",
+                             security=key)
+        sub = Bridge.connect("127.0.0.1", server.port, name="seal-path-sub",
+                             security=key)
         try:
             inp = sub.subscribe(TOPIC, MSG_TYPE, "data", transport="udp", blocking=True,
                                 buffer_size=4096)

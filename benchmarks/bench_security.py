@@ -73,9 +73,9 @@ class KeyedLink:
 #: A client child's entry point with TLS: ``Bridge.connect`` pins the benchmark server's
 #: certificate (the roles call it without TLS options), then the usual ``worker_main``.
 _TLS_CHILD = (
-    "import os; from rlbridge.csp.bridge import Bridge; _connect = Bridge.connect\n"
+    "import os; from rlbridge import Bridge, Tls; _connect = Bridge.connect\n"
     "def connect(*args, **kwargs):\n"
-    "    kwargs.setdefault('fingerprint', os.environ['RLBRIDGE_BENCH_FINGERPRINT'])\n"
+    "    kwargs.setdefault('security', Tls(fingerprint=os.environ['RLBRIDGE_BENCH_FINGERPRINT']))\n"
     "    return _connect(*args, **kwargs)\n"
     "Bridge.connect = connect\n"
     "from rlbridge.bench.child import worker_main; worker_main()")

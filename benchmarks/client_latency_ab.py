@@ -24,11 +24,11 @@ import time
 
 CLIENT = r"""
 import json, sys, time
-from rlbridge.csp.bridge import Bridge
+from rlbridge import Bridge, Tuning
 role, topic, idle = sys.argv[1], sys.argv[3], sys.argv[5]
 port, count = int(sys.argv[2]), int(sys.argv[4])
-b = Bridge.connect("127.0.0.1", port, idle=tuple(idle.split("/")) if "/" in idle else idle,
-                   name=f"ab-{role}")
+b = Bridge.connect("127.0.0.1", port, name=f"ab-{role}",
+                   tuning=Tuning(idle=tuple(idle.split("/")) if "/" in idle else idle))
 if role == "pub":
     out = b.publish(topic, "std_msgs/msg/Int64", "data", transport="udp")
     time.sleep(1.0)

@@ -27,6 +27,8 @@ import threading
 import time
 from pathlib import Path
 
+from rlbridge import Tuning
+
 ROWS = (("publish-only, park/busy", ("park", "busy"), False),
         ("publish-only, park", "park", False),
         ("publish + subscribe, park/busy", ("park", "busy"), True))
@@ -39,7 +41,8 @@ def client(port: int, seconds: float, rate: float) -> None:
 
     out: dict[str, float] = {}
     for label, idle, subscribe in ROWS:
-        with Bridge.connect("127.0.0.1", port, idle=idle, name="recv-idle", timeout=30) as b:
+        with Bridge.connect("127.0.0.1", port, tuning=Tuning(idle=idle), name="recv-idle",
+                            timeout=30) as b:
             pub = b.publish("/recv_idle/out", F64, transport="udp")
             if subscribe:
                 b.subscribe("/recv_idle/in", F64, transport="udp")

@@ -23,7 +23,7 @@ from typing import Any
 from rlbridge.adapters.inproc import InProcessBus
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.errors import ChannelClosed
+from rlbridge.errors import ChannelClosed
 from rlbridge.server.admission import value_schema
 from rlbridge.wire import TopicAck
 

@@ -11,10 +11,10 @@ from typing import Any
 
 import msgspec
 
+from rlbridge import WrongValueType
 from rlbridge.adapters.base import ValueSpec
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.value_check import WrongValueType
 from rlbridge.server.admission import value_converter, value_schema
 from rlbridge.wire import TopicAck
 

@@ -2,14 +2,14 @@
 
 The policies (latest-value delivery, redundancy ``k`` on UDP, a maximum age with
 ``IncomingChannel.read_with_age``, ``channel.health()``) are added to the SDK separately from
-this harness. Whether a build has them is read from the signatures, not guessed from an
-exception: a row whose keyword argument ``Bridge.subscribe`` does not accept is reported as
+this harness. Whether a build has them is read from the fields of ``rlbridge.Policy``, not
+guessed from an exception: a row whose option ``Policy`` does not have is reported as
 "not available in this build" and not run, while a row that runs and fails is an error.
 """
 
 from __future__ import annotations
 
-import inspect
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -17,7 +17,7 @@ from typing import Any
 
 @dataclass(frozen=True)
 class PolicyRow:
-    """One policy variant of the down stream: transport, client keyword arguments, label."""
+    """One policy variant of the down stream: transport, ``Policy`` options, label."""
 
     key: str
     label: str
@@ -45,25 +45,24 @@ def policy_rows(delay_ms: float) -> list[PolicyRow]:
     ]
 
 
-def missing_features(row: PolicyRow, bridge: type | None = None,
+def missing_features(row: PolicyRow, policy: type | None = None,
                      channel: type | None = None) -> list[str]:
-    """What this build (or the given ``Bridge``/``IncomingChannel`` classes) lacks for ``row``."""
-    if bridge is None or channel is None:
-        from rlbridge.csp.bridge import Bridge
-        from rlbridge.csp.bridge_channels import IncomingChannel
+    """What this build (or the given ``Policy``/``IncomingChannel`` classes) lacks for ``row``."""
+    if policy is None or channel is None:
+        from rlbridge import IncomingChannel, Policy
 
-        bridge, channel = bridge or Bridge, channel or IncomingChannel
-    params = inspect.signature(getattr(bridge, "subscribe")).parameters  # noqa: B009
-    missing = [f"Bridge.subscribe({k}=...)" for k in row.policy if k not in params]
+        policy, channel = policy or Policy, channel or IncomingChannel
+    options = {f.name for f in dataclasses.fields(policy)}
+    missing = [f"Policy({k}=...)" for k in row.policy if k not in options]
     missing += [f"IncomingChannel.{m}()" for m in row.methods
                 if not callable(getattr(channel, m, None))]
     return missing
 
 
-def availability(row: PolicyRow, bridge: type | None = None,
+def availability(row: PolicyRow, policy: type | None = None,
                  channel: type | None = None) -> str | None:
     """None when ``row`` can run here, else the reason printed in its table row."""
-    missing = missing_features(row, bridge, channel)
+    missing = missing_features(row, policy, channel)
     return f"not available in this build (no {', '.join(missing)})" if missing else None
 
 

@@ -60,7 +60,7 @@ def shm_parent(args: argparse.Namespace) -> dict[str, Any]:
     child_result = args.result + ".child"
     options = loop_options(args)
     with Bridge.connect("127.0.0.1", args.port, nodelay=True, send_rate_hz=PUMP_HZ,
-                        name=f"bench-{args.scenario}", switch_interval=None) as bridge, \
+                        name=f"bench-{args.scenario}") as bridge, \
             ShmLink.create(inputs=1, outputs=1) as link:
         incoming = bridge.subscribe(topic, F64, blocking=False, initial=0.0)
         out = bridge.publish(TOPIC_OUT, F64, through_buffer=True)

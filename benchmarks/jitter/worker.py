@@ -172,8 +172,7 @@ def worker_main(args: argparse.Namespace) -> None:
         if name not in _NO_BRIDGE:
             bridge = Bridge.connect("127.0.0.1", args.port, nodelay=True,
                                     send_rate_hz=_RATES.get(name.removesuffix(PROCESS_SUFFIX)),
-                                    name=f"bench-{name}",
-                                    switch_interval=None)  # the loop holds its own
+                                    name=f"bench-{name}")  # the loop holds its own interval
         if name == "sdk-1000-rtio" and bridge is not None:
             info["io_threads"] = "SCHED_FIFO 40" if bridge.set_io_priority(40) else "refused"
         coupling = _coupling(name, bridge, info, loop_options(args))

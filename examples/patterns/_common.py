@@ -19,8 +19,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from rlbridge import Bridge
-from rlbridge.csp.patterns import DEFAULT_LAYOUT, BaseCoupling, IsolatedCoupling, LoopOptions
+from rlbridge import DEFAULT_LAYOUT, BaseCoupling, Bridge, IsolatedCoupling, LoopOptions
 
 F64 = "std_msgs/msg/Float64"
 SETPOINT = "/example/setpoint"

@@ -11,8 +11,7 @@ import argparse
 import math
 import time
 
-from rlbridge import Bridge, LinkState
-from rlbridge.csp import PeriodicTimer
+from rlbridge import Bridge, LinkState, PeriodicTimer
 
 F64 = "std_msgs/msg/Float64"
 

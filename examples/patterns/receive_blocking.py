@@ -14,7 +14,7 @@ from typing import Any
 
 from _common import F64, SETPOINT, final_law, parser, run
 
-from rlbridge.csp.patterns import receive_blocking
+from rlbridge import receive_blocking
 
 
 def check(value: Any) -> float:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from _common import F64, SETPOINT, ignore, parser, run
 
-from rlbridge.csp.patterns import receive_naive
+from rlbridge import receive_naive
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ from typing import Any
 
 from _common import F64, SETPOINT, final_law, parser, run
 
-from rlbridge.csp.patterns import receive_nonblocking
+from rlbridge import receive_nonblocking
 
 
 class Filter:

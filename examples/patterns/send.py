@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from _common import F64, OUTPUT, Sine, parser, run
 
-from rlbridge.csp import patterns
+from rlbridge import send_buffered, send_loop, send_naive, send_sampled
 
 
 def main() -> None:
@@ -30,12 +30,12 @@ def main() -> None:
     args = p.parse_args()
     control = Sine(args.period_us)
     if args.pattern == "sampled":
-        run(args, lambda bridge, loop: patterns.send_sampled(
+        run(args, lambda bridge, loop: send_sampled(
             bridge, OUTPUT, F64, control, rate_hz=args.rate, layout=args.layout, **loop))
     elif args.pattern == "naive":  # in-process only: it exists to be compared
-        run(args, lambda bridge, loop: patterns.send_naive(bridge, OUTPUT, F64, control, **loop))
+        run(args, lambda bridge, loop: send_naive(bridge, OUTPUT, F64, control, **loop))
     else:
-        recipe = patterns.send_buffered if args.pattern == "buffered" else patterns.send_loop
+        recipe = send_buffered if args.pattern == "buffered" else send_loop
         run(args, lambda bridge, loop: recipe(bridge, OUTPUT, F64, control, layout=args.layout,
                                               **loop),
             send_rate_hz=args.send_rate if args.pattern == "loop" else None)

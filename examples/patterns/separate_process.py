@@ -15,10 +15,7 @@ import math
 
 from _common import F64, OUTPUT, SETPOINT, parser, publisher, wait_for_publisher
 
-from rlbridge import Bridge
-from rlbridge.csp.coupling import Coupling, Ticker
-from rlbridge.csp.process import Parallel
-from rlbridge.csp.shm import HrtProcess, ShmLink, forwarder
+from rlbridge import Bridge, Coupling, HrtProcess, Parallel, ShmLink, Ticker, forwarder
 
 
 def control_loop(link: ShmLink, period: float, cycles: int) -> None:

@@ -31,9 +31,9 @@ def fail(message: str, code: int = 1) -> typer.Exit:
 def one_line_errors(fn: F) -> F:
     """Known failures become one line on stderr; only real bugs keep their traceback."""
     from rlbridge.adapters import AdapterUnavailable, BindingError
+    from rlbridge.errors import RemoteError
     from rlbridge.server import ServerError
     from rlbridge.wire import RlbridgeError
-    from rlbridge.wire.errors import RemoteError
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:

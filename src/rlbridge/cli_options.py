@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from pydantic import ValidationError
 
     from rlbridge.csp.bridge import Bridge
+    from rlbridge.csp.options import Psk, Tls
 
 #: Long option -> its one short form, for every command.
 SHORT_OPTIONS: dict[str, str] = {
@@ -135,9 +136,18 @@ class ServerTarget:
         client_cert = (None if self.tls_cert is None or self.tls_key is None
                        else (self.tls_cert, self.tls_key))
         return Bridge.connect(self.host, self.port, name=name, reconnect=False,
-                              tls=self.tls or client_cert is not None, ca=self.ca,
-                              fingerprint=self.fingerprint, client_cert=client_cert,
-                              psk_file=self.psk_file)
+                              security=self.security(client_cert))
+
+    def security(self, client_cert: tuple[str, str] | None = None) -> Psk | Tls | None:
+        """The ``security=`` these options stand for, built here only: ``--psk-file`` is
+        ``Psk(file=...)``; ``--tls``, ``--ca``, ``--fingerprint`` and a client certificate
+        turn on ``Tls(...)`` (with the key inside it, if both are given)."""
+        from rlbridge.csp.options import Psk, Tls
+
+        psk = None if self.psk_file is None else Psk(file=self.psk_file)
+        if not (self.tls or self.ca or self.fingerprint or client_cert):
+            return psk
+        return Tls(ca=self.ca, fingerprint=self.fingerprint, client_cert=client_cert, psk=psk)
 
 
 #: The ``server`` parameter's default, for calling a command function directly.

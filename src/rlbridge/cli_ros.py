@@ -136,7 +136,7 @@ def action_send(
     server: ServerTarget = LOCAL_SERVER,
 ) -> None:
     """Send GOAL to ACTION; print each feedback and the result as JSON lines."""
-    from rlbridge.csp.errors import ChannelClosed
+    from rlbridge.errors import ChannelClosed
 
     fields = _fields(goal, "the goal")
     with server.connect("rlbridge-action-send") as bridge:

@@ -112,7 +112,7 @@ def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
     reconnect) closes the channel, which ends the read with ``ChannelClosed``.
     """
     from rlbridge.csp.connection import ConnectionClosed
-    from rlbridge.csp.errors import ChannelClosed
+    from rlbridge.errors import ChannelClosed
 
     deadline = None if timeout is None else time.monotonic() + timeout
     while True:
@@ -145,7 +145,7 @@ def topic_hz(
 
     With --duration, exits 1 if no value arrived in that time (like echo's --timeout).
     """
-    from rlbridge.csp.errors import ChannelClosed
+    from rlbridge.errors import ChannelClosed
 
     with server.connect("rlbridge-topic-hz") as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,

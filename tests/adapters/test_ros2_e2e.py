@@ -28,8 +28,9 @@ import pytest
 from ros_peers import env_for
 
 from localhost import rlbridge_command
+from rlbridge import QoS
 from rlbridge.csp.bridge import Bridge
-from rlbridge.wire.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
+from rlbridge.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
 
 if TYPE_CHECKING:
     from ros_peers import PeerProcess
@@ -308,8 +309,8 @@ def test_sdk_qos_reaches_the_ros_graph(
     topic = unique_topic("qos")
     handle = peer.call("sub", topic=topic, type="std_msgs/msg/Float64", field="data",
                        reliability="reliable")
-    out = sdk.publish(topic, "std_msgs/msg/Float64", transport="udp", reliability="reliable",
-                      depth=5)
+    out = sdk.publish(topic, "std_msgs/msg/Float64", transport="udp",
+                      qos=QoS(reliability="reliable", depth=5))
     deadline = time.monotonic() + TIMEOUT
     while not peer.wait_messages(handle, bool, 0.1):
         assert time.monotonic() < deadline, "a reliable SDK publisher never reached rclpy"

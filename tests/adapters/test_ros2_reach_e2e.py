@@ -21,9 +21,9 @@ from reach_netns import PEER, LoggedProcess, World, in_namespace, run_cli, world
 pytest.importorskip("test_msgs.action", reason="needs ros-test-msgs")
 pytest.importorskip("std_srvs.srv", reason="needs ros-std-srvs")
 
+from rlbridge import ParameterError, QoS
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.parameters import ParameterError
-from rlbridge.wire.errors import (
+from rlbridge.errors import (
     BadValueError,
     NoServiceError,
     UnknownTypeError,
@@ -146,7 +146,7 @@ def test_parameters_read_listed_and_set(sdk: Bridge) -> None:
 def test_latched_topic_published_before_the_client_connected(
         sdk: Bridge, durability: Any) -> None:
     ch = sdk.subscribe("/reach/map", "std_msgs/msg/String", transport="tcp", blocking=True,
-                       durability=durability)
+                       qos=QoS(durability=durability))
     assert ch.read(timeout=30) == "map v1"
     sdk.unsubscribe(ch)
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -60,13 +61,16 @@ def test_stream_spec_rejects_nonsense() -> None:
         StreamSpec(transport="sctp")
 
 
+@dataclass(frozen=True)
 class _Old:
-    def subscribe(self, topic: str, *, redundancy: int = 0) -> None: ...
+    redundancy: int = 0
 
 
+@dataclass(frozen=True)
 class _New:
-    def subscribe(self, topic: str, *, redundancy: int = 0, latest: bool = False,
-                  max_age_ms: float | None = None) -> None: ...
+    redundancy: int = 0
+    latest: bool = False
+    max_age_ms: int = 0
 
 
 class _Channel:
@@ -94,7 +98,7 @@ def _evaluation() -> Evaluation:
     s = summarise(lat, delay_ms=0.0, period_ms=10.0)
     ev.rows = [Row("loss1", "udp", "UDP", "rlbridge", s, lat, bytes_per_value=75.0),
                Row("loss1", "tcpn-latest", "TCPn + latest", "policy",
-                   note="not available in this build (no Bridge.subscribe(latest=...))")]
+                   note="not available in this build (no Policy(latest=...))")]
     ev.throughput = [ThroughputPoint("up", "udp", 100, 100.0, 99.0, 0, 200)]
     return ev
 

@@ -12,7 +12,7 @@ import typer
 
 from rlbridge.cli_errors import one_line_errors
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.errors import NoValueYet
+from rlbridge.errors import NoValueYet
 
 
 def test_a_bad_transport_is_refused_before_connecting(

@@ -9,17 +9,17 @@ from typing import Any
 
 import pytest
 
+from rlbridge import ConnectionClosed, ConnectionFailed, ErrorCode, Policy, RemoteError, Tuning
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.connection import ConnectionClosed, ConnectionFailed
-from rlbridge.csp.errors import ChannelClosed, NoValueYet
-from rlbridge.server import ServerThread
-from rlbridge.wire import ErrorCode, RemoteError
-from rlbridge.wire.errors import (
+from rlbridge.errors import (
     BindingRefused,
+    ChannelClosed,
     NoSuchFieldError,
+    NoValueYet,
     TypeClashError,
     UnknownTypeError,
 )
+from rlbridge.server import ServerThread
 from rlbridge.wire.link import LinkState
 
 F64 = "std_msgs/msg/Float64"
@@ -189,7 +189,7 @@ def test_send_rate_hz_sends_without_send(server: ServerThread,
 
 
 def test_invalid_send_rate(server: ServerThread) -> None:
-    with pytest.raises(ValueError, match="rate must be positive"):
+    with pytest.raises(ValueError, match=r"send_rate_hz=-1\.0 must be positive"):
         Bridge.connect("127.0.0.1", server.port, send_rate_hz=-1.0, timeout=10)
     assert sdk_threads() == [], "a refused connect left its receive thread running"
 
@@ -239,7 +239,7 @@ def test_udp_redundancy_delivers_each_value_once(bridge: Callable[..., Bridge]) 
     """The server repeats the last k values in every datagram; the SDK drops the repeats."""
     pub, sub = bridge(), bridge()
     inbox = sub.subscribe("/redundant", "std_msgs/msg/Int32", transport="udp", blocking=True,
-                          buffer_size=256, redundancy=3)
+                          buffer_size=256, policy=Policy(redundancy=3))
     out = pub.publish("/redundant", "std_msgs/msg/Int32", transport="tcp")
     for i in range(10):  # one at a time, so that each goes out in its own datagram
         out.write(i)
@@ -299,8 +299,8 @@ def test_bad_topic_name(bridge: Callable[..., Bridge]) -> None:
 
 def test_udp_only_session_with_sdk(make_server: Callable[..., ServerThread]) -> None:
     srv = make_server(tcp=False)
-    with Bridge.connect("127.0.0.1", srv.port, control="udp", timeout=10) as pub, \
-            Bridge.connect("127.0.0.1", srv.port, control="udp", timeout=10) as sub:
+    with Bridge.connect("127.0.0.1", srv.port, tuning=Tuning(control="udp"), timeout=10) as pub, \
+            Bridge.connect("127.0.0.1", srv.port, tuning=Tuning(control="udp"), timeout=10) as sub:
         inbox = sub.subscribe("/u", F64, transport="udp", blocking=True, buffer_size=64)
         out = pub.publish("/u", F64, transport="udp")
         out.write(3.5)
@@ -316,7 +316,7 @@ def test_udp_only_session_with_sdk(make_server: Callable[..., ServerThread]) -> 
 def test_connect_where_nothing_listens(free_port: Callable[[], int], control: Any) -> None:
     port = free_port()
     with pytest.raises(ConnectionFailed) as exc:
-        Bridge.connect("127.0.0.1", port, control=control, timeout=60)
+        Bridge.connect("127.0.0.1", port, tuning=Tuning(control=control), timeout=60)
     message = str(exc.value)
     assert f"127.0.0.1:{port}" in message
     assert "cannot reach rlbridge server" in message

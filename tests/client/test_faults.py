@@ -78,9 +78,10 @@ def healthy(cli_server: Callable[..., tuple[int, subprocess.Popen[str]]]) -> Ite
 
 VICTIM = textwrap.dedent("""
     import sys, time
-    from rlbridge.csp.bridge import Bridge
+    from rlbridge import Bridge, Tuning
     port, control = int(sys.argv[1]), sys.argv[2]
-    b = Bridge.connect("127.0.0.1", port, control=control, name="victim", timeout=5.0)
+    b = Bridge.connect("127.0.0.1", port, tuning=Tuning(control=control), name="victim",
+                       timeout=5.0)
     b.subscribe(f"/victim/{control}", "std_msgs/msg/Float64", transport="udp")
     out = b.publish(f"/victim/{control}/out", "std_msgs/msg/Float64", transport="udp")
     print("ready", flush=True)

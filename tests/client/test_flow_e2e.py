@@ -7,6 +7,7 @@ import threading
 
 import pytest
 
+from rlbridge import Policy
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.server.flow import BACKLOG_SOFT
@@ -102,13 +103,15 @@ def test_write_many_batches_also_follow_the_reader(server: ServerThread) -> None
 
 def test_latest_and_non_blocking_channels_are_not_flow_controlled(server: ServerThread) -> None:
     with Bridge.connect("127.0.0.1", server.port, name="flow-opts") as b:
-        assert not b.subscribe("/o", I64, transport="tcp", latest=True, blocking=True).flow
+        assert not b.subscribe("/o", I64, transport="tcp", policy=Policy(latest=True),
+                               blocking=True).flow
         assert not b.subscribe("/o", I64, transport="tcp", blocking=False).flow
         assert not b.subscribe("/o", I64, transport="udp", blocking=True).flow
-        assert not b.publish("/o", I64, transport="tcp", latest=True).flow
+        assert not b.publish("/o", I64, transport="tcp", policy=Policy(latest=True)).flow
         assert not b.publish("/o", I64, transport="udp").flow
-        assert b.subscribe("/o", I64, transport="tcp", blocking=False, flow=True).flow
-        with pytest.raises(ValueError, match="TCP channel that is not latest"):
-            b.publish("/o", I64, transport="udp", flow=True)
-        with pytest.raises(ValueError, match="TCP channel that is not latest"):
-            b.subscribe("/o", I64, transport="tcp", latest=True, flow=True)
+        assert b.subscribe("/o", I64, transport="tcp", blocking=False,
+                           policy=Policy(flow=True)).flow
+        with pytest.raises(ValueError, match=r"flow=True.*needs transport='tcp'"):
+            b.publish("/o", I64, transport="udp", policy=Policy(flow=True))
+        with pytest.raises(ValueError, match="flow=True, latest=True"):
+            Policy(latest=True, flow=True)

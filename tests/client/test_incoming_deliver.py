@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rlbridge.csp.bridge_channels import IncomingChannel
-from rlbridge.csp.errors import ChannelMisuseError
+from rlbridge.errors import ChannelMisuseError
 from rlbridge.wire.clock import InterarrivalJitter
 from rlbridge.wire.sequence import SequenceTracker
 

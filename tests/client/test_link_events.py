@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 
-from rlbridge.csp.errors import ChannelClosed
-from rlbridge.csp.failsafe import FailSafe, LinkLost, SafeValue, fail_safe
+from rlbridge import LinkLost, WouldBlock
+from rlbridge.csp.failsafe import FailSafe, SafeValue, fail_safe
 from rlbridge.csp.link_events import LinkEvents
+from rlbridge.errors import ChannelClosed
 from rlbridge.wire.link import LinkState
 
 
@@ -28,6 +31,41 @@ def test_events_reach_channels_and_callbacks_in_order_without_repeats() -> None:
     assert seen == [LinkState.DEGRADED, LinkState.LOST, LinkState.CONNECTED]
     late = hub.channel()  # a late subscriber starts from the current state
     assert late.read() is events[-1]
+
+
+def test_link_events_are_a_fifo_each_event_read_once() -> None:
+    """Events are not state: a drain loop ends (``try_read`` raises ``WouldBlock``) instead
+    of reading the newest event again forever, and ``read`` waits for the next one."""
+    hub = LinkEvents()
+    ch = hub.channel()
+    assert ch.try_read().state is LinkState.CONNECTED
+    with pytest.raises(WouldBlock, match="try_read on channel 'link events' would block"):
+        ch.try_read()
+    assert ch.read_many() == []
+    with pytest.raises(TimeoutError):
+        ch.read(timeout=0.01)
+    drained = []
+    hub.emit(LinkState.LOST, "down")
+    hub.emit(LinkState.CONNECTED, "up")
+    while True:  # the loop the README teaches: bounded by what was emitted
+        try:
+            drained.append(ch.try_read().reason)
+        except WouldBlock:
+            break
+    assert drained == ["down", "up"]
+    waiting = threading.Event()
+    got: list[str] = []
+
+    def reader() -> None:
+        waiting.set()
+        got.append(ch.read(timeout=30).reason)
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    waiting.wait(30)
+    hub.emit(LinkState.DEGRADED, "quiet")  # wakes the blocked reader (or it finds it first)
+    thread.join(30)
+    assert got == ["quiet"]
 
 
 def test_a_slow_event_reader_loses_the_oldest_counted_and_closed_channels_are_dropped() -> None:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 import pytest
 from link_helpers import wait_for
 
+from rlbridge import Policy
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.server import ServerThread
@@ -91,7 +92,7 @@ def test_adaptive_rate_backs_off_on_reported_loss(server: ServerThread) -> None:
     with Bridge.connect("127.0.0.1", server.port, name="adapt") as b:
         top = 10_000_000
         out = b.publish("/adapt", F64, transport="udp", buffer_size=4 * CHUNK,
-                        max_rate_hz=top, adapt_rate=True)
+                        policy=Policy(max_rate_hz=top, adapt_rate=True))
         assert out.health().rate_limit_hz == top
         _flood_until_lost(server, b, out)
         wait_for(lambda: out.health().rate_limit_hz < top, "the rate to back off")
@@ -102,7 +103,8 @@ def test_rate_limit_holds_values_in_the_ring_and_loses_none(server: ServerThread
             Bridge.connect("127.0.0.1", server.port, name="limited") as b:
         inbox = sub_b.subscribe("/limited", F64, transport="tcp", blocking=True,
                                 buffer_size=256)
-        out = b.publish("/limited", F64, transport="udp", buffer_size=256, max_rate_hz=20)
+        out = b.publish("/limited", F64, transport="udp", buffer_size=256,
+                        policy=Policy(max_rate_hz=20))
         out.write_many([float(i) for i in range(40)])  # two seconds' worth at 20 Hz
         b.send()
         assert out.pending() > 0, "a rate-limited channel sent 40 values at once"

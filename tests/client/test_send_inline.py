@@ -21,9 +21,9 @@ from typing import Any
 import pytest
 from link_helpers import WAIT, wait_for
 
+from rlbridge import Policy, Psk, RealTimeWarning, Tuning
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
-from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.inline_round import InlineRounds
 from rlbridge.csp.process import Code
 from rlbridge.csp.sender import SendLoop
@@ -185,25 +185,24 @@ def test_two_inline_callers_and_paced_rounds_never_overlap(server: ServerThread)
         assert sender.rounds > 0
 
 
-@pytest.mark.parametrize("options", [
-    {"transport": "tcp"},
-    {"max_rate_hz": 1000.0},
-    {"latest": True},
-    {"redundancy": 1},
-    {"max_age_ms": 1000},
+@pytest.mark.parametrize(("transport", "policy"), [
+    ("tcp", Policy()),
+    ("udp", Policy(max_rate_hz=1000.0)),
+    ("udp", Policy(latest=True)),
+    ("udp", Policy(redundancy=1)),
+    ("udp", Policy(max_age_ms=1000)),
 ])
 def test_a_channel_with_a_policy_or_tcp_goes_through_the_thread(
-        pair: tuple[Bridge, Bridge], options: dict[str, Any]) -> None:
+        pair: tuple[Bridge, Bridge], transport: str, policy: Policy) -> None:
     """The plain channel goes inline; the other one is the send thread's, which is rung only
     when that channel has something to send."""
     pub, sub = pair
-    transport = options.get("transport", "udp")
     inbox = sub.subscribe("/inline/policy", F64, transport=transport, blocking=True,
                           buffer_size=64)
     plain_inbox = sub.subscribe("/inline/plain", F64, transport="udp", blocking=True)
     plain = pub.publish("/inline/plain", F64, transport="udp", through_buffer=True)
-    other = pub.publish("/inline/policy", F64, through_buffer=True,
-                        **{"transport": "udp", **options})
+    other = pub.publish("/inline/policy", F64, through_buffer=True, transport=transport,
+                        policy=policy)
     sender = pub._sender
     arrived(plain, plain_inbox, pub)
     rounds, fallbacks = sender.rounds, sender.inline_fallbacks
@@ -263,13 +262,14 @@ def test_sealed_or_unbundled_sessions_fall_back(make_server: Callable[..., Serve
     """A sealed session's datagrams are sealed on the send thread; an unbundled one sends a
     datagram per channel: neither goes inline, and the values still arrive."""
     key = bytes(range(32))
-    options: dict[str, Any] = {"psk": key} if sealed else {"bundles": False}
+    options: dict[str, Any] = ({"security": Psk(key=key)} if sealed
+                               else {"tuning": Tuning(bundles=False)})
     if sealed:
         (tmp_path / "keys").write_text(key.hex() + "\n")
     server = make_server(psk_file=tmp_path / "keys") if sealed else make_server()
     with Bridge.connect("127.0.0.1", server.port, name="inline-fb", **options) as pub, \
             Bridge.connect("127.0.0.1", server.port, name="inline-fb-sub",
-                           **({"psk": key} if sealed else {})) as sub:
+                           security=Psk(key=key) if sealed else None) as sub:
         inbox = sub.subscribe("/inline/fallback", F64, transport="udp", blocking=True)
         out = pub.publish("/inline/fallback", F64, transport="udp", through_buffer=True)
         out.write(3.0)

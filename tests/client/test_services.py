@@ -14,22 +14,22 @@ from typing import Any
 import pytest
 from test_reconnect import Serve, bridges, lost, reconnected, serve, wait_for
 
+from rlbridge import LocalProtocolError
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_services import CallResult
-from rlbridge.csp.errors import ChannelClosed
 from rlbridge.csp.services import ServiceRequests
-from rlbridge.csp.session_errors import ConnectionClosed
-from rlbridge.server import ServerThread
-from rlbridge.wire import LocalProtocolError
-from rlbridge.wire.errors import (
+from rlbridge.errors import (
     BadValueError,
     BindingRefused,
+    ChannelClosed,
+    ConnectionClosed,
     NoServiceError,
     ServiceFailed,
     ServiceTimeout,
     TypeClashError,
     UnknownTypeError,
 )
+from rlbridge.server import ServerThread
 
 __all__ = ["bridges", "serve"]  # the reconnect tests' fixtures, used here too
 

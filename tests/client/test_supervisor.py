@@ -6,7 +6,7 @@ import threading
 
 from link_helpers import WAIT, wait_for
 
-from rlbridge.csp.connection import ConnectionFailed
+from rlbridge import ConnectionFailed
 from rlbridge.csp.reconnect import Backoff, ReconnectSupervisor
 
 

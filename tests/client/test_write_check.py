@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from rlbridge import Bridge
+from rlbridge import Bridge, WrongValueType
 from rlbridge.adapters.inproc import InProcessBus
-from rlbridge.csp.value_check import WrongValueType, compile_check
+from rlbridge.csp.value_check import compile_check
 from rlbridge.server.admission import value_converter
 from rlbridge.wire import TopicAck
 from write_agreement import assert_write_check_agrees

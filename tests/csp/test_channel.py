@@ -16,14 +16,14 @@ from hypothesis import strategies as st
 from pattern_support import wait_until
 
 from rlbridge.csp.channel import Channel, Doorbell
-from rlbridge.csp.errors import (
+from rlbridge.csp.process import Code
+from rlbridge.errors import (
     ChannelClosed,
     ChannelMisuseError,
     NoValueYet,
     RealTimeWarning,
     WouldBlock,
 )
-from rlbridge.csp.process import Code
 
 JOIN = 10.0  # generous bound for joins and waits; only reached when a test fails
 

@@ -10,6 +10,7 @@ from typing import TypeVar
 import pytest
 from pattern_support import wait_until
 
+from rlbridge import Tuning
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.idle import BusySpin, Park, SpinThenPark, idle_pair, idle_strategy
 from rlbridge.server import ServerThread
@@ -78,7 +79,7 @@ def test_names_and_pairs(name: str) -> None:
 @pytest.mark.parametrize("idle", ["spin", "busy", ("busy", "spin")])
 def test_bridge_threads_move_values_on_every_strategy(
         server: ServerThread, idle: str | tuple[str, str]) -> None:
-    with Bridge.connect("127.0.0.1", server.port, idle=idle, name="idle") as b:
+    with Bridge.connect("127.0.0.1", server.port, tuning=Tuning(idle=idle), name="idle") as b:
         inbox = b.subscribe("/idle", "std_msgs/msg/Int64", transport="tcp", blocking=True,
                             buffer_size=64)
         out = b.publish("/idle", "std_msgs/msg/Int64", transport="udp")
@@ -96,7 +97,8 @@ def test_busy_spin_yields_the_cpu_between_polls(monkeypatch: pytest.MonkeyPatch)
 
 
 def test_bridge_blocking_reads_wait_by_the_receive_strategy(server: ServerThread) -> None:
-    with Bridge.connect("127.0.0.1", server.port, idle=("park", "busy"), name="rd") as b:
+    with Bridge.connect("127.0.0.1", server.port, tuning=Tuning(idle=("park", "busy")),
+                        name="rd") as b:
         inbox = b.subscribe("/idle_rd", "std_msgs/msg/Int64", transport="udp", blocking=True,
                             buffer_size=64)
         assert inbox.read_idle.name == "busy"
@@ -135,7 +137,8 @@ def test_a_spinning_receive_strategy_applies_only_while_something_comes_in(
     parks whatever its strategy; a subscription or a provided service brings the strategy in,
     and unsubscribing parks the thread again."""
     recording = Recording()
-    with Bridge.connect("127.0.0.1", server.port, idle=("park", recording), name="rx") as b:
+    with Bridge.connect("127.0.0.1", server.port, tuning=Tuning(idle=("park", recording)),
+                        name="rx") as b:
         out = b.publish("/idle_rx_out", "std_msgs/msg/Int64", transport="udp")
         out.write(1)
         _after_heartbeats(b, 3)
@@ -159,7 +162,8 @@ def test_a_service_call_in_flight_brings_the_spinning_strategy_in(server: Server
     flight its receive thread waits by its strategy, and parks again once the call is over."""
     recording = Recording()
     with (Bridge.connect("127.0.0.1", server.port, name="provider") as provider,
-          Bridge.connect("127.0.0.1", server.port, idle=("park", recording), name="caller") as b):
+          Bridge.connect("127.0.0.1", server.port, tuning=Tuning(idle=("park", recording)),
+                         name="caller") as b):
         requests = provider.serve_service("/idle_rx_call", "std_srvs/srv/Trigger")
         answers: list[dict[str, object]] = []
         caller = threading.Thread(target=lambda: answers.append(

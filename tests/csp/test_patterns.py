@@ -18,15 +18,16 @@ from typing import Any
 import pytest
 from pattern_support import F64, WAIT, collect, drain, publish_until, wait_until
 
+from rlbridge import Tuning
 from rlbridge.csp import patterns
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.gil import shorter_switch_interval
+from rlbridge.errors import RealTimeWarning
 
 # PriParallel says once per coupling when the OS refuses real-time priorities (no root).
-pytestmark = pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.csp.errors.RealTimeWarning")
+pytestmark = pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.errors.RealTimeWarning")
 
 
 
@@ -92,9 +93,10 @@ def test_bridge_connect_leaves_the_switch_interval_alone_unless_asked(port: int)
     sys.setswitchinterval(0.005)
     with Bridge.connect("127.0.0.1", port):
         assert sys.getswitchinterval() == pytest.approx(0.005)
-    with Bridge.connect("127.0.0.1", port, switch_interval=0.0005):  # explicit: shortens
+    with Bridge.connect("127.0.0.1", port,
+                        tuning=Tuning(switch_interval=0.0005)):  # explicit: shortens
         assert sys.getswitchinterval() == pytest.approx(0.0005)
-    with Bridge.connect("127.0.0.1", port, switch_interval=0.001):  # never lengthens
+    with Bridge.connect("127.0.0.1", port, tuning=Tuning(switch_interval=0.001)):  # never lengthens
         assert sys.getswitchinterval() == pytest.approx(0.0005)
 
 

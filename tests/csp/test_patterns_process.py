@@ -26,7 +26,7 @@ from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling
 from rlbridge.csp.shm import ShmLink
 
 pytestmark = [
-    pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.csp.errors.RealTimeWarning"),
+    pytest.mark.filterwarnings("ignore:PriParallel.*:rlbridge.errors.RealTimeWarning"),
     pytest.mark.skipif(not ShmLink.supported(), reason="the shared-memory link needs x86"),
 ]
 

@@ -9,11 +9,12 @@ import time
 import pytest
 
 from benchmarks.redundancy import redundancy_cost
-from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel, SecondWriterError
+from rlbridge import SecondWriterError
+from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.errors import ChannelMisuseError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.stamped_ring import StampedRing
+from rlbridge.errors import ChannelMisuseError
 from rlbridge.wire.link import LinkMonitor
 
 MS = 1_000_000

@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 
+from rlbridge import Policy, Tuning
 from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.wire import (
@@ -41,7 +42,7 @@ def test_udp_redundancy_from_the_sdk_is_deduplicated_by_the_server(
         bridge: Callable[..., Bridge]) -> None:
     b = bridge()
     sub = b.subscribe("/red/up", F64, transport="tcp", blocking=True, buffer_size=64)
-    out = b.publish("/red/up", F64, transport="udp", redundancy=2)
+    out = b.publish("/red/up", F64, transport="udp", policy=Policy(redundancy=2))
     for i in range(20):
         out.write(float(i))
         b.send(wait=True)  # one datagram per value, each repeating up to 2 earlier ones
@@ -57,7 +58,7 @@ def test_udp_redundancy_from_the_sdk_is_deduplicated_by_the_server(
 def test_health_on_both_channel_kinds(bridge: Callable[..., Bridge]) -> None:
     b = bridge()
     sub = b.subscribe("/health", F64, transport="udp", blocking=True, buffer_size=16,
-                      max_age_ms=5_000, latest=False)
+                      policy=Policy(latest=False, max_age_ms=5_000))
     out = b.publish("/health", F64, transport="tcp")
     for i in range(5):
         out.write(float(i))
@@ -86,8 +87,8 @@ def test_max_age_drops_on_the_sdk_side(bridge: Callable[..., Bridge]) -> None:
     """Values arrive through the server stamped at middleware delivery; a 1 ns limit drops
     every one of them (always older on arrival), which the SDK counts."""
     b = bridge()
-    sub = b.subscribe("/age", F64, transport="tcp", initial=-1.0, max_age_ms=0)
-    strict = b.subscribe("/age", F64, transport="tcp", initial=-1.0, max_age_ms=1)
+    sub = b.subscribe("/age", F64, transport="tcp", initial=-1.0, policy=Policy(max_age_ms=0))
+    strict = b.subscribe("/age", F64, transport="tcp", initial=-1.0, policy=Policy(max_age_ms=1))
     out = b.publish("/age", F64, transport="tcp")
     out.write(1.0)
     _wait(lambda: sub.read() == 1.0, "the value on the unlimited channel")
@@ -166,9 +167,11 @@ def stalling_server() -> Iterator[StallingServer]:
 @pytest.mark.parametrize("latest", [True, False])
 def test_sdk_latest_channel_holds_while_the_server_stalls(
         stalling_server: StallingServer, latest: bool) -> None:
-    b = Bridge.connect("127.0.0.1", stalling_server.port, control="tcp", timeout=WAIT)
+    b = Bridge.connect("127.0.0.1", stalling_server.port, tuning=Tuning(control="tcp"),
+                       timeout=WAIT)
     try:
-        out = b.publish("/stall", STR, transport="tcp", latest=latest, buffer_size=4096)
+        out = b.publish("/stall", STR, transport="tcp", policy=Policy(latest=latest),
+                        buffer_size=4096)
         assert stalling_server.stalled.wait(WAIT)
         sent = [f"{i:04d}" + "y" * 2000 for i in range(300)]
         for value in sent:

@@ -13,7 +13,6 @@ import pytest
 
 from rlbridge._compat import ExceptionGroup
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.process import (
     Code,
     Parallel,
@@ -25,6 +24,7 @@ from rlbridge.csp.process import (
     as_process,
     current_process,
 )
+from rlbridge.errors import RealTimeWarning
 
 JOIN = 10.0
 

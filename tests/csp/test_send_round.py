@@ -8,8 +8,8 @@ import threading
 import msgspec
 import pytest
 
+from rlbridge import OutgoingChannel
 from rlbridge.csp.bell import SendBell
-from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.csp.plain_round import take_plain
 from rlbridge.wire import Batch, Value
 from rlbridge.wire.bundle import VALUE_TAG, Part, as_packet

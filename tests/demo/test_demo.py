@@ -50,7 +50,7 @@ STILL_RMS = {"pan": Lissajous().pan_amplitude / math.sqrt(2),
 TRACKS = 0.5
 # PriParallel says once when the OS refuses SCHED_FIFO (no root / CAP_SYS_NICE): expected
 # on a developer's machine, and no reason to fail a test that runs the loop in this process.
-RT_REFUSED = "ignore:PriParallel.*refused:rlbridge.csp.errors.RealTimeWarning"
+RT_REFUSED = "ignore:PriParallel.*refused:rlbridge.errors.RealTimeWarning"
 
 
 # -- the control law on a fake clock ---------------------------------------------------------

@@ -29,8 +29,7 @@ COUNT = 300
 #: Both client scripts start alike: connect to the server (which may still be starting).
 CONNECT = textwrap.dedent("""
     import json, sys, threading, time
-    from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.connection import ConnectionFailed
+    from rlbridge import Bridge, ConnectionFailed, Policy
     host, port = sys.argv[1], int(sys.argv[2])
     deadline = time.monotonic() + 20
     while True:
@@ -47,7 +46,7 @@ CLIENT = CONNECT + textwrap.dedent("""
     latest, count, max_age = sys.argv[3] == "1", int(sys.argv[4]), int(sys.argv[5])
     I64 = "std_msgs/msg/Int64"
     sub = bridge.subscribe("/sp", I64, transport="tcp", blocking=True, buffer_size=1024,
-                           latest=latest, max_age_ms=max_age)
+                           policy=Policy(latest=latest, max_age_ms=max_age))
     out = bridge.publish("/sp", I64, transport="udp")
     got, ages = [], []
     def reader():
@@ -79,7 +78,8 @@ CLIENT = CONNECT + textwrap.dedent("""
 
 PUBLISHER = CONNECT + textwrap.dedent("""
     k, count = int(sys.argv[3]), int(sys.argv[4])
-    out = bridge.publish("/cmd", "std_msgs/msg/Int64", transport="udp", redundancy=k)
+    out = bridge.publish("/cmd", "std_msgs/msg/Int64", transport="udp",
+                         policy=Policy(redundancy=k))
     next_t = time.monotonic()
     for i in range(count):
         out.write(i)

@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 
+from rlbridge import ErrorCode, Tuning
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.server.access import AllowList, KeyStore
@@ -21,7 +22,6 @@ from rlbridge.wire import (
     Batch,
     ConnectError,
     Error,
-    ErrorCode,
     FrameDecoder,
     Hello,
     PacketCodec,
@@ -85,7 +85,7 @@ def test_udp_from_outside_the_allow_list_is_dropped(make_server: Callable[..., S
         for _ in range(3):
             sock.send(codec.encode_datagram(Hello(PROTOCOL_VERSION, "outsider"), 0))
         sock.settimeout(0.5)
-        with Bridge.connect("127.0.0.1", srv.port, control="udp", timeout=WAIT):
+        with Bridge.connect("127.0.0.1", srv.port, tuning=Tuning(control="udp"), timeout=WAIT):
             pass  # an allowed UDP client gets in
         with pytest.raises(TimeoutError):
             sock.recv(65536)  # never answered

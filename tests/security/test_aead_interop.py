@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from rlbridge import ConnectionFailed, Psk
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.connection import ConnectionFailed
 from rlbridge.server import ServerThread
 from rlbridge.wire import aead
 from rlbridge.wire.aead import AEAD_ENV, CRYPTOGRAPHY, IMPLEMENTATIONS, LIBSODIUM
@@ -29,7 +29,7 @@ def _connect(port: int) -> Bridge:
     deadline = time.monotonic() + WAIT
     while True:
         try:
-            return Bridge.connect("127.0.0.1", port, psk=KEY, timeout=5.0)
+            return Bridge.connect("127.0.0.1", port, security=Psk(key=KEY), timeout=5.0)
         except ConnectionFailed:
             if time.monotonic() > deadline:
                 raise

@@ -10,9 +10,9 @@ from typing import Any
 
 import pytest
 
+from rlbridge import ConnectionFailed, ErrorCode, Psk, Tuning
 from rlbridge.csp.auth import AuthRefused, ClientAuth
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.connection import ConnectionFailed
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
     PROTOCOL_VERSION,
@@ -20,7 +20,6 @@ from rlbridge.wire import (
     AuthProof,
     ConnectAck,
     ConnectError,
-    ErrorCode,
     Heartbeat,
     Hello,
     Packet,
@@ -60,8 +59,10 @@ def counters(srv: ServerThread) -> dict[str, int]:
 def test_right_key_moves_values_over_tcp_and_sealed_udp(psk_server: ServerThread,
                                                         control: Any) -> None:
     port = psk_server.port
-    with Bridge.connect("127.0.0.1", port, psk=KEY, control=control, timeout=WAIT) as pub, \
-            Bridge.connect("127.0.0.1", port, psk=KEY, control=control, timeout=WAIT) as sub:
+    with Bridge.connect("127.0.0.1", port, security=Psk(key=KEY), tuning=Tuning(control=control),
+                        timeout=WAIT) as pub, \
+            Bridge.connect("127.0.0.1", port, security=Psk(key=KEY),
+                           tuning=Tuning(control=control), timeout=WAIT) as sub:
         channels = [("udp", "/sealed")] + ([("tcp", "/plain")] if control == "tcp" else [])
         for transport, topic in channels:
             inbox = sub.subscribe(topic, F64, transport=transport, blocking=True,
@@ -81,7 +82,8 @@ def test_right_key_moves_values_over_tcp_and_sealed_udp(psk_server: ServerThread
 @pytest.mark.parametrize("control", ["tcp", "udp"])
 def test_wrong_key_is_refused_and_counted(psk_server: ServerThread, control: Any) -> None:
     with pytest.raises(AuthRefused) as exc:
-        Bridge.connect("127.0.0.1", psk_server.port, psk=b"w" * 32, control=control,
+        Bridge.connect("127.0.0.1", psk_server.port, security=Psk(key=b"w" * 32),
+                       tuning=Tuning(control=control),
                        timeout=WAIT)
     assert exc.value.code == ErrorCode.AUTH_FAILED
     assert "could not prove it knows the pre-shared key" in str(exc.value)
@@ -115,19 +117,19 @@ def test_no_key_when_one_is_required(psk_server: ServerThread, control: Any,
                                      monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("RLBRIDGE_PSK", raising=False)
     with pytest.raises(AuthRefused, match="requires a pre-shared key") as exc:
-        Bridge.connect("127.0.0.1", psk_server.port, control=control, timeout=WAIT)
+        Bridge.connect("127.0.0.1", psk_server.port, tuning=Tuning(control=control), timeout=WAIT)
     assert exc.value.code == ErrorCode.AUTH_FAILED
     assert counters(psk_server)["auth_failed"] == 1
 
 
 def test_per_client_keys(psk_server: ServerThread) -> None:
     port = psk_server.port
-    with Bridge.connect("127.0.0.1", port, name="alice", psk=ALICE, timeout=WAIT):
+    with Bridge.connect("127.0.0.1", port, name="alice", security=Psk(key=ALICE), timeout=WAIT):
         pass
     with pytest.raises(AuthRefused):  # alice may not use the default key
-        Bridge.connect("127.0.0.1", port, name="alice", psk=KEY, timeout=WAIT)
+        Bridge.connect("127.0.0.1", port, name="alice", security=Psk(key=KEY), timeout=WAIT)
     with pytest.raises(AuthRefused):  # nor anyone else alice's
-        Bridge.connect("127.0.0.1", port, name="bob", psk=ALICE, timeout=WAIT)
+        Bridge.connect("127.0.0.1", port, name="bob", security=Psk(key=ALICE), timeout=WAIT)
 
 
 def test_only_named_clients_without_a_default_key(make_server: Callable[..., ServerThread],
@@ -136,7 +138,7 @@ def test_only_named_clients_without_a_default_key(make_server: Callable[..., Ser
     path.write_text(f"alice {ALICE.hex()}\n")
     srv = make_server(psk_file=path)
     with pytest.raises(AuthRefused, match="no pre-shared key for client name 'bob'"):
-        Bridge.connect("127.0.0.1", srv.port, name="bob", psk=ALICE, timeout=WAIT)
+        Bridge.connect("127.0.0.1", srv.port, name="bob", security=Psk(key=ALICE), timeout=WAIT)
 
 
 def test_key_from_the_environment_and_from_a_file(psk_server: ServerThread, tmp_path: Path,
@@ -147,7 +149,7 @@ def test_key_from_the_environment_and_from_a_file(psk_server: ServerThread, tmp_
     monkeypatch.delenv("RLBRIDGE_PSK")
     path = tmp_path / "client.key"
     path.write_text(ALICE.hex() + "\n")
-    with Bridge.connect("127.0.0.1", psk_server.port, name="alice", psk_file=path,
+    with Bridge.connect("127.0.0.1", psk_server.port, name="alice", security=Psk(file=path),
                         timeout=WAIT):
         pass
 
@@ -159,14 +161,14 @@ def test_server_key_from_the_environment(make_server: Callable[..., ServerThread
     monkeypatch.delenv("RLBRIDGE_PSK")
     with pytest.raises(AuthRefused):
         Bridge.connect("127.0.0.1", srv.port, timeout=WAIT)
-    with Bridge.connect("127.0.0.1", srv.port, psk=KEY, timeout=WAIT):
+    with Bridge.connect("127.0.0.1", srv.port, security=Psk(key=KEY), timeout=WAIT):
         pass
 
 
 def test_client_with_a_key_refuses_an_unauthenticated_server(server: ServerThread) -> None:
     """No silent downgrade: a key given means the server must prove it."""
     with pytest.raises(AuthRefused, match="without authenticating"):
-        Bridge.connect("127.0.0.1", server.port, psk=KEY, timeout=WAIT)
+        Bridge.connect("127.0.0.1", server.port, security=Psk(key=KEY), timeout=WAIT)
 
 
 def test_bad_keys_are_clear_errors(make_server: Callable[..., ServerThread], tmp_path: Path,
@@ -180,7 +182,7 @@ def test_bad_keys_are_clear_errors(make_server: Callable[..., ServerThread], tmp
     with pytest.raises(ServerError, match="cannot read the key file"):
         make_server(psk_file=tmp_path / "missing")
     with pytest.raises(ValueError, match="too short"):
-        Bridge.connect("127.0.0.1", server.port, psk=b"short", timeout=WAIT)
+        Bridge.connect("127.0.0.1", server.port, security=Psk(key=b"short"), timeout=WAIT)
 
 
 # -- sealed datagrams on the wire ----------------------------------------------------------

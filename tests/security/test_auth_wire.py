@@ -8,6 +8,7 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rlbridge import ErrorCode, RemoteProtocolError
 from rlbridge.wire import (
     DATAGRAM_HEADER,
     MAGIC,
@@ -15,8 +16,6 @@ from rlbridge.wire import (
     AuthChallenge,
     Batch,
     Bundle,
-    ErrorCode,
-    RemoteProtocolError,
     Value,
 )
 from rlbridge.wire.auth import (

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 
+from rlbridge import ErrorCode, Psk, RemoteError, Tls
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.tls.certs import issue, make_ca
-from rlbridge.wire import ErrorCode, RemoteError
 
 F64 = "std_msgs/msg/Float64"
 ROBOT, OPERATOR, ANYONE = (bytes([n]) * 32 for n in (1, 2, 3))
@@ -40,7 +40,7 @@ def counters(srv: ServerThread) -> dict[str, int]:
 def test_topics_outside_the_allow_list_are_refused_and_counted(ruled_server: ServerThread
                                                               ) -> None:
     port = ruled_server.port
-    with Bridge.connect("127.0.0.1", port, name="robot", psk=ROBOT.hex(),
+    with Bridge.connect("127.0.0.1", port, name="robot", security=Psk(key=ROBOT.hex()),
                         reconnect=False) as robot:
         robot.publish("/robot/arm/cmd", F64)
         robot.publish("/cmd_vel", "geometry_msgs/msg/Twist", None)
@@ -55,12 +55,12 @@ def test_topics_outside_the_allow_list_are_refused_and_counted(ruled_server: Ser
         out.write(1.0)
         robot.send(wait=True)
         assert robot.server_stats()["session"]["topics_refused"] == 2
-    with Bridge.connect("127.0.0.1", port, name="visitor", psk=ANYONE.hex(),
+    with Bridge.connect("127.0.0.1", port, name="visitor", security=Psk(key=ANYONE.hex()),
                         reconnect=False) as visitor:
         visitor.subscribe("/status/battery", F64)
         with pytest.raises(RemoteError, match="without a proven name may not publish"):
             visitor.publish("/status/battery", F64)
-    with Bridge.connect("127.0.0.1", port, name="robot-impostor", psk=ANYONE.hex(),
+    with Bridge.connect("127.0.0.1", port, name="robot-impostor", security=Psk(key=ANYONE.hex()),
                         reconnect=False) as impostor, \
             pytest.raises(RemoteError, match="may not publish"):  # the default's rules
         impostor.publish("/robot/arm/cmd", F64)
@@ -69,9 +69,9 @@ def test_topics_outside_the_allow_list_are_refused_and_counted(ruled_server: Ser
 
 def test_stats_show_other_sessions_only_to_who_may_see_them(ruled_server: ServerThread) -> None:
     port = ruled_server.port
-    with Bridge.connect("127.0.0.1", port, name="robot", psk=ROBOT.hex(),
+    with Bridge.connect("127.0.0.1", port, name="robot", security=Psk(key=ROBOT.hex()),
                         reconnect=False) as robot, \
-            Bridge.connect("127.0.0.1", port, name="operator", psk=OPERATOR.hex(),
+            Bridge.connect("127.0.0.1", port, name="operator", security=Psk(key=OPERATOR.hex()),
                            reconnect=False) as operator:
         mine = robot.server_stats()
         assert [s["name"] for s in mine["sessions"]] == ["robot"]
@@ -91,8 +91,9 @@ def test_a_certificate_name_carries_its_rules(make_server: Callable[..., ServerT
     rules.chmod(0o600)
     srv = make_server(tls_cert=tmp_path / "s.crt", tls_key=tmp_path / "s.key",
                       tls_client_ca=tmp_path / "ca.crt", psk_file=rules)
-    with Bridge.connect("127.0.0.1", srv.port, ca=tmp_path / "ca.crt",
-                        client_cert=(tmp_path / "c.crt", tmp_path / "c.key"),
+    with Bridge.connect("127.0.0.1", srv.port, security=Tls(ca=tmp_path / "ca.crt",
+                                                            client_cert=(tmp_path / "c.crt",
+                                                                         tmp_path / "c.key")),
                         reconnect=False) as camera:
         camera.publish("/camera/image_mean", F64)
         with pytest.raises(RemoteError, match="'camera' may not publish to /cmd"):

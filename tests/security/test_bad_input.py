@@ -10,6 +10,7 @@ from typing import Any
 import msgspec
 import pytest
 
+from rlbridge import ErrorCode
 from rlbridge.server import ServerThread, tcp
 from rlbridge.wire import (
     FRAME_HEADER,
@@ -19,7 +20,6 @@ from rlbridge.wire import (
     AuthProof,
     ConnectError,
     Error,
-    ErrorCode,
     Hello,
     Stats,
     TopicAck,

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from rlbridge import ErrorCode, Psk, RemoteProtocolError
 from rlbridge.csp.auth import ClientAuth
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
@@ -27,12 +28,10 @@ from rlbridge.wire import (
     ConnectAck,
     Disconnect,
     Error,
-    ErrorCode,
     FrameDecoder,
     Heartbeat,
     Hello,
     PacketCodec,
-    RemoteProtocolError,
     Stats,
     TopicAck,
     TopicConnect,
@@ -220,7 +219,8 @@ def read_until_closed(sock: socket.socket, decoder: SealedStreamDecoder) -> list
 
 def test_a_frame_injected_into_a_sealed_stream_ends_the_session(psk_server: ServerThread
                                                                 ) -> None:
-    with Bridge.connect("127.0.0.1", psk_server.port, psk=KEY, reconnect=False) as bystander:
+    with Bridge.connect("127.0.0.1", psk_server.port, security=Psk(key=KEY),
+                        reconnect=False) as bystander:
         out = bystander.publish("/sealed/alive", F64, transport="tcp")
         inp = bystander.subscribe("/sealed/alive", F64, transport="tcp", blocking=True)
         sock, sealer, decoder = raw_sealed_session(psk_server.port)
@@ -314,7 +314,7 @@ def test_on_path_relay_sees_no_plaintext_and_its_injection_ends_the_session(
         psk_server: ServerThread) -> None:
     relay = Relay(psk_server.port)
     try:
-        bridge = Bridge.connect("127.0.0.1", relay.port, psk=KEY, reconnect=False,
+        bridge = Bridge.connect("127.0.0.1", relay.port, security=Psk(key=KEY), reconnect=False,
                                 name="via-relay")
         with bridge:
             out = bridge.publish("/secret_setpoint", F64, transport="tcp")

@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 
+from rlbridge import Psk
 from rlbridge.csp.auth import AuthRefused, resolve_key
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerError, ServerThread
@@ -82,7 +83,8 @@ def test_protected_servers_may_listen_anywhere(make_server: Callable[..., Server
     # loopback here only to keep the test off the network.
     assert not ServerConfig(host="0.0.0.0", psk_file=keys).loopback
     srv = make_server(psk_file=keys)
-    with Bridge.connect("127.0.0.1", srv.port, psk=KEY.hex(), reconnect=False) as bridge:
+    with Bridge.connect("127.0.0.1", srv.port, security=Psk(key=KEY.hex()),
+                        reconnect=False) as bridge:
         bridge.publish("/secured/ok", F64)
 
 
@@ -119,9 +121,10 @@ def test_a_text_key_fails_on_the_client_not_at_the_server(
     keys.chmod(0o600)
     srv = make_server(psk_file=keys)
     with pytest.raises(ValueError, match="psk=: a key must be written in hex"):
-        Bridge.connect("127.0.0.1", srv.port, psk="my secret robot key", reconnect=False)
+        Bridge.connect("127.0.0.1", srv.port, security=Psk(key="my secret robot key"),
+                       reconnect=False)
     with pytest.raises(AuthRefused, match="could not prove"):  # a well-formed, other key
-        Bridge.connect("127.0.0.1", srv.port, psk="cd" * 32, reconnect=False)
+        Bridge.connect("127.0.0.1", srv.port, security=Psk(key="cd" * 32), reconnect=False)
     assert srv.server.registry is not None
     assert srv.server.registry.ctx.counters.get("sessions_opened", 0) == 0
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from rlbridge import Psk, Tuning
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import PROTOCOL_VERSION, Hello, PacketCodec, Value
@@ -96,7 +97,7 @@ def test_with_a_key_forged_and_replayed_datagrams_are_dropped_both_ways(
     keys = tmp_path / "keys"
     keys.write_text(KEY.hex())
     srv = make_server(psk_file=keys)
-    with Bridge.connect("127.0.0.1", srv.port, psk=KEY, timeout=WAIT) as bridge:
+    with Bridge.connect("127.0.0.1", srv.port, security=Psk(key=KEY), timeout=WAIT) as bridge:
         inbox = bridge.subscribe("/victim", F64, transport="udp", blocking=True,
                                  buffer_size=16)
         server_port, client_port = _ports(bridge, srv)
@@ -138,7 +139,8 @@ def test_spoofed_hellos_cannot_grow_the_pending_handshakes(
     hello = codec.encode_datagram(Hello(PROTOCOL_VERSION, "flood", b"n" * 16), 0)
     for port in range(20000, 20300):
         wire.inject(port, srv.port, hello)
-    with Bridge.connect("127.0.0.1", srv.port, psk=KEY, control="udp", timeout=WAIT) as bridge:
+    with Bridge.connect("127.0.0.1", srv.port, security=Psk(key=KEY),
+                        tuning=Tuning(control="udp"), timeout=WAIT) as bridge:
         counts = bridge.server_stats()["server"]
     assert counts["udp_handshakes_evicted"] >= 300 - 256
     assert counts["sessions_opened"] == 1

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
+from rlbridge import Psk, Tls, TlsFailed
 from rlbridge.csp.auth import AuthRefused
 from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.tls_client import TlsFailed
 from rlbridge.server import ServerThread
 from rlbridge.tls.certs import Issued, init_server, issue, make_ca
 from rlbridge.wire import PROTOCOL_VERSION, ConnectError, Hello, PacketCodec, Value
@@ -71,7 +71,7 @@ def test_pinned_fingerprint_moves_values(tls_server: ServerThread,
                                          self_signed: tuple[Path, Path, str]) -> None:
     fp = self_signed[2]
     pretty = ":".join(fp[i:i + 2] for i in range(0, 64, 2)).upper()  # openssl's way
-    with Bridge.connect("127.0.0.1", tls_server.port, fingerprint=pretty,
+    with Bridge.connect("127.0.0.1", tls_server.port, security=Tls(fingerprint=pretty),
                         reconnect=False) as bridge:
         assert round_trip(bridge, "/tls/pin") == [float(i) for i in range(20)]
     assert counters(tls_server)["tls_sessions"] == 1
@@ -80,10 +80,12 @@ def test_pinned_fingerprint_moves_values(tls_server: ServerThread,
 def test_ca_file_and_own_context_are_trusted(tls_server: ServerThread,
                                              self_signed: tuple[Path, Path, str]) -> None:
     cert = self_signed[0]
-    with Bridge.connect("127.0.0.1", tls_server.port, ca=cert, reconnect=False) as bridge:
+    with Bridge.connect("127.0.0.1", tls_server.port, security=Tls(ca=cert),
+                        reconnect=False) as bridge:
         assert round_trip(bridge, "/tls/ca", 5)[-1] == 4.0
     ctx = ssl.create_default_context(cafile=str(cert))
-    with Bridge.connect("localhost", tls_server.port, tls=ctx, reconnect=False) as bridge:
+    with Bridge.connect("localhost", tls_server.port, security=Tls(context=ctx),
+                        reconnect=False) as bridge:
         assert bridge.server_stats()["server"]["tls_sessions"] >= 2
 
 
@@ -92,19 +94,20 @@ def test_refusals_are_one_line_and_leave_the_server_serving(
     fp = self_signed[2]
     other_ca = make_ca("some other CA")
     other_ca_file = write(other_ca, tmp_path, "other-ca")[0]
-    with Bridge.connect("127.0.0.1", tls_server.port, fingerprint=fp, reconnect=False) as good:
+    with Bridge.connect("127.0.0.1", tls_server.port, security=Tls(fingerprint=fp),
+                        reconnect=False) as good:
         out = good.publish("/tls/alive", F64, transport="tcp")
         inp = good.subscribe("/tls/alive", F64, transport="tcp", blocking=True, buffer_size=8)
-        attempts: list[tuple[dict[str, object], type[Exception], str]] = [
-            ({"tls": True}, TlsFailed, "does not verify: self-signed certificate"),
-            ({"ca": other_ca_file}, TlsFailed, "does not verify"),
-            ({"fingerprint": "ab" * 32}, TlsFailed, "not the pinned"),
-            ({}, AuthRefused, "this server requires TLS"),
+        attempts: list[tuple[Tls | None, type[Exception], str]] = [
+            (Tls(), TlsFailed, "does not verify: self-signed certificate"),
+            (Tls(ca=other_ca_file), TlsFailed, "does not verify"),
+            (Tls(fingerprint="ab" * 32), TlsFailed, "not the pinned"),
+            (None, AuthRefused, "this server requires TLS"),
         ]
-        for kwargs, error, text in attempts:
+        for security, error, text in attempts:
             with pytest.raises(error, match=text) as info:
                 Bridge.connect("127.0.0.1", tls_server.port, reconnect=False, timeout=WAIT,
-                               **kwargs)  # type: ignore[arg-type]
+                               security=security)
             assert "\n" not in str(info.value)
         out.write(1.5)
         good.send(wait=True)
@@ -118,7 +121,8 @@ def test_tls_client_against_a_plaintext_server(make_server: Callable[..., Server
                                                self_signed: tuple[Path, Path, str]) -> None:
     plain = make_server()
     with pytest.raises(TlsFailed, match="does not use TLS"):
-        Bridge.connect("127.0.0.1", plain.port, fingerprint=self_signed[2], reconnect=False)
+        Bridge.connect("127.0.0.1", plain.port, security=Tls(fingerprint=self_signed[2]),
+                       reconnect=False)
     with Bridge.connect("127.0.0.1", plain.port, reconnect=False) as bridge:
         assert round_trip(bridge, "/plain/after", 3) == [0.0, 1.0, 2.0]
 
@@ -139,9 +143,10 @@ def test_expired_and_not_yet_valid_certificates(
     cert, key = write(leaf, tmp_path, "server")
     srv = make_server(tls_cert=cert, tls_key=key)
     with pytest.raises(TlsFailed, match=message_ca):
-        Bridge.connect("127.0.0.1", srv.port, ca=ca_file, reconnect=False)
+        Bridge.connect("127.0.0.1", srv.port, security=Tls(ca=ca_file), reconnect=False)
     with pytest.raises(TlsFailed, match=message_pin):
-        Bridge.connect("127.0.0.1", srv.port, fingerprint=leaf.fingerprint, reconnect=False)
+        Bridge.connect("127.0.0.1", srv.port, security=Tls(fingerprint=leaf.fingerprint),
+                       reconnect=False)
 
 
 def test_mutual_tls_names_the_client_and_refuses_others(
@@ -153,15 +158,17 @@ def test_mutual_tls_names_the_client_and_refuses_others(
     srv = make_server(tls_cert=cert, tls_key=key, tls_client_ca=ca_file)
     robot_cert, robot_key = write(issue("robot-7", ca=ca, client=True), tmp_path, "robot")
     stranger = write(issue("robot-7", ca=make_ca("rogue"), client=True), tmp_path, "rogue")
-    with Bridge.connect("127.0.0.1", srv.port, ca=ca_file, client_cert=(robot_cert, robot_key),
+    with Bridge.connect("127.0.0.1", srv.port, security=Tls(ca=ca_file, client_cert=(robot_cert,
+                                                                                     robot_key)),
                         name="whatever", reconnect=False) as bridge:
         mine = bridge.server_stats()["session"]
         assert mine["identity"] == "robot-7"
         assert mine["name"] == "whatever"
-    for kwargs in ({}, {"client_cert": stranger}):
+    for client_cert in (None, stranger):
         with pytest.raises(TlsFailed, match="refused the TLS session") as info:
-            Bridge.connect("127.0.0.1", srv.port, ca=ca_file, reconnect=False,
-                           **kwargs)  # type: ignore[arg-type]
+            Bridge.connect("127.0.0.1", srv.port, security=Tls(ca=ca_file,
+                                                               client_cert=client_cert),
+                           reconnect=False)
         assert "\n" not in str(info.value)
     assert counters(srv)["tls_failed"] == 2
 
@@ -173,7 +180,7 @@ def test_silent_peer_and_garbage_do_not_hang_the_handshake(
             socket.create_connection(("127.0.0.1", tls_server.port), timeout=WAIT) as junk:
         junk.sendall(b"\x16\x03\x01\x00\x05hello" + b"\x00" * 64)
         assert junk.recv(4096) is not None  # an alert, then the close (no hang)
-        with Bridge.connect("127.0.0.1", tls_server.port, fingerprint=self_signed[2],
+        with Bridge.connect("127.0.0.1", tls_server.port, security=Tls(fingerprint=self_signed[2]),
                             reconnect=False) as bridge:
             assert round_trip(bridge, "/tls/while_idle", 2) == [0.0, 1.0]
         idle.settimeout(0.01)
@@ -193,13 +200,13 @@ def test_unreadable_files_are_one_line_server_errors(
     with pytest.raises(ServerError, match="cannot use the TLS certificate"):
         make_server(tls_cert=junk, tls_key=self_signed[1])
     with pytest.raises(ValueError, match="not a SHA-256 fingerprint"):
-        Bridge.connect("127.0.0.1", 1, fingerprint="abc", reconnect=False)
+        Bridge.connect("127.0.0.1", 1, security=Tls(fingerprint="abc"), reconnect=False)
 
 
 def test_udp_channels_of_a_tls_session_are_sealed(tls_server: ServerThread,
                                                   self_signed: tuple[Path, Path, str]) -> None:
     """The datagram keys come over TLS; a datagram without the seal is dropped and counted."""
-    with Bridge.connect("127.0.0.1", tls_server.port, fingerprint=self_signed[2],
+    with Bridge.connect("127.0.0.1", tls_server.port, security=Tls(fingerprint=self_signed[2]),
                         reconnect=False) as bridge:
         out = bridge.publish("/tls/udp", F64, transport="udp")
         inp = bridge.subscribe("/tls/udp", F64, transport="udp", blocking=True, buffer_size=8)
@@ -239,9 +246,10 @@ def test_tls_and_a_key_together(make_server: Callable[..., ServerThread],
     cert, key, fp = self_signed
     srv = make_server(tls_cert=cert, tls_key=key, psk_file=keys)
     with pytest.raises(AuthRefused, match="no pre-shared key for client name 'anonymous'"):
-        Bridge.connect("127.0.0.1", srv.port, fingerprint=fp, name="anonymous",
+        Bridge.connect("127.0.0.1", srv.port, security=Tls(fingerprint=fp), name="anonymous",
                        reconnect=False)
-    with Bridge.connect("127.0.0.1", srv.port, fingerprint=fp, psk="ab" * 32, name="robot",
+    with Bridge.connect("127.0.0.1", srv.port, security=Tls(fingerprint=fp,
+                                                            psk=Psk(key="ab" * 32)), name="robot",
                         reconnect=False) as bridge:
         for transport in ("tcp", "udp"):
             out = bridge.publish(f"/both/{transport}", F64, transport=transport)
@@ -268,11 +276,11 @@ def test_a_protected_session_reconnects_with_fresh_keys(
     keys.chmod(0o600)
     extra: dict[str, object] = ({"tls_cert": cert, "tls_key": key} if mode == "tls"
                                 else {"psk_file": keys})
-    client: dict[str, object] = {"fingerprint": fp} if mode == "tls" else {"psk": "ab" * 32}
+    client = Tls(fingerprint=fp) if mode == "tls" else Psk(key="ab" * 32)
     config = ServerConfig(port=0, heartbeat_ms=50, timeout_ms=1000, **extra)  # type: ignore[arg-type]
     first = ServerThread(config).start()
     port = first.port
-    bridge = Bridge.connect("127.0.0.1", port, timeout=WAIT, **client)  # type: ignore[arg-type]
+    bridge = Bridge.connect("127.0.0.1", port, timeout=WAIT, security=client)
     try:
         out = bridge.publish("/again/x", F64, transport="tcp")
         inp = bridge.subscribe("/again/x", F64, transport="udp", blocking=True, buffer_size=64)

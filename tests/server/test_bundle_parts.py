@@ -13,7 +13,8 @@ from typing import Any
 
 import pytest
 
-from rlbridge.wire import Bundle, Error, ErrorCode, Stats, TopicAck, TopicConnect, Value
+from rlbridge import ErrorCode
+from rlbridge.wire import Bundle, Error, Stats, TopicAck, TopicConnect, Value
 
 F64 = "std_msgs/msg/Float64"
 

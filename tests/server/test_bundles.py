@@ -16,6 +16,7 @@ from typing import Any
 
 import pytest
 
+from rlbridge import Policy, Psk, Tuning
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import Batch, Bundle, PacketCodec, Value
@@ -110,7 +111,7 @@ def test_ten_udp_channels_one_datagram_per_round_each_way(
     """The SDK bundles its round; the server corks the echoes of one bundle into one."""
     srv = make_server(tcp=False)
     relay = relay_to(srv)
-    with Bridge.connect("127.0.0.1", relay.port, control="udp", timeout=10) as b:
+    with Bridge.connect("127.0.0.1", relay.port, tuning=Tuning(control="udp"), timeout=10) as b:
         inboxes, outs = ten_channels(b, "plain")
         # Every datagram with the session's token says it reads bundles (the token-0
         # handshake carries flags 0x00, protocol.md 3).
@@ -130,8 +131,8 @@ def test_without_bundles_one_datagram_per_channel_each_way(
     """``bundles=False`` (a server older than bundles): the old single packets, both ways."""
     srv = make_server(tcp=False)
     relay = relay_to(srv)
-    with Bridge.connect("127.0.0.1", relay.port, control="udp", timeout=10,
-                        bundles=False) as b:
+    with Bridge.connect("127.0.0.1", relay.port, tuning=Tuning(control="udp", bundles=False),
+                        timeout=10) as b:
         inboxes, outs = ten_channels(b, "single")
         assert not any(peek_header(d)[0] & FLAG_BUNDLES for d in relay.up)
         up, down = len(relay.up), len(relay.down)
@@ -148,7 +149,8 @@ def test_sealed_session_bundles_too(make_server: Callable[..., ServerThread],
     keys.write_text(KEY.hex() + "\n")
     srv = make_server(tcp=False, psk_file=keys)
     relay = relay_to(srv)
-    with Bridge.connect("127.0.0.1", relay.port, control="udp", timeout=10, psk=KEY) as b:
+    with Bridge.connect("127.0.0.1", relay.port, tuning=Tuning(control="udp"), timeout=10,
+                        security=Psk(key=KEY)) as b:
         inboxes, outs = ten_channels(b, "sealed")
         up, down = len(relay.up), len(relay.down)
         one_round(b, inboxes, outs, 7.0)
@@ -166,11 +168,11 @@ def test_redundant_channels_keep_their_meaning_in_bundles(
     """Each part of a redundant channel repeats its previous k values; each value read once."""
     srv = make_server(tcp=False)
     relay = relay_to(srv)
-    with Bridge.connect("127.0.0.1", relay.port, control="udp", timeout=10) as b:
+    with Bridge.connect("127.0.0.1", relay.port, tuning=Tuning(control="udp"), timeout=10) as b:
         inboxes = [b.subscribe(f"/bundle/red/c{i}", F64, transport="udp", blocking=True,
-                               buffer_size=16, redundancy=2) for i in range(3)]
+                               buffer_size=16, policy=Policy(redundancy=2)) for i in range(3)]
         outs = [b.publish(f"/bundle/red/c{i}", F64, transport="udp", through_buffer=True,
-                          redundancy=2) for i in range(3)]
+                          policy=Policy(redundancy=2)) for i in range(3)]
         for round_ in range(4):
             up, down = len(relay.up), len(relay.down)
             one_round(b, inboxes, outs, float(round_))

@@ -5,12 +5,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from rlbridge import ErrorCode
 from rlbridge.wire import (
     Batch,
     ChannelLoss,
     Credit,
     Error,
-    ErrorCode,
     LossReport,
     TopicAck,
     TopicConnect,

@@ -7,17 +7,8 @@ from typing import Any
 
 import pytest
 
-from rlbridge.wire import (
-    Batch,
-    Error,
-    ErrorCode,
-    Stats,
-    TopicAck,
-    TopicClose,
-    TopicConnect,
-    TopicError,
-    Value,
-)
+from rlbridge import ErrorCode
+from rlbridge.wire import Batch, Error, Stats, TopicAck, TopicClose, TopicConnect, TopicError, Value
 
 F64 = "std_msgs/msg/Float64"
 TWIST = "geometry_msgs/msg/Twist"

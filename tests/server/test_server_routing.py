@@ -11,17 +11,10 @@ from typing import Any
 
 import pytest
 
+from rlbridge import ErrorCode
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerError, ServerThread
-from rlbridge.wire import (
-    Batch,
-    Disconnect,
-    ErrorCode,
-    Heartbeat,
-    TopicAck,
-    TopicConnect,
-    Value,
-)
+from rlbridge.wire import Batch, Disconnect, Heartbeat, TopicAck, TopicConnect, Value
 from rlbridge.wire.link import LinkState
 
 F64 = "std_msgs/msg/Float64"

@@ -7,6 +7,7 @@ from typing import Any
 
 import pytest
 
+from rlbridge import ErrorCode
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
     FRAME_HEADER,
@@ -16,7 +17,6 @@ from rlbridge.wire import (
     ConnectError,
     Disconnect,
     Error,
-    ErrorCode,
     Heartbeat,
     Hello,
     Malformed,

@@ -6,6 +6,7 @@ import secrets
 from collections.abc import Callable
 from typing import Any
 
+from rlbridge import ErrorCode
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
@@ -15,7 +16,6 @@ from rlbridge.wire import (
     ConnectAck,
     Disconnect,
     Error,
-    ErrorCode,
     Heartbeat,
     Hello,
     Stats,

@@ -11,10 +11,10 @@ from typing import Any
 
 import pytest
 
+from rlbridge import RlbridgeError
 from rlbridge.adapters.inproc import InProcessBus
 from rlbridge.csp.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
-from rlbridge.wire import RlbridgeError
 
 F64 = "std_msgs/msg/Float64"
 

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from rlbridge import ErrorCode, RemoteProtocolError
 from rlbridge.wire import (
     DATAGRAM_HEADER,
     DEFAULT_MAX_PACKET,
@@ -27,7 +28,6 @@ from rlbridge.wire import (
     Credit,
     Disconnect,
     Error,
-    ErrorCode,
     FrameDecoder,
     GoalCancel,
     GoalResult,
@@ -39,7 +39,6 @@ from rlbridge.wire import (
     Malformed,
     Packet,
     PacketCodec,
-    RemoteProtocolError,
     RosLoss,
     ServiceCall,
     ServiceOffer,

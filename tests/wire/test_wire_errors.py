@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rlbridge.wire import ErrorCode, LocalProtocolError, RemoteError, RemoteProtocolError
-from rlbridge.wire.errors import (
+from rlbridge import ErrorCode, LocalProtocolError, RemoteError, RemoteProtocolError
+from rlbridge.errors import (
     AuthenticationFailed,
     BadValueError,
     BindingRefused,

@@ -26,14 +26,29 @@ ValuesCallback = Callable[[Sequence[Any]], None]
 
 @dataclass(frozen=True, slots=True)
 class QoS:
-    """Delivery settings for one binding (ROS 2 QoS subset; the in-process bus ignores them)."""
+    """The middleware's side of one binding: a ROS 2 QoS profile in three settings.
 
-    reliability: Reliability = "reliable"
+    ``reliability``: ``"reliable"`` or ``"best_effort"``; ``None`` (the default) lets the
+    bridge choose by the channel's transport (best effort for UDP, reliable for TCP; an adapter
+    given ``None`` directly uses reliable). ``depth``: the middleware's history (values kept
+    per topic). ``durability``: ``"volatile"``; ``"transient_local"``: a publisher keeps its
+    last ``depth`` values for late subscribers (a latched topic) and a subscription asks for
+    them; ``"match"`` (subscribe only): take the durability and reliability of the publishers
+    already on the topic, as ``ros2 topic echo`` does. The in-process bus ignores all three.
+    Frozen: build one and pass it to every channel it fits.
+    """
+
+    reliability: Reliability | None = None
     depth: int = 10
-    #: ``transient_local``: a publisher keeps its last ``depth`` values for late subscribers
-    #: (a latched topic) and a subscription asks for them. ``match``: a subscription takes
-    #: the durability and reliability of the publishers already on the topic.
     durability: Durability = "volatile"
+
+    def __post_init__(self) -> None:
+        if self.reliability not in (None, "reliable", "best_effort"):
+            raise ValueError(f"QoS(reliability={self.reliability!r}): must be 'reliable', "
+                             "'best_effort' or None (by transport)")
+        if self.durability not in ("volatile", "transient_local", "match"):
+            raise ValueError(f"QoS(durability={self.durability!r}): must be 'volatile', "
+                             "'transient_local' or 'match'")
 
 
 @dataclass(frozen=True, slots=True)

@@ -70,7 +70,7 @@ def qos_profile(qos: QoS) -> QoSProfile:
     if durability is None:
         raise BindingError("BAD_VALUE", f"QoS durability '{qos.durability}' is not 'volatile' "
                            "or 'transient_local' here")
-    reliability = _RELIABILITY.get(qos.reliability)
+    reliability = _RELIABILITY.get(qos.reliability or "reliable")
     if reliability is None:
         raise BindingError(
             "BAD_VALUE", f"QoS reliability '{qos.reliability}' is not 'reliable' or 'best_effort'"

@@ -48,6 +48,7 @@ from rlbridge.bench.common import (
     start_server,
     wait_for_go,
 )
+from rlbridge.csp.options import Tuning
 
 MODULE = "rlbridge.bench.cpu"
 F64 = "std_msgs/msg/Float64"
@@ -90,7 +91,7 @@ def client_role(params: Params) -> None:
     n, rate, seconds = int(params["channels"]), float(params["rate_hz"]), float(params["seconds"])
     send_rate = params.get("send_rate_hz")
     b = Bridge.connect(params["host"], int(params["port"]), name="bench-cpu", timeout=30,
-                       bundles=bool(params["bundles"]),
+                       tuning=Tuning(bundles=bool(params["bundles"])),
                        send_rate_hz=None if send_rate is None else float(send_rate))
     call_send = send_rate is None
     inline = bool(params.get("inline"))

@@ -37,6 +37,7 @@ from rlbridge.bench.common import (
     start_server,
     wait_for_go,
 )
+from rlbridge.csp.options import Policy
 
 MODULE = "rlbridge.bench.feedback"
 TOPIC = "/bench/flood"
@@ -69,7 +70,7 @@ def publisher(params: Params) -> None:
     adapt = float(params["adapt_from"])
     buffer = 4 * BATCH
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport="udp", buffer_size=buffer,
-                         max_rate_hz=adapt or None, adapt_rate=bool(adapt))
+                         policy=Policy(max_rate_hz=adapt or None, adapt_rate=bool(adapt)))
     values = [float(i) for i in range(BATCH)]
     emit("ready")
     wait_for_go(control)

@@ -52,6 +52,7 @@ from rlbridge.bench.common import (
     select_cases,
     wait_for_go,
 )
+from rlbridge.csp.options import Tuning
 
 MODULE = "rlbridge.bench.latency"
 TOPIC = "/bench/latency"
@@ -127,7 +128,8 @@ def publisher(params: Params) -> None:
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
-                            name="bench-lat-pub", idle=idle_param(str(params.get("idle", "park"))))
+                            name="bench-lat-pub",
+                            tuning=Tuning(idle=idle_param(str(params.get("idle", "park")))))
     inline = bool(params.get("inline"))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                          through_buffer=inline)
@@ -158,7 +160,8 @@ def subscriber(params: Params) -> None:
 
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
-                            name="bench-lat-sub", idle=idle_param(str(params.get("idle", "park"))))
+                            name="bench-lat-sub",
+                            tuning=Tuning(idle=idle_param(str(params.get("idle", "park")))))
     ch = bridge.subscribe(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                           blocking=True, buffer_size=1024)
     emit("ready")

@@ -49,6 +49,7 @@ from rlbridge.bench.common import (
 )
 from rlbridge.bench.latency import MSG_TYPE, TOPIC, WARMUP, idle_param
 from rlbridge.csp.idle import IdleStrategy, idle_pair
+from rlbridge.csp.options import Tuning
 
 MODULE = "rlbridge.bench.latency_stages"
 T = TypeVar("T")
@@ -90,7 +91,8 @@ def _connect(params: Params, name: str) -> tuple[Any, ProbeIdle, ProbeIdle]:
 
     send, receive = idle_pair(idle_param(str(params["idle"])))
     probes = ProbeIdle(send), ProbeIdle(receive)
-    bridge = Bridge.connect(params["host"], int(params["port"]), name=name, idle=probes)
+    bridge = Bridge.connect(params["host"], int(params["port"]), name=name,
+                            tuning=Tuning(idle=probes))
     return bridge, probes[0], probes[1]
 
 

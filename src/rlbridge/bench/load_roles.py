@@ -33,6 +33,7 @@ from typing import Any, Protocol
 from rlbridge.bench.common import Control, Params, Role, emit, hold
 from rlbridge.bench.load_book import F64, Book, topic
 from rlbridge.bench.load_raw import RawSessions
+from rlbridge.csp.options import Tuning
 from rlbridge.wire import PacketCodec
 
 BULK_TOPIC = "/load/bulk"
@@ -51,8 +52,8 @@ class _SdkSession(Book):
         # switch_interval=None: a hundred SDK threads in one process hand the GIL over at
         # CPython's default pace; the shortened interval the SDK sets for HRT loops thrashes.
         self.bridge = Bridge.connect(params["host"], int(params["port"]), name=f"load-{index}",
-                                     timeout=30.0, switch_interval=None,
-                                     bundles=bool(params.get("bundles", True)))
+                                     timeout=30.0,
+                                     tuning=Tuning(bundles=bool(params.get("bundles", True))))
         n = int(params["channels"])
         self.subs = [self.bridge.subscribe(topic(index, c), F64, transport=transport,
                                            blocking=c == 0, buffer_size=64 if c == 0 else 1)

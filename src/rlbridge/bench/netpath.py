@@ -61,7 +61,7 @@ class StreamSpec:
     rate_hz: float = 100.0
     count: int = 1000
     send_rate_hz: float | None = None
-    #: Policy keyword arguments for the client's subscribe/publish (only those this build has).
+    #: ``Policy`` options of the client's subscribe/publish (only those this build has).
     policy: dict[str, Any] = field(default_factory=dict)
     #: Read incoming values with ``read_with_age`` and count those older than this (ms).
     age_limit_ms: float | None = None
@@ -197,6 +197,7 @@ def _await_values(control: Control, count: Callable[[], int]) -> None:
 def client_side(params: Params) -> None:
     """The control application: a blocking incoming channel (down) or a paced writer (up)."""
     from rlbridge.csp.bridge import Bridge
+    from rlbridge.csp.options import Policy
 
     control = Control()
     send_rate = params.get("send_rate_hz")
@@ -205,7 +206,7 @@ def client_side(params: Params) -> None:
     policy: Params = params.get("policy", {})
     if params["direction"] == "up":
         out = bridge.publish(TOPICS["up"], MSG_TYPE, "data", transport=params["transport"],
-                             through_buffer=send_rate is not None, **policy)
+                             through_buffer=send_rate is not None, policy=Policy(**policy))
         emit("ready")
         wait_for_go(control)
         stamps: list[int] = []
@@ -219,7 +220,7 @@ def client_side(params: Params) -> None:
         hold(control)
         return
     ch = bridge.subscribe(TOPICS["down"], MSG_TYPE, "data", transport=params["transport"],
-                          blocking=True, buffer_size=4096, **policy)
+                          blocking=True, buffer_size=4096, policy=Policy(**policy))
     emit("ready")
     age_limit = params.get("age_limit_ms")
     read: Callable[[float], Any] = ch.read_with_age if age_limit is not None else ch.read

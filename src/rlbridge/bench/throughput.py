@@ -51,6 +51,7 @@ from rlbridge.bench.common import (
     start_server,
     wait_for_go,
 )
+from rlbridge.csp.options import Policy, Tuning
 
 if TYPE_CHECKING:
     from rlbridge.csp.bridge import Bridge
@@ -181,10 +182,11 @@ def publisher(params: Params) -> None:
     form = str(params.get("send_form", ""))
     half: list[float] = []
     bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-pub",
-                            idle=str(params.get("idle", "park")),
-                            bundles=bool(params.get("bundles", True)))
+                            tuning=Tuning(bundles=bool(params.get("bundles", True)),
+                                          idle=str(params.get("idle", "park"))))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
-                         buffer_size=buffer, flow=params.get("flow"), through_buffer=bool(form))
+                         buffer_size=buffer, policy=Policy(flow=params.get("flow")),
+                         through_buffer=bool(form))
     emit("ready")
     wait_for_go(control)
     if form:
@@ -218,10 +220,10 @@ def subscriber(params: Params) -> None:
     control = Control()
     sub_rate = float(params.get("sub_rate", 0.0))
     bridge = Bridge.connect(params["host"], int(params["port"]), name="bench-sub",
-                            bundles=bool(params.get("bundles", True)))
+                            tuning=Tuning(bundles=bool(params.get("bundles", True))))
     ch = bridge.subscribe(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                           blocking=True, buffer_size=SLOW_BUFFER if sub_rate else SUB_BUFFER,
-                          flow=params.get("sub_flow"))
+                          policy=Policy(flow=params.get("sub_flow")))
     emit("ready")
     emit("joined")
     tally = Tally(control, float(params["idle_s"]))

@@ -5,14 +5,6 @@ the hard-real-time side. The network side of the SDK is :class:`rlbridge.Bridge`
 """
 
 from rlbridge.csp.channel import Channel, Doorbell
-from rlbridge.csp.errors import (
-    ChannelClosed,
-    ChannelError,
-    ChannelMisuseError,
-    NoValueYet,
-    RealTimeWarning,
-    WouldBlock,
-)
 from rlbridge.csp.process import (
     Code,
     Parallel,
@@ -24,6 +16,14 @@ from rlbridge.csp.process import (
 from rlbridge.csp.ring import EMPTY, MpscRing, SpscRing
 from rlbridge.csp.statistics import ChannelStatistics
 from rlbridge.csp.timer import PeriodicTimer, Timed
+from rlbridge.errors import (
+    ChannelClosed,
+    ChannelError,
+    ChannelMisuseError,
+    NoValueYet,
+    RealTimeWarning,
+    WouldBlock,
+)
 
 __all__ = [
     "EMPTY", "Channel", "ChannelClosed", "ChannelError", "ChannelMisuseError",

@@ -14,7 +14,7 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from rlbridge.csp.session_errors import ConnectionClosed
+from rlbridge.errors import ConnectionClosed
 from rlbridge.wire import GoalCancel, GoalResult
 
 if TYPE_CHECKING:

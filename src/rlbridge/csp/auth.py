@@ -19,7 +19,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from rlbridge import keyfile
-from rlbridge.csp.session_errors import ConnectionFailed
+from rlbridge.errors import AuthRefused, ConnectionFailed, RemoteProtocolError
 from rlbridge.wire import (
     AuthChallenge,
     AuthProof,
@@ -40,18 +40,8 @@ from rlbridge.wire.auth import (
     sealed_codec,
 )
 from rlbridge.wire.codec import FLAG_MAC, PacketCodec, peek_header
-from rlbridge.wire.errors import AuthenticationFailed, RemoteProtocolError
 
 _AUTH_CODES = (ErrorCode.AUTH_FAILED, ErrorCode.NOT_ALLOWED)
-
-
-class AuthRefused(ConnectionFailed, AuthenticationFailed):
-    """Authentication failed: the server refused our key or network, or could not prove its key.
-
-    A :class:`ConnectionFailed` (the session did not open) and an
-    :class:`~rlbridge.wire.errors.AuthenticationFailed` (``code`` says which refusal); retrying
-    with the same key will not help.
-    """
 
 
 def resolve_key(psk: bytes | str | None = None, psk_file: str | Path | None = None,

@@ -14,38 +14,36 @@ import contextlib
 import itertools
 import logging
 import os
-import ssl
 import sys
 import threading
-from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal
+from typing import Any
 
+from rlbridge.adapters.base import QoS
 from rlbridge.csp.auth import resolve_key
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.bridge_services import ServiceMethods
 from rlbridge.csp.bridge_status import BridgeStatus
 from rlbridge.csp.channel import _MISSING
-from rlbridge.csp.connection import Connection, ConnectionClosed, Control
-from rlbridge.csp.failsafe import GuardedChannel, OnLost, fail_safe
+from rlbridge.csp.connection import Connection
+from rlbridge.csp.failsafe import GuardedChannel, fail_safe
 from rlbridge.csp.feedback import Feedback
-from rlbridge.csp.idle import IdleSpec, idle_pair
+from rlbridge.csp.idle import idle_pair
 from rlbridge.csp.io_priority import IoPriority
 from rlbridge.csp.link_events import LinkEvents
+from rlbridge.csp.option_rules import check_connect, check_publish, check_subscribe
+from rlbridge.csp.options import Policy, Psk, Tls, Transport, Tuning
 from rlbridge.csp.reconnect import Backoff, ReconnectSupervisor
 from rlbridge.csp.sender import SendLoop
+from rlbridge.errors import ConnectionClosed, RemoteError
 from rlbridge.tls import client_tls
-from rlbridge.wire import RemoteError, TopicClose, TopicConnect
-from rlbridge.wire.packets import Durability, Reliability
+from rlbridge.wire import TopicClose, TopicConnect
 
 log = logging.getLogger("rlbridge.client")
 
-Transport = Literal["tcp", "udp"]
-"""Per channel: ``udp`` when the newest value matters most, ``tcp`` when every value must arrive."""
-
-DEFAULT_SWITCH_INTERVAL: float | None = None
-"""``Bridge.connect`` leaves the process-wide GIL switch interval alone by default: the HRT loop
-holds a short one while it runs (``rlbridge.csp.gil``); measured in docs/gil.md."""
+_DEFAULT_QOS = QoS()
+_DEFAULT_POLICY = Policy()
+_DEFAULT_TUNING = Tuning()
 
 
 class Bridge(BridgeStatus, ServiceMethods):
@@ -78,51 +76,49 @@ class Bridge(BridgeStatus, ServiceMethods):
         host: str = "127.0.0.1",
         port: int = 7411,
         *,
-        nodelay: bool = False,
         name: str | None = None,
-        control: Control = "tcp",
+        security: Psk | Tls | None = None,
+        reconnect: bool | Backoff = True,
+        nodelay: bool = False,
         send_rate_hz: float | None = None,
         timeout: float = 5.0,
-        switch_interval: float | None = DEFAULT_SWITCH_INTERVAL,
-        reconnect: bool | Backoff = True,
-        psk: bytes | str | None = None,
-        psk_file: str | Path | None = None,
-        bundles: bool = True,
-        idle: IdleSpec | tuple[IdleSpec, IdleSpec] = "park",
-        tls: bool | ssl.SSLContext = False,
-        ca: str | Path | None = None,
-        fingerprint: str | None = None,
-        client_cert: tuple[str | Path, str | Path] | None = None,
+        tuning: Tuning = _DEFAULT_TUNING,
     ) -> Bridge:
-        """Open a session. ``control="udp"`` for a server started with ``--no-tcp``.
+        """Open a session with the bridge server at ``host:port`` (``rlbridge serve``).
+
+        ``name`` identifies this client to the server (its logs, key file, topic rules;
+        default ``rlbridge-<pid>``). ``security``: ``Psk(key=...)`` or ``Psk(file=...)`` to
+        authenticate with a pre-shared key (every datagram and the TCP stream sealed),
+        ``Tls(...)`` for TLS 1.3 (with ``Tls(psk=...)`` a key as well), ``None``: the key in
+        ``$RLBRIDGE_PSK`` if set, else plaintext (docs/security.md).
 
         ``reconnect``: when the session ends (server restart, outage seen by the watchdog),
         open a new one with backoff and bind every channel again. ``True``: the
-        :class:`~rlbridge.csp.reconnect.Backoff` defaults (50 ms doubling to 2 s), or pass a
-        ``Backoff``; ``False`` ends the bridge with its first session (channels close, blocked
-        readers get ``ChannelClosed``). A failed first connect raises ``ConnectionFailed``.
+        :class:`Backoff` defaults (50 ms doubling to 2 s), or pass a ``Backoff``; ``False``
+        ends the bridge with its first session (channels close, blocked readers get
+        :class:`ChannelClosed`). A failed first connect raises :class:`ConnectionFailed`.
 
-        ``send_rate_hz`` starts the SDK's send loop: buffered values go out at that rate
-        without anyone calling :meth:`send` (thesis figure 5.10). ``nodelay``: no Nagle on this
-        client's socket. ``switch_interval`` shortens CPython's GIL switch interval (5 ms by
-        default; ``None``: left alone), never lengthens it: a control loop waking while another
-        thread computes waits at most that long for the GIL (docs/gil.md). Security
-        (docs/security.md): the key is ``psk`` (hex), else ``psk_file``, else
-        ``$RLBRIDGE_PSK``; TLS is ``tls=True``, ``ca=``, ``fingerprint=`` (pin) or an
-        ``ssl.SSLContext``; ``client_cert=(cert, key)`` for mutual TLS.
-        ``bundles=False``: a datagram per UDP channel, not a bundle per round (protocol.md 6.16).
-        ``idle``: how the send and receive threads (and reads) wait: ``"park"``, ``"spin"``
-        (poll 20 us, yield 200 us, park), ``"busy"``, an ``IdleStrategy`` or a ``(send, receive)``
-        pair; the receive thread spins only while something comes in: docs/concepts.md.
+        ``nodelay``: no Nagle on this client's TCP socket. ``send_rate_hz`` starts the SDK's
+        send loop: buffered values (``through_buffer=True``) go out at that rate without anyone
+        calling :meth:`send` (thesis figure 5.10). ``timeout``: seconds for the handshake and
+        each binding. ``tuning``: the rarely touched knobs (:class:`Tuning`). Options that
+        cannot take effect together raise ``ValueError`` before any socket is opened.
         """
-        send_idle, receive_idle = idle_pair(idle)
-        if switch_interval is not None and sys.getswitchinterval() > switch_interval:
-            sys.setswitchinterval(switch_interval)
+        check_connect(security, reconnect, tuning, nodelay=nodelay, timeout=timeout,
+                      send_rate_hz=send_rate_hz)
+        send_idle, receive_idle = idle_pair(tuning.idle)
         name = name or f"rlbridge-{os.getpid()}"
-        key = resolve_key(psk, psk_file, name=name)  # before any socket: a bad key leaks nothing
-        secure = client_tls(tls, ca=ca, fingerprint=fingerprint, client_cert=client_cert)
-        conn = Connection(host, port, name=name, nodelay=nodelay, control=control, timeout=timeout,
-                          bundles=bundles)
+        psk = security.psk if isinstance(security, Tls) else security
+        key = resolve_key(psk.key if psk else None, psk.file if psk else None,
+                          name=name)  # before any socket: a bad key leaks nothing
+        secure = None if not isinstance(security, Tls) else client_tls(
+            security.context or True, ca=security.ca, fingerprint=security.fingerprint,
+            client_cert=security.client_cert)
+        interval = tuning.switch_interval
+        if interval is not None and sys.getswitchinterval() > interval:
+            sys.setswitchinterval(interval)
+        conn = Connection(host, port, name=name, nodelay=nodelay, control=tuning.control,
+                          timeout=timeout, bundles=tuning.bundles)
         conn.psk, conn.tls, conn.idle = key, secure, receive_idle
         ack = conn.open()
         try:
@@ -146,48 +142,36 @@ class Bridge(BridgeStatus, ServiceMethods):
         field: str | None = "data",
         *,
         transport: Transport = "udp",
+        qos: QoS = _DEFAULT_QOS,
+        policy: Policy = _DEFAULT_POLICY,
         blocking: bool = False,
         buffer_size: int = 1,
         initial: Any = _MISSING,
-        redundancy: int = 0,
-        latest: bool = False,
-        max_age_ms: int = 0,
-        reliability: Reliability | None = None,
-        depth: int = 10,
-        durability: Durability = "volatile",
-        on_lost: OnLost = "hold",
-        flow: bool | None = None,
     ) -> IncomingChannel:
         """A channel of the values published on ``topic`` (``field=None``: whole messages).
 
-        Policies (docs/policies.md): ``redundancy=k`` (UDP) repeats the previous k values in
-        each datagram; ``latest=True`` delivers the newest value instead of a backlog;
-        ``max_age_ms`` drops values older than that on arrival (``health().expired``).
-        ``reliability`` (``"reliable"`` / ``"best_effort"``), ``depth`` and ``durability``
-        are the middleware QoS of the server's subscription (ROS 2); ``reliability=None``
-        picks by transport (best effort for UDP, reliable for TCP); ``durability=
-        "transient_local"`` receives a latched topic's last values, ``"match"`` copies the
-        QoS of the topic's publishers (as ``ros2 topic echo`` does).
+        ``transport``: ``"udp"`` when the newest value matters most, ``"tcp"`` when every
+        value must arrive. ``qos``: the middleware side of the server's subscription
+        (:class:`QoS`; reliability by transport unless given). ``policy``: what the network
+        does with the values (:class:`Policy`: latest, age limit, redundancy, flow control,
+        fail-safe on a lost link).
 
-        Non-blocking channels return the latest value on every read (or ``initial`` before the
-        first one; with neither, ``NoValueYet``); blocking channels wait for a new value.
-        Raises the server's reason (``UnknownTypeError``, ``NoSuchFieldError``,
-        ``TypeClashError``) if the binding is refused. ``on_lost`` is what reads do while the
-        link is lost: ``"hold"``, ``SafeValue(v)`` or ``"raise"`` (:mod:`rlbridge.csp.failsafe`).
-        ``flow``: credit flow control, every value end to end at the reader's pace (default:
-        on for blocking TCP channels that are not ``latest``; docs/policies.md).
+        ``blocking=False`` (the hard-real-time default): every read returns at once, the
+        newest value again if nothing new came (or ``initial`` before the first one; with
+        neither, :class:`NoValueYet`). ``blocking=True``: a read waits for a new value.
+        ``buffer_size``: values kept for ``read_many`` and blocking reads.
+        Raises the server's reason (:class:`UnknownTypeError`, :class:`NoSuchFieldError`,
+        :class:`TypeClashError`) if the binding is refused, and ``ValueError`` naming the
+        option for a combination that cannot take effect (``initial`` with ``blocking``, ...).
         """
-        flow = _flow(flow, transport, latest, blocking)
-        guard = fail_safe(on_lost, self._events)
-        if buffer_size < 1:
-            raise ValueError(
-                f"an incoming channel needs buffer_size >= 1 (got {buffer_size}): values "
-                "arrive from the network whether or not a reader waits")
+        flow = check_subscribe(transport, qos, policy, blocking=blocking,
+                               buffer_size=buffer_size, has_initial=initial is not _MISSING)
+        guard = fail_safe(policy.on_lost, self._events)
         ch_id = next(self._ids)
         kind = IncomingChannel if guard is None else GuardedChannel
         channel = kind(ch_id, topic, msg_type, field, transport=transport, blocking=blocking,
-                       buffer_size=buffer_size, initial=initial if not blocking else _MISSING,
-                       latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
+                       buffer_size=buffer_size, initial=initial, latest=policy.latest,
+                       max_age_ms=policy.max_age_ms, link=self._conn.link,
                        credit_bell=self._sender.doorbell if flow else None)
         if isinstance(channel, GuardedChannel):
             channel.failsafe = guard
@@ -197,8 +181,9 @@ class Bridge(BridgeStatus, ServiceMethods):
         try:
             ack = self._conn.request_topic(TopicConnect(
                 ch_id, "subscribe", topic, msg_type, field, transport, buffer_size,
-                max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-                reliability=reliability, depth=depth, flow=flow, durability=durability))
+                max_age_ms=policy.max_age_ms, redundancy=policy.redundancy,
+                latest=policy.latest, reliability=qos.reliability, depth=qos.depth, flow=flow,
+                durability=qos.durability))
         except BaseException:
             with self._lock:
                 self._incoming.pop(ch_id, None)
@@ -206,6 +191,7 @@ class Bridge(BridgeStatus, ServiceMethods):
         channel.msg_type = ack.msg_type
         if flow:
             self._sender.add_credit(channel)
+        channel.on_close = self._unbind
         return channel
 
     def publish(
@@ -215,51 +201,44 @@ class Bridge(BridgeStatus, ServiceMethods):
         field: str | None = "data",
         *,
         transport: Transport = "udp",
+        qos: QoS = _DEFAULT_QOS,
+        policy: Policy = _DEFAULT_POLICY,
         through_buffer: bool = False,
         buffer_size: int = 1024,
-        redundancy: int = 0,
-        latest: bool = False,
-        max_age_ms: int = 0,
-        reliability: Reliability | None = None,
-        depth: int = 10,
-        durability: Durability = "volatile",
-        max_rate_hz: float | None = None,
-        adapt_rate: bool = False,
-        flow: bool | None = None,
     ) -> OutgoingChannel:
-        """A channel whose values are published on ``topic``.
+        """A channel whose values are published on ``topic`` (``field=None``: whole messages).
+
+        ``transport``, ``qos`` and ``policy`` as in :meth:`subscribe`; for a publisher the
+        policy may also limit the rate (``Policy(max_rate_hz=..., adapt_rate=...)``, the rest
+        waiting in the buffer) and ``max_age_ms`` is enforced here before sending and by the
+        server before publishing. ``QoS(durability="transient_local")`` makes a latched topic.
 
         ``through_buffer=False``: each ``write`` hands the value to the send thread at once.
-        ``through_buffer=True``: values wait in the channel until :meth:`send` or the send loop.
-        Either way ``write`` never blocks and never touches a socket; a full buffer drops its
-        oldest value and counts it (``statistics().overwritten``). Policies as in
-        :meth:`subscribe`; ``max_age_ms`` is enforced here before sending and by the server
-        before publishing. ``reliability`` and ``depth``: the publisher's middleware QoS,
-        as in :meth:`subscribe`. ``max_rate_hz`` lets at most that many values per second
-        leave (the rest wait in the buffer); ``adapt_rate`` lowers it while the server
-        reports first-hop loss and raises it back (``health().rate_limit_hz``). ``flow``:
-        send only what the topic's subscribers have room for (default: on for TCP channels
-        that are not ``latest``; ``wait_writable()`` then paces a writer that must lose
-        nothing). docs/policies.md says what each promises. ``durability``
-        (``transient_local``: a latched topic, its last ``depth`` values kept for late
-        subscribers) is the publisher's middleware durability, as in :meth:`subscribe`.
+        ``through_buffer=True``: values wait in the channel until :meth:`send` or the send loop
+        (``connect(send_rate_hz=...)``). Either way ``write`` never blocks and never touches a
+        socket; a full buffer (``buffer_size`` values) drops its oldest value and counts it
+        (``statistics().overwritten``). A flow-controlled channel (TCP, not latest) sends only
+        what the subscribers have room for; ``wait_writable()`` paces a writer that must lose
+        nothing. docs/policies.md says what each policy promises.
         """
-        flow = _flow(flow, transport, latest, True)
+        flow = check_publish(transport, qos, policy, buffer_size=buffer_size)
         ch_id = next(self._ids)
         channel = OutgoingChannel(ch_id, topic, msg_type, field, transport=transport,
                                   immediate=not through_buffer, buffer_size=buffer_size,
-                                  doorbell=self._sender.doorbell, redundancy=redundancy,
-                                  latest=latest, max_age_ms=max_age_ms, link=self._conn.link,
-                                  max_rate_hz=max_rate_hz, adapt_rate=adapt_rate, flow=flow)
+                                  doorbell=self._sender.doorbell, redundancy=policy.redundancy,
+                                  latest=policy.latest, max_age_ms=policy.max_age_ms,
+                                  link=self._conn.link, max_rate_hz=policy.max_rate_hz,
+                                  adapt_rate=policy.adapt_rate, flow=flow)
         ack = self._conn.request_topic(TopicConnect(
             ch_id, "publish", topic, msg_type, field, transport, buffer_size,
-            max_age_ms=max_age_ms, redundancy=redundancy, latest=latest,
-            reliability=reliability, depth=depth, flow=flow, loss_report=True,
-            durability=durability))
+            max_age_ms=policy.max_age_ms, redundancy=policy.redundancy, latest=policy.latest,
+            reliability=qos.reliability, depth=qos.depth, flow=flow, loss_report=True,
+            durability=qos.durability))
         channel.bound(ack)
         with self._lock:
             self._outgoing[ch_id] = channel
         self._sender.add(channel)
+        channel.on_close = self._unbind
         return channel
 
     def send(self, wait: bool = False, *, inline: bool = False) -> None:
@@ -275,15 +254,24 @@ class Bridge(BridgeStatus, ServiceMethods):
             self._sender.flush(wait=wait)
 
     def unsubscribe(self, channel: IncomingChannel | OutgoingChannel) -> None:
-        """Unbind one channel on the server and close it here."""
+        """Unbind one channel on the server and close it here: ``channel.close()`` (or the
+        end of a ``with`` block) does the same."""
+        channel.close()
+        self._unbind(channel)
+
+    def _unbind(self, channel: IncomingChannel | OutgoingChannel) -> None:
+        """A channel of this bridge was closed: stop serving it and unbind it on the server.
+        Channels the bridge itself closes (its own close, a refused rebinding) are no longer
+        registered when they close, so nothing is sent for them."""
         with self._lock:
-            self._incoming.pop(channel.channel_id, None)
+            incoming = self._incoming.pop(channel.channel_id, None)
             out = self._outgoing.pop(channel.channel_id, None)
+        if incoming is None and out is None:
+            return
         if out is not None:
             self._sender.remove(out)
-        if isinstance(channel, IncomingChannel):
-            self._sender.remove_credit(channel)
-        channel.close()
+        if incoming is not None:
+            self._sender.remove_credit(incoming)
         self._conn.forget_topic(channel.channel_id)
         if self._conn.up:  # while reconnecting: the new session does not bind it again
             with contextlib.suppress(OSError, ConnectionClosed):
@@ -388,13 +376,3 @@ class Bridge(BridgeStatus, ServiceMethods):
                  tb: TracebackType | None) -> None:
         self.close()
 
-
-def _flow(flow: bool | None, transport: Transport, latest: bool, blocking: bool) -> bool:
-    """Whether a channel is flow-controlled: asked for, else TCP every-value by default."""
-    promises_every_value = transport == "tcp" and not latest
-    if flow is None:
-        return promises_every_value and blocking
-    if flow and not promises_every_value:
-        raise ValueError("flow control needs a TCP channel that is not latest: UDP and "
-                         "latest channels drop instead of waiting (docs/policies.md)")
-    return flow

@@ -23,7 +23,7 @@ server more (``Credit``), so the reader's pace sets the publisher's.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from operator import itemgetter
 from typing import Any, NamedTuple
 
@@ -31,9 +31,9 @@ from mypy_extensions import mypyc_attr
 
 from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import _MISSING, Channel, _Missing
-from rlbridge.csp.errors import ChannelMisuseError, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.outgoing import OutgoingChannel
+from rlbridge.errors import ChannelMisuseError, SecondWriterError
 
 __all__ = ["AgedValue", "IncomingChannel", "OutgoingChannel", "SecondWriterError"]
 from rlbridge.wire.clock import ClockOffset, InterarrivalJitter
@@ -62,7 +62,7 @@ class IncomingChannel(Channel[Any]):
     __slots__ = ("_arrived", "_clock", "_credit_bell", "_credit_step", "_delivered",
                  "_jitter", "_link", "_max_age_ns", "_one_way", "_overtaken", "_tracker",
                  "channel_id", "credited", "expired", "field", "last_stamp_ns", "latest",
-                 "msg_type", "ros_lost", "topic", "transport")  # fmt: skip
+                 "msg_type", "on_close", "ros_lost", "topic", "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, blocking: bool, buffer_size: int,
@@ -100,6 +100,20 @@ class IncomingChannel(Channel[Any]):
         self._credit_step = max(1, buffer_size // 4)
         self._arrived = 0
         self.credited = buffer_size
+        #: Called once by the first :meth:`close` (the Bridge unbinds the topic there).
+        self.on_close: Callable[[IncomingChannel], None] | None = None
+
+    def close(self) -> None:
+        """Unbind the topic on the server (as ``Bridge.unsubscribe``) and close the channel:
+        values already here stay readable, then reads raise ``ChannelClosed``; idempotent."""
+        Channel.close(self)
+        hook = self.on_close
+        if hook is not None:
+            self.on_close = None
+            hook(self)
+
+    def __enter__(self) -> IncomingChannel:
+        return self
 
     @property
     def flow(self) -> bool:

@@ -19,9 +19,8 @@ from rlbridge.csp import parameters
 from rlbridge.csp.actions import Goal
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.errors import ChannelClosed
 from rlbridge.csp.services import IncomingRequest, ServiceRequests
-from rlbridge.csp.session_errors import ConnectionClosed
+from rlbridge.errors import ChannelClosed, ConnectionClosed, ParameterError
 from rlbridge.wire import GoalSend, RlbridgeError, ServiceOffer, TopicClose
 
 if TYPE_CHECKING:
@@ -212,7 +211,7 @@ class ServiceMethods:
         values = answer.get("values") or [{}]
         value = parameters.from_ros(values[0])
         if value is None:
-            raise parameters.ParameterError(f"node {node} has no parameter '{name}'")
+            raise ParameterError(f"node {node} has no parameter '{name}'")
         return value
 
     def set_parameter(self, node: str, name: str, value: Any, *,
@@ -224,7 +223,7 @@ class ServiceMethods:
                            timeout=timeout)
         result = (answer.get("results") or [{}])[0]
         if not result.get("successful"):
-            raise parameters.ParameterError(
+            raise ParameterError(
                 f"node {node} refused {name}={value!r}: {result.get('reason') or 'no reason'}")
 
     def list_parameters(self, node: str, *, timeout: float = DEFAULT_TIMEOUT) -> list[str]:

@@ -59,10 +59,15 @@ class BridgeStatus:
         self._events.add_callback(callback)
 
     def link_events(self, buffer_size: int = DEFAULT_EVENT_BUFFER) -> Channel[LinkEvent]:
-        """A non-blocking channel of :class:`~rlbridge.csp.link_events.LinkEvent` values.
+        """A FIFO of :class:`LinkEvent` values: every link change (and first-hop loss report),
+        each read once, in order.
 
-        Its first value is the current state; ``read()`` never waits (the newest event),
-        ``read_many()`` returns the events not read yet. Closed with the bridge.
+        Its first event is the current state. ``try_read()`` raises :class:`WouldBlock` when
+        nothing new is there, ``read(timeout)`` waits for the next event, ``read_many()``
+        takes every event not read yet (``[]`` when none). Events are not state: the state now
+        is :attr:`link_state`. A reader that falls ``buffer_size`` events behind loses the
+        oldest (``statistics().overwritten``). Closed with the bridge (events still buffered
+        stay readable, then ``ChannelClosed``).
         """
         return self._events.channel(buffer_size)
 

@@ -41,23 +41,24 @@ import os
 import time
 import warnings
 from collections.abc import Sequence
+from types import TracebackType
 from typing import Final, Generic, TypeVar
 
 from mypy_extensions import mypyc_attr
 
 from rlbridge.csp.doorbell import Doorbell
-from rlbridge.csp.errors import (
+from rlbridge.csp.idle import PARK, IdleStrategy
+from rlbridge.csp.process import current_process
+from rlbridge.csp.rendezvous import Rendezvous
+from rlbridge.csp.ring import EMPTY, SpscRing
+from rlbridge.csp.statistics import ChannelStatistics
+from rlbridge.errors import (
     ChannelClosed,
     ChannelMisuseError,
     NoValueYet,
     RealTimeWarning,
     WouldBlock,
 )
-from rlbridge.csp.idle import PARK, IdleStrategy
-from rlbridge.csp.process import current_process
-from rlbridge.csp.rendezvous import Rendezvous
-from rlbridge.csp.ring import EMPTY, SpscRing
-from rlbridge.csp.statistics import ChannelStatistics
 
 __all__ = ["Channel", "Doorbell"]
 
@@ -241,6 +242,14 @@ class Channel(Generic[T]):
         if self._rv is not None:
             self._rv.close()
         self._bell.ring()
+
+    def __enter__(self) -> Channel[T]:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, e: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        """Leaving a ``with`` block closes the channel (:meth:`close`)."""
+        self.close()
 
     def statistics(self) -> ChannelStatistics:
         """Return a snapshot of the counters (taken without stopping either side)."""

@@ -33,9 +33,9 @@ from rlbridge.csp.pending import Requests
 from rlbridge.csp.receiver import Receiver
 from rlbridge.csp.reconnect import ClientState
 from rlbridge.csp.services import ServiceCalls
-from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
 from rlbridge.csp.session_owner import Control, ValuesHandler
 from rlbridge.csp.stream_guard import StreamGuard
+from rlbridge.errors import ConnectionClosed, ConnectionFailed
 from rlbridge.tls import ClientTls
 from rlbridge.wire import (
     PROTOCOL_VERSION,

@@ -17,10 +17,10 @@ from typing import Any, Final, TypedDict
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.connection import ConnectionClosed
-from rlbridge.csp.errors import ChannelClosed
 from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, shorter_switch_interval
 from rlbridge.csp.process import Code, Parallel, PriParallel, Process, RunScope
 from rlbridge.csp.timer import LatenessStats, PeriodicTimer
+from rlbridge.errors import ChannelClosed
 
 __all__ = ["BaseCoupling", "ControlLoop", "Coupling", "LoopOptions", "Pump", "Ticker"]
 

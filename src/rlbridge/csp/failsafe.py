@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
 from rlbridge.csp.bridge_channels import AgedValue, IncomingChannel
-from rlbridge.csp.errors import ChannelError
+from rlbridge.errors import LinkLost
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,14 +39,6 @@ class SafeValue:
 
 #: What ``Bridge.subscribe(on_lost=...)`` accepts.
 OnLost = Literal["hold", "raise"] | SafeValue
-
-
-class LinkLost(ChannelError):
-    """Read from a channel with ``on_lost="raise"`` while the link is lost."""
-
-    def __init__(self, channel: str) -> None:
-        super().__init__(channel, f"channel {channel!r}: the link to the bridge server is "
-                                  "lost (on_lost='raise'); the SDK is reconnecting")
 
 
 class LinkFlag(Protocol):

@@ -18,8 +18,8 @@ import time
 from typing import TYPE_CHECKING
 
 from rlbridge.csp.auth import refused
-from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
-from rlbridge.csp.tls_client import TlsFailed, plaintext_refused, start_tls
+from rlbridge.csp.tls_client import plaintext_refused, start_tls
+from rlbridge.errors import ConnectionClosed, ConnectionFailed, TlsFailed
 from rlbridge.sockbuf import request_buffer
 from rlbridge.wire import (
     AuthChallenge,
@@ -91,7 +91,7 @@ def open_tcp(conn: SessionOwner, hello: Hello,
         raise ConnectionFailed(f"server sent an invalid packet: {first.error.reason}")
     ack = expect_ack(first)
     if isinstance(decoder, SealedStreamDecoder) and decoder.installed and not decoder.records:
-        from rlbridge.csp.auth import AuthRefused
+        from rlbridge.errors import AuthRefused
 
         raise AuthRefused(int(ErrorCode.AUTH_FAILED), f"{where} sent the session's ack "
                           "unsealed: not the server that proved the key (someone in between)")

@@ -33,11 +33,11 @@ import threading
 import warnings
 
 from rlbridge.csp.connection import Connection, ConnectionClosed
-from rlbridge.csp.errors import RealTimeWarning
 from rlbridge.csp.outgoing import OutgoingChannel
 from rlbridge.csp.plain_round import take_plain
 from rlbridge.csp.process import current_process
 from rlbridge.csp.send_sources import OutgoingSource
+from rlbridge.errors import RealTimeWarning
 from rlbridge.wire.bundle import DatagramPacker, Part
 
 log = logging.getLogger("rlbridge.client")

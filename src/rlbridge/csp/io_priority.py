@@ -12,7 +12,7 @@ import os
 import warnings
 from collections.abc import Callable, Iterable
 
-from rlbridge.csp.errors import RealTimeWarning
+from rlbridge.errors import RealTimeWarning
 
 __all__ = ["IoPriority"]
 

@@ -1,13 +1,16 @@
-"""Link state for control code: a property, callbacks, and CSP channels of events.
+"""Link state for control code: a property, callbacks, and FIFO channels of events.
 
 Control code must learn that the link went down without ever blocking on it. Three ways, all
 fed from one place (:class:`LinkEvents`, owned by the :class:`~rlbridge.csp.bridge.Bridge`):
 
 * ``bridge.link_state``: one attribute read, for a loop that branches every cycle;
 * ``bridge.on_link_change(callback)``: called in the SDK thread that saw the change;
-* ``bridge.link_events()``: a non-blocking :class:`~rlbridge.csp.channel.Channel` of
-  :class:`LinkEvent` values. ``read()`` returns the newest event (the current state) without
-  waiting, ``read_many()`` every event not read yet; overflow drops the oldest, counted.
+* ``bridge.link_events()``: a FIFO of :class:`LinkEvent` values (a buffered, blocking
+  :class:`~rlbridge.csp.channel.Channel`): each event is read once, in order. ``try_read()``
+  raises :class:`~rlbridge.errors.WouldBlock` when nothing new is there (events are not
+  state: a drain loop ends), ``read(timeout)`` waits for the next one, ``read_many()`` takes
+  every event not read yet. Overflow drops the oldest, counted in ``statistics()``. The
+  current state is always ``bridge.link_state``.
 
 Events come from the receive thread (watchdog, hang-up), the reconnect supervisor (bound
 again) and the closing thread. Each channel is one-to-one, so the writers take one lock here;
@@ -64,9 +67,9 @@ class LinkEvents:
             self._callbacks.append(callback)
 
     def channel(self, buffer_size: int = DEFAULT_EVENT_BUFFER) -> Channel[LinkEvent]:
-        """A new channel whose first value is the current state, then every change."""
+        """A new FIFO whose first event is the current state, then every change."""
         with self._lock:
-            ch: Channel[LinkEvent] = Channel(buffer_size, blocking=False, name="link events")
+            ch: Channel[LinkEvent] = Channel(buffer_size, blocking=True, name="link events")
             ch.write(self._last)
             self._channels.append(ch)
             return ch

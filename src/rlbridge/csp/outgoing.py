@@ -1,20 +1,16 @@
 """The outgoing bridge channel: control code -> a topic on the middleware.
 
-An :class:`OutgoingChannel` is the writer end only: ``write`` stamps the value and stores it in
-a lock-free ring (two preallocated slot lists, :mod:`rlbridge.csp.stamped_ring`: no allocation
-per write); the send thread is its reader (:meth:`OutgoingChannel.take`, or for a ``plain``
-channel :func:`~rlbridge.csp.plain_round.take_plain`). With ``immediate=True``
-(``through_buffer`` off) a write also rings the send thread's bell, which costs a futex wake
-*only* when the send thread sleeps; with ``through_buffer`` on, a write makes no system call at
-all and the value leaves on ``Bridge.send()`` or the next send-loop tick. The ring is
-single-producer: a write from a second thread while the first writer thread lives raises
-:class:`ChannelMisuseError`.
-
-What may leave when is the channel's :class:`~rlbridge.csp.pacing.Pacing`: the credit a
-flow-controlled TCP channel was granted and a ``max_rate_hz`` limit. What it holds back stays
-in the ring, where control code sees it (``writable``, ``wait_writable``, ``overwritten``).
-The server's loss reports (``LossReport``) land in :meth:`OutgoingChannel.on_loss`, so
-``health()`` shows what arrived and what was lost at the first hop.
+``write`` stamps the value and stores it in a lock-free ring (two preallocated slot lists,
+:mod:`rlbridge.csp.stamped_ring`: no allocation per write); the send thread is the reader
+(:meth:`OutgoingChannel.take`; a ``plain`` channel: :func:`~rlbridge.csp.plain_round.take_plain`).
+With ``through_buffer`` off a write rings the send thread's bell, a futex wake *only* when that
+thread sleeps; with it on, a write makes no system call and the value leaves on
+``Bridge.send()`` or the send loop's tick. The ring is single-producer: a second writer thread
+gets :class:`ChannelMisuseError`, and so do the reading verbs (the SDK is the reader).
+What may leave when is the channel's :class:`~rlbridge.csp.pacing.Pacing` (credit of a
+flow-controlled channel, ``max_rate_hz``); what it holds back stays in the ring, visible to
+control code (``writable``, ``wait_writable``). The server's loss reports land in
+:meth:`OutgoingChannel.on_loss`, so ``health()`` shows first-hop loss.
 """
 
 from __future__ import annotations
@@ -22,17 +18,18 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from types import TracebackType
 from typing import Any
 
 from rlbridge.csp.bell import Bell
 from rlbridge.csp.channel import Doorbell
-from rlbridge.csp.errors import ChannelClosed, SecondWriterError
 from rlbridge.csp.health import ChannelHealth
 from rlbridge.csp.pacing import Pacing
 from rlbridge.csp.stamped_ring import StampedRing
 from rlbridge.csp.statistics import ChannelStatistics
-from rlbridge.csp.value_check import UNCHECKED, Mismatch, WrongValueType, compile_check
+from rlbridge.csp.value_check import UNCHECKED, Mismatch, compile_check
+from rlbridge.errors import ChannelClosed, ChannelMisuseError, SecondWriterError, WrongValueType
 from rlbridge.wire import TopicAck
 from rlbridge.wire.bundle import BATCH_TAG, VALUE_TAG, Part
 from rlbridge.wire.clock import ClockOffset
@@ -46,6 +43,12 @@ _get_ident = threading.get_ident
 _time_ns = time.time_ns
 
 
+def _no_reader(topic: str, verb: str) -> ChannelMisuseError:
+    return ChannelMisuseError(f"{topic} out", "reader", (
+        f"{verb}() on outgoing channel {topic!r}: its reader is the SDK's send thread, which "
+        "publishes every value written here; to read the topic, subscribe to it"))
+
+
 class OutgoingChannel:
     """Control code -> middleware. ``write`` never blocks and never touches a socket."""
 
@@ -53,19 +56,14 @@ class OutgoingChannel:
                  "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
                  "_overtaken", "_refused", "_rejected", "_ring", "_space", "_within", "_writer",
                  "channel_id", "deferred", "field", "flow", "immediate", "latest", "msg_type",
-                 "pacing", "plain", "redundancy", "ros_lost", "topic", "transport")  # fmt: skip
+                 "on_close", "pacing", "plain", "redundancy", "ros_lost", "topic",
+                 "transport")  # fmt: skip
 
     def __init__(self, channel_id: int, topic: str, msg_type: str, field: str | None, *,
                  transport: str, immediate: bool, buffer_size: int, doorbell: Bell,
                  redundancy: int = 0, latest: bool = False, max_age_ms: int = 0,
                  link: LinkMonitor | None = None, max_rate_hz: float | None = None,
                  adapt_rate: bool = False, flow: bool = False) -> None:
-        if buffer_size < 1:
-            raise ValueError(f"an outgoing channel needs buffer_size >= 1, got {buffer_size}")
-        if not 0 <= redundancy <= 16:
-            raise ValueError(f"redundancy must be 0..16 previous values, got {redundancy}")
-        if max_age_ms < 0:
-            raise ValueError(f"max_age_ms must be >= 0 (0: no limit), got {max_age_ms}")
         self.channel_id = channel_id
         #: The server's count of this channel's values lost on the ROS side (-1: none yet).
         self.ros_lost = -1
@@ -109,6 +107,8 @@ class OutgoingChannel:
         self._hop_base = (0, 0)
         self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
         self._rejected = self._refused = 0  # refused at ``write``; by the server
+        #: Called once by the first :meth:`close` (the Bridge unbinds the topic there).
+        self.on_close: Callable[[OutgoingChannel], None] | None = None
 
     def bound(self, ack: TopicAck) -> None:
         """The server's answer: the type's normalised name, the schema values must match,
@@ -124,7 +124,8 @@ class OutgoingChannel:
 
     def _wrong(self, exc: Mismatch) -> WrongValueType:
         self._rejected += 1
-        return WrongValueType(self.topic, self.msg_type, self.field, exc)
+        return WrongValueType(self.topic, self.msg_type, self.field, exc.path, exc.expected,
+                              exc.value)
 
     def _check_writer(self) -> None:
         """Slow path: a thread other than the recorded writer writes (module docstring)."""
@@ -152,6 +153,23 @@ class OutgoingChannel:
             bell = self._bell
             if bell.waiting:
                 bell.ring()
+
+    def try_write(self, value: Any) -> None:
+        """:meth:`write` (which never waits: a full buffer drops its oldest value), under the
+        name every channel has, so code written for any channel runs on this one."""
+        self.write(value)
+
+    def read(self, timeout: float | None = None) -> Any:
+        """Refused with :class:`ChannelMisuseError`: this channel's reader is the SDK."""
+        raise _no_reader(self.topic, "read")
+
+    def try_read(self) -> Any:
+        """Refused with :class:`ChannelMisuseError`: this channel's reader is the SDK."""
+        raise _no_reader(self.topic, "try_read")
+
+    def read_many(self, max_items: int | None = None) -> list[Any]:
+        """Refused with :class:`ChannelMisuseError`: this channel's reader is the SDK."""
+        raise _no_reader(self.topic, "read_many")
 
     def write_many(self, values: Sequence[Any]) -> None:
         """Queue a batch (one stamp for all): the cheapest way to move many values."""
@@ -200,12 +218,9 @@ class OutgoingChannel:
         return self._ring.capacity - len(self._ring)
 
     def wait_writable(self, timeout: float | None = None) -> bool:
-        """Block until a write would not overwrite (or ``timeout``); False on timeout.
-
-        For a publisher that must lose nothing on a flow-controlled channel: the send thread
-        takes values only as the subscribers' credit allows, so this waits at their pace.
-        Not for a hard-real-time loop, which should read :attr:`writable` instead.
-        """
+        """Block until a write would not overwrite (or ``timeout``); False on timeout. For a
+        writer that must lose nothing on a flow-controlled channel (it waits at the readers'
+        pace); a hard-real-time loop reads :attr:`writable` instead."""
         ring = self._ring
         return self._space.wait_for(lambda: self._closed or len(ring) < ring.capacity,
                                     timeout)
@@ -358,13 +373,28 @@ class OutgoingChannel:
         """True after :meth:`close` (``Bridge.unsubscribe`` or ``Bridge.close``)."""
         return self._closed
 
+    @property
+    def name(self) -> str:
+        """The name used in errors: the topic and the direction."""
+        return f"{self.topic} out"
+
     def close(self) -> None:
-        """Refuse further writes. A latest value still held back is discarded, counted in
-        ``statistics().dropped`` (the Bridge flushes before closing, so only one that the
-        connection never let through)."""
+        """Refuse further writes and unbind the topic (as ``Bridge.unsubscribe``); idempotent.
+        A latest value still held back is discarded (``statistics().dropped``)."""
         self._closed = True
         self._space.ring()
         if self._held is not None:
             self._held = None
             self._discarded += 1
+        hook = self.on_close
+        if hook is not None:
+            self.on_close = None
+            hook(self)
+
+    def __enter__(self) -> OutgoingChannel:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, e: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
 

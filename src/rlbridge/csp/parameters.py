@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rlbridge.wire.errors import RlbridgeError
+from rlbridge.errors import ParameterError
 
 GET = "rcl_interfaces/srv/GetParameters"
 SET = "rcl_interfaces/srv/SetParameters"
@@ -23,10 +23,6 @@ _FIELDS = {1: "bool_value", 2: "integer_value", 3: "double_value", 4: "string_va
            8: "double_array_value", 9: "string_array_value"}
 
 ParameterValue = bool | int | float | str | bytes | list[bool] | list[int] | list[float] | list[str]
-
-
-class ParameterError(RlbridgeError):
-    """A node has no such parameter, refused a new value, or the value has no ROS type."""
 
 
 def node_service(node: str, name: str) -> str:

@@ -63,7 +63,7 @@ from typing import Any
 
 from rlbridge._compat import Unpack
 from rlbridge.csp import patterns_process as isolated
-from rlbridge.csp.bridge import Bridge, Transport
+from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.coupling import (
@@ -74,11 +74,12 @@ from rlbridge.csp.coupling import (
     Pump,
     Ticker,
 )
-from rlbridge.csp.errors import ChannelClosed, NoValueYet
 from rlbridge.csp.gil import HRT_SWITCH_INTERVAL, realtime_switch_interval
 from rlbridge.csp.isolated import DEFAULT_LAYOUT, IsolatedCoupling, Layout
+from rlbridge.csp.options import Transport
 from rlbridge.csp.patterns_process import unsubscriber
 from rlbridge.csp.process import Process
+from rlbridge.errors import ChannelClosed, NoValueYet
 
 __all__ = [
     "DEFAULT_LAYOUT",

@@ -30,12 +30,13 @@ import contextlib
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from rlbridge.csp.bridge import Bridge, Transport
+from rlbridge.csp.bridge import Bridge
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Channel
 from rlbridge.csp.connection import ConnectionClosed
 from rlbridge.csp.coupling import LoopOptions, Pump, Ticker
 from rlbridge.csp.isolated import IsolatedCoupling, LoopKind, LoopSpec, check_picklable
+from rlbridge.csp.options import Transport
 from rlbridge.csp.process import Process
 from rlbridge.csp.shm import ShmLink
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import msgspec
 
-from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
+from rlbridge.errors import ConnectionClosed, ConnectionFailed
 from rlbridge.wire import (
     GoalSend,
     LocalProtocolError,

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from typing import Literal, Protocol, TypeAlias
 
 from rlbridge._compat import BaseExceptionGroup
-from rlbridge.csp.errors import RealTimeWarning
+from rlbridge.errors import RealTimeWarning
 
 _log = logging.getLogger(__name__)
 

@@ -13,8 +13,8 @@ import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
 
-from rlbridge.csp.errors import ChannelClosed, WouldBlock
 from rlbridge.csp.statistics import ChannelStatistics
+from rlbridge.errors import ChannelClosed, WouldBlock
 
 T = TypeVar("T")
 

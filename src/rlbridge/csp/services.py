@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from rlbridge.csp.channel import Channel
-from rlbridge.csp.session_errors import ConnectionClosed
+from rlbridge.errors import ConnectionClosed, ServiceTimeout
 from rlbridge.wire import (
     ErrorCode,
     GoalResult,
@@ -33,7 +33,6 @@ from rlbridge.wire import (
     ServiceResult,
     error_from_code,
 )
-from rlbridge.wire.errors import ServiceTimeout
 
 if TYPE_CHECKING:
     from rlbridge.csp.actions import Goal

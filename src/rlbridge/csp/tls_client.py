@@ -16,8 +16,8 @@ import ssl
 import time
 from typing import TYPE_CHECKING
 
-from rlbridge.csp.session_errors import ConnectionClosed, ConnectionFailed
-from rlbridge.tls import TlsEngine, TlsError
+from rlbridge.errors import ConnectionClosed, ConnectionFailed, TlsError, TlsFailed
+from rlbridge.tls import TlsEngine
 from rlbridge.wire import MAGIC
 
 if TYPE_CHECKING:
@@ -25,13 +25,6 @@ if TYPE_CHECKING:
 
 #: First bytes of a TLS record (handshake or alert, TLS 1.x): what a TLS server answers with.
 TLS_RECORD_STARTS = (b"\x16\x03", b"\x15\x03")
-
-
-class TlsFailed(ConnectionFailed):
-    """TLS could not be set up: certificate, fingerprint, or a server without TLS.
-
-    Retrying with the same settings will not help; the message says what to change.
-    """
 
 
 def start_tls(conn: SessionOwner, sock: socket.socket, wake: socket.socket) -> TlsEngine:

@@ -7,7 +7,7 @@ types that pass unchanged (``float`` for a ``Float64`` field) and a slower ``coe
 rest. ``OutgoingChannel.write`` pays one ``type(value) in accept`` test per write (tens of
 nanoseconds, docs/benchmarks.md); only other values reach ``coerce``, which returns the value to
 send (an ``int`` for a float field becomes a ``float``, a NumPy scalar a Python number) or
-raises :class:`WrongValueType`.
+raises :class:`~rlbridge.errors.WrongValueType`.
 
 The rules are the server's (msgspec's strict mode, the ROS types): an integer is a valid float,
 a bool is neither an integer nor a float, integers are range-checked, strings length-checked,
@@ -24,8 +24,6 @@ from typing import Any, NamedTuple
 
 import msgspec
 
-from rlbridge.wire.errors import LocalProtocolError
-
 Coerce = Callable[[Any], Any]
 
 _INT_MIN = -(2**63)
@@ -40,34 +38,6 @@ class Mismatch(Exception):
         self.expected = expected
         self.value = value
         self.path = path
-
-
-class WrongValueType(LocalProtocolError, TypeError):
-    """``write`` was given a value that cannot be the bound field's type.
-
-    A ``TypeError``, and a :class:`~rlbridge.wire.errors.LocalProtocolError` (this program's
-    mistake, not the server's), so code catching either sees it.
-
-    ``topic``, ``msg_type`` and ``field`` name the channel (``field`` ``None``: whole
-    messages), ``path`` the part of a whole message that is wrong (``"linear.x"``),
-    ``expected`` what the type needs and ``value`` what was given.
-    """
-
-    def __init__(self, topic: str, msg_type: str, field: str | None,
-                 mismatch: Mismatch) -> None:
-        self.topic = topic
-        self.msg_type = msg_type
-        self.field = field
-        self.path = mismatch.path
-        self.expected = mismatch.expected
-        self.value = mismatch.value
-        where = field if field else "<whole message>"
-        if mismatch.path:
-            where = mismatch.path if not field else f"{field}.{mismatch.path}"
-        shown = repr(mismatch.value)
-        shown = shown if len(shown) <= 60 else shown[:57] + "..."
-        super().__init__(f"topic {topic!r} ({msg_type} field {where}) needs {self.expected}, "
-                         f"got {type(mismatch.value).__name__} {shown}")
 
 
 class ValueCheck(NamedTuple):

@@ -43,17 +43,21 @@ import time
 import uuid
 from types import TracebackType
 
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.bridge_channels import IncomingChannel
-from rlbridge.csp.channel import Channel
-from rlbridge.csp.connection import ConnectionClosed
-from rlbridge.csp.errors import ChannelClosed
-from rlbridge.csp.process import Code, PriParallel
-from rlbridge.csp.timer import PeriodicTimer, Timed
+from rlbridge import (
+    Bridge,
+    Channel,
+    ChannelClosed,
+    Code,
+    ConnectionClosed,
+    IncomingChannel,
+    LinkState,
+    PeriodicTimer,
+    PriParallel,
+    Timed,
+)
 from rlbridge.demo.loop import ControllerState, LoopConfig, PanTiltLoop, SetpointSample
 from rlbridge.demo.plant import PanTiltPlant
 from rlbridge.demo.topics import FLOAT64, STRING, Diagnostics, Topics
-from rlbridge.wire.link import LinkState
 
 LOOP_PERIOD = 0.001
 TELEMETRY_HZ = 50.0

@@ -20,10 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from rlbridge import AuthenticationFailed, Bridge, ConnectionFailed, Psk
 from rlbridge.adapters import MiddlewareAdapter, load_adapter
-from rlbridge.csp.auth import AuthRefused
-from rlbridge.csp.bridge import Bridge
-from rlbridge.csp.connection import ConnectionFailed
 from rlbridge.demo.monitor import Monitor, Trace
 from rlbridge.demo.topics import Topics
 from rlbridge.demo.vision import Dropout, VisionNode
@@ -89,9 +87,10 @@ def connect_controller(host: str, port: int, *, timeout: float = 30.0,
         try:
             if psk_file is not None and not psk_file.exists():
                 raise ConnectionFailed(f"no key file {psk_file} yet")
-            return Bridge.connect(host, port, nodelay=True, name=name, psk_file=psk_file,
+            key = None if psk_file is None else Psk(file=psk_file)
+            return Bridge.connect(host, port, nodelay=True, name=name, security=key,
                                   timeout=min(2.0, max(0.2, remaining)))
-        except AuthRefused:
+        except AuthenticationFailed:
             raise  # a wrong key or certificate: trying again will not help
         except ConnectionFailed as exc:
             remaining = deadline - time.monotonic()

@@ -7,9 +7,9 @@ where a refused handshake is logged and counted with its reason. docs/security.m
 to use TLS and how to set it up.
 """
 
+from rlbridge.errors import TlsError
 from rlbridge.tls.context import (
     ClientTls,
-    TlsError,
     client_tls,
     fingerprint_of,
     server_context,

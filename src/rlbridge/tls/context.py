@@ -17,11 +17,7 @@ import ssl
 from dataclasses import dataclass
 from pathlib import Path
 
-from rlbridge.wire import RlbridgeError
-
-
-class TlsError(RlbridgeError):
-    """A TLS set-up or check failed; the message says which file or which check, and why."""
+from rlbridge.errors import TlsError
 
 
 def fingerprint_of(der: bytes) -> str:

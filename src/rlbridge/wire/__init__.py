@@ -4,6 +4,14 @@ Nothing here touches a socket, a thread, an event loop or a clock; time is a par
 server's TCP and UDP paths and the client SDK all drive this same code.
 """
 
+from rlbridge.errors import (
+    ErrorCode,
+    LocalProtocolError,
+    RemoteError,
+    RemoteProtocolError,
+    RlbridgeError,
+    error_from_code,
+)
 from rlbridge.wire.codec import (
     DATAGRAM_HEADER,
     DEFAULT_MAX_PACKET,
@@ -13,14 +21,6 @@ from rlbridge.wire.codec import (
     FrameDecoder,
     Malformed,
     PacketCodec,
-)
-from rlbridge.wire.errors import (
-    ErrorCode,
-    LocalProtocolError,
-    RemoteError,
-    RemoteProtocolError,
-    RlbridgeError,
-    error_from_code,
 )
 from rlbridge.wire.packets import (
     PROTOCOL_VERSION,

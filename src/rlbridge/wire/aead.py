@@ -29,7 +29,7 @@ from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305 as _OpenSSLChaCha
 
 from rlbridge._compiled import pure_requested
-from rlbridge.wire.errors import RlbridgeError
+from rlbridge.errors import NoCipher
 
 #: Chooses the implementation for a process (module docstring).
 AEAD_ENV = "RLBRIDGE_AEAD"
@@ -148,10 +148,6 @@ def choose(environ: Mapping[str, str],
 
 
 _CHOSEN, STATE = choose(os.environ, IMPLEMENTATIONS)
-
-
-class NoCipher(RlbridgeError):
-    """``$RLBRIDGE_AEAD`` asks for a ChaCha20-Poly1305 that cannot be had: nothing can seal."""
 
 
 def require() -> None:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import hmac
 
-from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
+from rlbridge.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.packets import PROTOCOL_VERSION, AuthChallenge, AuthProof
 from rlbridge.wire.seal import (
     COUNTER,

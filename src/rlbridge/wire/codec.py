@@ -21,7 +21,7 @@ from typing import Any
 import msgspec
 from mypy_extensions import mypyc_attr
 
-from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
+from rlbridge.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Packet, Value
 
 MAGIC = b"RB"

@@ -16,6 +16,7 @@ read), and once strict, a plain frame is refused as injected.
 
 from __future__ import annotations
 
+from rlbridge.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.aead import (
     BULK_FROM,
     InvalidTag,
@@ -31,7 +32,6 @@ from rlbridge.wire.codec import (
     PacketCodec,
     check_header,
 )
-from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.packets import PROTOCOL_VERSION, Packet
 from rlbridge.wire.seal import FLAG_SEALED, TAG_SIZE, SessionKeys, nonce
 

@@ -33,6 +33,7 @@ import msgspec
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
+from rlbridge.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.aead import NONCE, InvalidTag, chacha20_poly1305
 from rlbridge.wire.codec import (
     FLAG_MAC,
@@ -40,7 +41,6 @@ from rlbridge.wire.codec import (
     PacketCodec,
     check_header,
 )
-from rlbridge.wire.errors import ErrorCode, RemoteProtocolError
 from rlbridge.wire.packets import PROTOCOL_VERSION, Packet
 
 #: Header flag of a sealed datagram or TCP record (the same bit the MAC-only seal used).
