@@ -5,8 +5,9 @@ Checked: every Python file and Markdown code block under examples/, the demo's c
 (the embedded board's code: ``CONTROL_SIDE`` below), and every code block of README.md and
 docs/*.md (any language: a ``python -c`` line counts too). A name imported from ``rlbridge``
 must be in ``rlbridge.__all__``. The demo (``rlbridge.demo``) is an application built on the
-public API, not part of the SDK: its own modules may import each other, and the pan-tilt
-example, which runs the demo's sides as separate programs, may import them.
+public API, not part of the SDK: its own modules may import each other (and, being inside the
+package, ``rlbridge._compat``, the package's Python 3.10 backports, which are no SDK API), and
+the pan-tilt example, which runs the demo's sides as separate programs, may import them.
 """
 
 from __future__ import annotations
@@ -34,9 +35,12 @@ IMPORT_TEXT = re.compile(r"^\s*(?:from\s+(rlbridge[\w.]*)\s+import\s+([^#\n]+)"
                          r"|import\s+(rlbridge[\w.]*))", re.MULTILINE)
 
 
+DEMO_MAY_IMPORT = ("rlbridge.demo", "rlbridge._compat")
+
+
 def allowed_module(module: str, *, demo: bool) -> bool:
-    return module in PUBLIC_MODULES or (demo and (module == "rlbridge.demo"
-                                                  or module.startswith("rlbridge.demo.")))
+    return module in PUBLIC_MODULES or (demo and any(
+        module == m or module.startswith(m + ".") for m in DEMO_MAY_IMPORT))
 
 
 def _names(text: str) -> list[str]:
