@@ -377,7 +377,7 @@ def _render_class(cls: type, name: str, problems: Problems,
         out += [f"`class {name}(**fields)`", ""]
     else:
         sig = _signature(cls).removesuffix(" -> None")
-        out += ["```python", f"class {name}{sig}", "```", ""]
+        out += [f"`class {name}{sig}`", ""]  # inline: a signature, not a block to run
         if _bases(cls):
             out += [f"Bases: `{_bases(cls)[1:-1]}`", ""]
     keep = 0 if name in WHOLE_DOC else 1 if issubclass(cls, BaseException) else CLASS_PARAGRAPHS
