@@ -140,7 +140,7 @@ def control_code_example(port: int) -> str:
 
 
 def pattern_example(port: int) -> str:
-    from rlbridge.csp.shm import ShmLink
+    from rlbridge import ShmLink
 
     if not ShmLink.supported():
         return "coupling pattern: skipped (its default layout needs x86)"

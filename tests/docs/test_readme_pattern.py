@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from rlbridge.csp.shm import ShmLink
+from rlbridge import ShmLink
 from rlbridge.server import ServerConfig, ServerThread
 
 README = Path(__file__).resolve().parents[2] / "README.md"
