@@ -67,7 +67,7 @@ import pytest
 from doc_blocks import PYTHON, SHELL, Block, all_blocks
 from live_server import LiveServer, rlbridge_command
 
-BLOCK_TIMEOUT = 120.0
+BLOCK_TIMEOUT = 90.0  # below pytest's 120 s, so a hung block fails with its own output
 DOC_HOST = "192.168.1.10"
 DOC_PORT = re.compile(r"\b7411\b")
 FINGERPRINT = re.compile(r"\b[0-9a-f]{64}\b")
@@ -77,7 +77,9 @@ PEER = Path(__file__).with_name("docs_ros_peer.py")
 
 BLOCKS = all_blocks()
 CODE = [b for b in BLOCKS if b.is_code]
-RUN = [b for b in CODE if b.fragment is None]
+RUN = [pytest.param(b, id=b.name, marks=[pytest.mark.slow]
+                     + ([pytest.mark.ros2] if "ros2" in b.needs else []))
+       for b in CODE if b.fragment is None]
 
 
 @dataclass
@@ -245,7 +247,7 @@ def run_shell(block: Block, server: Server, cwd: Path) -> None:
 # -- the tests -------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("block", RUN, ids=lambda b: b.name)
+@pytest.mark.parametrize("block", RUN)
 def test_code_block_runs(block: Block, request: pytest.FixtureRequest, tmp_path: Path) -> None:
     assert block.lang in PYTHON | SHELL, (
         f"{block.name}: a {block.lang!r} block cannot run here: mark it "
