@@ -272,14 +272,17 @@ def _default(value: Any) -> str:
     if inspect.isroutine(value):  # a function's repr carries its address
         return str(value.__qualname__)
     if isinstance(value, enum.Enum):
+        if type(value).__name__.startswith("_"):  # a private sentinel: "not given"
+            return "<not given>"
         return f"{type(value).__name__}.{value.name}"
     text = repr(value)
     return re.sub(r" at 0x[0-9a-f]+", "", text)
 
 
 def _annotation(ann: Any) -> str:
-    if isinstance(ann, str):
-        return ann
+    if isinstance(ann, str):  # a private sentinel's type is no part of the signature, and a
+        # private protocol (``_Readable``) reads as its plain name
+        return re.sub(r"(?<![\w.])_(?=[A-Z])", "", re.sub(r" \| _\w+|_\w+ \| ", "", ann))
     if isinstance(ann, type) and not isinstance(ann, types.GenericAlias):  # 3.10: an alias is
         return ann.__name__                                                   # a type too
     # pathlib._local: where Python 3.13 defines Path; the docs read the same on 3.10 to 3.13.

@@ -66,6 +66,8 @@ def test_api_md_documents_every_public_name_and_nothing_else() -> None:
     assert not {m for m in members if m[1].startswith("_")}
     modules = set(re.findall(r"rlbridge\.(?!server\b|__all__)\w+(?:\.\w+)*", text))
     assert not modules, f"the page names internal modules: {sorted(modules)}"
+    private = set(re.findall(r"(?<![\w.])_[A-Za-z]\w*", text))
+    assert not private, f"the page shows private names: {sorted(private)}"
 
 
 def test_api_md_stays_within_its_word_budget() -> None:
