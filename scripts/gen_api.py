@@ -31,6 +31,7 @@ import os
 import re
 import sys
 import types
+import typing
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -282,11 +283,16 @@ def _default(value: Any) -> str:
 def _annotation(ann: Any) -> str:
     if isinstance(ann, str):  # a private sentinel's type is no part of the signature, and a
         # private protocol (``_Readable``) reads as its plain name
-        return re.sub(r"(?<![\w.])_(?=[A-Z])", "", re.sub(r" \| _\w+|_\w+ \| ", "", ann))
+        ann = re.sub(r"(?<![\w.])_(?=[A-Z])", "", re.sub(r" \| _\w+|_\w+ \| ", "", ann))
+        # ``parameters.ParameterValue``: an rlbridge module's name is no part of the API
+        return re.sub(r"(?<![\w.])([a-z_]+)\.(?=[A-Z])",
+                      lambda m: m[0] if m[1] in sys.stdlib_module_names else "", ann)
     if isinstance(ann, type) and not isinstance(ann, types.GenericAlias):  # 3.10: an alias is
         return ann.__name__                                                   # a type too
     # pathlib._local: where Python 3.13 defines Path; the docs read the same on 3.10 to 3.13.
-    return repr(ann).replace("typing.", "").replace("pathlib._local.", "pathlib.")
+    text = repr(ann).replace("typing.", "").replace("pathlib._local.", "pathlib.")
+    # a NamedTuple's or TypedDict's field types: ForwardRef('int | None', module=...)
+    return re.sub(r"ForwardRef\('([^']*)'(?:, module='[\w.]+')?\)", r"\1", text)
 
 
 def _signature(obj: Callable[..., Any], *, drop_self: bool = False) -> str:
@@ -374,15 +380,21 @@ def _render_class(cls: type, name: str, problems: Problems,
         out += [f"`class {name}{_bases(cls)}`: {members}", ""]
     elif issubclass(cls, BaseException):
         pass  # the tree above shows its bases
-    elif name in MADE_BY:
-        out += [f"`class {name}`, made by {MADE_BY[name]}", ""]
-    elif hasattr(cls, "model_fields"):
-        out += [f"`class {name}(**fields)`", ""]
     else:
-        sig = _signature(cls).removesuffix(" -> None")
-        out += [f"`class {name}{sig}`", ""]  # inline: a signature, not a block to run
-        if _bases(cls):
-            out += [f"Bases: `{_bases(cls)[1:-1]}`", ""]
+        if name in MADE_BY:
+            out += [f"`class {name}`, made by {MADE_BY[name]}", ""]
+        elif hasattr(cls, "model_fields"):
+            out += [f"`class {name}(**fields)`", ""]
+        elif typing.is_typeddict(cls):  # keyword arguments of the functions that take it
+            keys = ", ".join(f"{k}: {_annotation(v)}"
+                             for k, v in inspect.get_annotations(cls).items())
+            out += [f"`class {name}(TypedDict, total=False)`: `{keys}`", ""]
+        else:
+            sig = _signature(cls).removesuffix(" -> None")
+            out += [f"`class {name}{sig}`", ""]  # inline: a signature, not a block to run
+        public_bases = [b.__name__ for b in cls.__bases__ if b in documented]
+        if public_bases:  # where the inherited members are documented
+            out += [f"Bases: {', '.join(f'`{b}`' for b in public_bases)}", ""]
     keep = 0 if name in WHOLE_DOC else 1 if issubclass(cls, BaseException) else CLASS_PARAGRAPHS
     out += [_doc(cls, name, problems, paragraphs=keep), ""]
     if issubclass(cls, BaseException) or issubclass(cls, enum.Enum):
