@@ -274,3 +274,38 @@ def test_markers_are_known() -> None:
     unknown = {f"{b.name}: {key}" for b in BLOCKS for key in b.markers
                if key not in ("fragment", "needs")}
     assert not unknown, f"markers are `fragment` and `needs` only: {sorted(unknown)}"
+
+
+# -- the runner itself ------------------------------------------------------------------------
+
+
+def test_localize_changes_the_documented_address_only() -> None:
+    server = Server(40123, fingerprint="ab" * 32)
+    text = ('Bridge.connect("192.168.1.10", 7411)  # port 74110 stays, 7411 goes\n'
+            f'Tls(fingerprint="{"89a78d9b" * 8}")')
+    assert localize(text, server) == (
+        'Bridge.connect("127.0.0.1", 40123)  # port 74110 stays, 40123 goes\n'
+        f'Tls(fingerprint="{"ab" * 32}")')
+
+
+def test_commands_join_continued_lines_and_drop_comments() -> None:
+    code = ("rlbridge topic pub /x std_msgs/msg/Float64 1.5 \\\n    --count 5  # five\n"
+            "# a comment line\n\nrlbridge service call /a std_srvs/srv/SetBool '{data: true}'\n")
+    assert list(commands(code)) == [
+        ["rlbridge", "topic", "pub", "/x", "std_msgs/msg/Float64", "1.5", "--count", "5"],
+        ["rlbridge", "service", "call", "/a", "std_srvs/srv/SetBool", "{data: true}"]]
+
+
+def test_blocks_read_stacked_markers_and_indented_fences(tmp_path: Path) -> None:
+    from doc_blocks import blocks
+
+    page = tmp_path / "page.md"
+    page.write_text("text\n<!-- fragment: part of a loop -->\n<!-- needs: ros2 -->\n"
+                    "```python\nx = 1\n```\n\n- item:\n\n  ```sh\n  rlbridge ping\n  ```\n"
+                    "<!-- fragment: not this one -->\n\n```text\nout\n```\n")
+    first, second, third = blocks(page)
+    assert (first.lang, first.code, first.fragment, first.needs) == \
+        ("python", "x = 1\n", "part of a loop", frozenset({"ros2"}))
+    assert (second.lang, second.code, second.markers) == ("sh", "rlbridge ping\n", {})
+    assert third.markers == {}  # a blank line between marker and fence: not its marker
+    assert not third.is_code
