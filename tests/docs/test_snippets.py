@@ -38,7 +38,8 @@ The servers (real ``rlbridge serve`` processes on loopback, see ``live_server.py
         provides the service ``/arm/enable`` (``std_srvs/srv/SetBool``: success = data) and
         publishes a latched (``transient_local``) ``/map`` (``std_msgs/msg/String``).
     ``ros2``
-        ``rlbridge serve --adapter ros2 --udp`` on a ROS 2 graph scoped to this machine and run,
+        ``rlbridge serve --adapter ros2 --udp`` on a ROS 2 graph scoped to this machine and run
+        (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, a domain id per run),
         with ``tests/docs/docs_ros_peer.py``: node ``controller`` (parameter ``kp`` = 2.0), the
         same ``/arm/enable`` and latched ``/map``, and the action ``/fibonacci``
         (``test_msgs/action/Fibonacci``). Skipped without rclpy.
@@ -139,7 +140,9 @@ def ros2_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     pytest.importorskip("rclpy", reason="rclpy is not installed (pip install -e '.[ros2]')")
     pytest.importorskip("test_msgs.action", reason="needs ros-test-msgs")
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-           "ROS_DOMAIN_ID": str(1 + (os.getpid() + 50) % 100),
+           # as tests/adapters/conftest.py: per run, or the one scripts/test.sh gives it
+           "ROS_DOMAIN_ID": os.environ.get("RLBRIDGE_TEST_ROS_DOMAIN_ID")
+           or str(1 + (os.getpid() + 50) % 100),
            "ROS_LOG_DIR": str(tmp_path_factory.mktemp("ros_log"))}
     env.pop("ROS_STATIC_PEERS", None)
     peer = subprocess.Popen([sys.executable, str(PEER)], stdin=subprocess.PIPE,
