@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import json
 import logging
 import re
 import sys
@@ -25,8 +26,9 @@ from rlbridge.cli_errors import fail
 if TYPE_CHECKING:
     from pydantic import ValidationError
 
+    from rlbridge.adapters.base import QoS
     from rlbridge.csp.bridge import Bridge
-    from rlbridge.csp.options import Psk, Tls
+    from rlbridge.csp.options import Policy, Psk, Tls
 
 #: Long option -> its one short form, for every command.
 SHORT_OPTIONS: dict[str, str] = {
@@ -156,6 +158,27 @@ LOCAL_SERVER = ServerTarget()
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+def _option_group(command: F, parameter: str, group: type[Any]) -> F:
+    """Give ``command`` the fields of dataclass ``group`` as options, in place of its
+    ``parameter``, which receives them as one ``group`` object."""
+    hints = inspect.signature(group, eval_str=True).parameters
+    added = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
+                               default=hints[name].default, annotation=hints[name].annotation)
+             for name in (f.name for f in fields(group))]
+    signature = inspect.signature(command, eval_str=True)
+    own = [p for name, p in signature.parameters.items() if name != parameter]
+
+    @functools.wraps(command)
+    def with_group(*args: Any, **kwargs: Any) -> Any:
+        value = group(**{p.name: kwargs.pop(p.name) for p in added})
+        return command(*args, **{parameter: value}, **kwargs)
+
+    with_group.__signature__ = signature.replace(  # type: ignore[attr-defined]
+        parameters=[*own, *added])
+    with_group.__annotations__ = {p.name: p.annotation for p in (*own, *added)}
+    return cast(F, with_group)
+
+
 def server_options(command: F) -> F:
     """Give ``command`` the :class:`ServerTarget` options in place of its ``server`` parameter.
 
@@ -164,19 +187,82 @@ def server_options(command: F) -> F:
     ``param`` and ``action`` commands had drifted to host and port only). Here the options are
     the dataclass's fields, declared once; the command receives them as one ``ServerTarget``.
     """
-    hints = inspect.signature(ServerTarget, eval_str=True).parameters
-    added = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
-                               default=hints[name].default, annotation=hints[name].annotation)
-             for name in (f.name for f in fields(ServerTarget))]
-    signature = inspect.signature(command, eval_str=True)
-    own = [p for name, p in signature.parameters.items() if name != "server"]
+    return _option_group(command, "server", ServerTarget)
 
-    @functools.wraps(command)
-    def with_target(*args: Any, **kwargs: Any) -> Any:
-        target = ServerTarget(**{p.name: kwargs.pop(p.name) for p in added})
-        return command(*args, server=target, **kwargs)
 
-    with_target.__signature__ = signature.replace(  # type: ignore[attr-defined]
-        parameters=[*own, *added])
-    with_target.__annotations__ = {p.name: p.annotation for p in (*own, *added)}
-    return cast(F, with_target)
+# -- the options of every command that binds a topic: QoS and Policy, one to one ---------
+ReliabilityOpt = Annotated[str | None, typer.Option(
+    "--reliability", help="QoS reliability: reliable or best_effort (default: by transport, "
+    "best effort for udp, reliable for tcp).")]
+DepthOpt = Annotated[int, typer.Option("--depth", help="QoS history depth.")]
+DurabilityOpt = Annotated[str, typer.Option(
+    "--durability", help="QoS durability: volatile, transient_local (a latched topic) or "
+    "match (subscribe: as the topic's publishers).")]
+LatestOpt = Annotated[bool, typer.Option("--latest", help="Only the newest value matters: a "
+                                         "backlog collapses to its newest value.")]
+MaxAgeOpt = Annotated[int, typer.Option("--max-age-ms", help="Drop values older than this "
+                                        "(0: no limit).")]
+RedundancyOpt = Annotated[int, typer.Option("--redundancy", help="UDP: repeat the previous K "
+                                            "values in each datagram (0..16).")]
+FlowOpt = Annotated[bool | None, typer.Option("--flow/--no-flow", help="TCP: credit flow "
+                                              "control, every value at the reader's pace "
+                                              "(default: on where every value is promised).")]
+MaxRateOpt = Annotated[float | None, typer.Option("--max-rate-hz", help="Publish: at most "
+                                                  "this many values per second leave.")]
+AdaptRateOpt = Annotated[bool, typer.Option("--adapt-rate", help="Publish, with --max-rate-hz: "
+                                            "lower the rate while the server reports loss.")]
+OnLostOpt = Annotated[str, typer.Option("--on-lost", help="Subscribe: "
+                                        "reads while the link is lost: hold, raise, or a JSON "
+                                        "safe value.")]
+
+
+@dataclass(frozen=True)
+class ChannelChoice:
+    """A command's ``--reliability``/``--depth``/``--durability`` (one to one the fields of
+    :class:`~rlbridge.QoS`) and ``--latest``, ``--max-age-ms``, ``--redundancy``,
+    ``--flow``, ``--max-rate-hz``, ``--adapt-rate``, ``--on-lost`` (those of
+    :class:`~rlbridge.Policy`), built into the SDK's objects here only (see
+    :func:`channel_options`); the SDK's rules then refuse what a channel cannot honour."""
+
+    reliability: ReliabilityOpt = None
+    depth: DepthOpt = 10
+    durability: DurabilityOpt = "volatile"
+    latest: LatestOpt = False
+    max_age_ms: MaxAgeOpt = 0
+    redundancy: RedundancyOpt = 0
+    flow: FlowOpt = None
+    max_rate_hz: MaxRateOpt = None
+    adapt_rate: AdaptRateOpt = False
+    on_lost: OnLostOpt = "hold"
+
+    def qos(self) -> QoS:
+        """The :class:`~rlbridge.QoS` of these options (``ValueError`` naming a bad one)."""
+        from rlbridge.adapters.base import QoS
+
+        return QoS(cast(Any, self.reliability), self.depth, cast(Any, self.durability))
+
+    def policy(self) -> Policy:
+        """The :class:`~rlbridge.Policy` of these options (``ValueError`` naming a bad one)."""
+        from rlbridge.csp.failsafe import SafeValue
+        from rlbridge.csp.options import Policy
+
+        on_lost: str | SafeValue = self.on_lost
+        if on_lost not in ("hold", "raise"):
+            try:
+                on_lost = SafeValue(json.loads(self.on_lost))
+            except ValueError:
+                raise ValueError(f"--on-lost must be 'hold', 'raise' or a JSON value (the safe "
+                                 f"value), not '{self.on_lost}'") from None
+        return Policy(latest=self.latest, max_age_ms=self.max_age_ms,
+                      redundancy=self.redundancy, flow=self.flow, max_rate_hz=self.max_rate_hz,
+                      adapt_rate=self.adapt_rate, on_lost=cast(Any, on_lost))
+
+
+#: The ``channel`` parameter's default, for calling a command function directly.
+DEFAULT_CHANNEL = ChannelChoice()
+
+
+def channel_options(command: F) -> F:
+    """Give ``command`` the :class:`ChannelChoice` options in place of its ``channel``
+    parameter: every command that binds a topic takes the same QoS and policy options."""
+    return _option_group(command, "channel", ChannelChoice)

@@ -17,10 +17,13 @@ import typer
 
 from rlbridge.cli_errors import fail, one_line_errors
 from rlbridge.cli_options import (
+    DEFAULT_CHANNEL,
     LOCAL_SERVER,
+    ChannelChoice,
     Field,
     ServerTarget,
     TransportOpt,
+    channel_options,
     checked_transport,
     option,
     server_options,
@@ -41,6 +44,7 @@ def _parse_value(text: str) -> Any:
 @topic_app.command("pub")
 @one_line_errors
 @server_options
+@channel_options
 def topic_pub(
     topic: str,
     msg_type: Annotated[str, typer.Argument(metavar="TYPE", help="e.g. std_msgs/msg/Float64")],
@@ -50,6 +54,7 @@ def topic_pub(
     count: Annotated[int, typer.Option(help="Number of messages (with --rate).")] = 1,
     transport: TransportOpt = "udp",
     server: ServerTarget = LOCAL_SERVER,
+    channel: ChannelChoice = DEFAULT_CHANNEL,
 ) -> None:
     """Publish VALUE on TOPIC through the bridge.
 
@@ -61,7 +66,8 @@ def topic_pub(
 
     parsed = _parse_value(value)
     with server.connect("rlbridge-topic-pub") as bridge:
-        out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport))
+        out = bridge.publish(topic, msg_type, field or None, transport=checked_transport(transport),
+                             qos=channel.qos(), policy=channel.policy())
         n = max(1, count) if rate > 0 else 1
         period = 1.0 / rate if rate > 0 else 0.0
         start = time.monotonic()
@@ -80,6 +86,7 @@ def topic_pub(
 @topic_app.command("echo")
 @one_line_errors
 @server_options
+@channel_options
 def topic_echo(
     topic: str,
     msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
@@ -89,11 +96,13 @@ def topic_echo(
     timeout: Annotated[float, typer.Option(help="Exit with an error after this many seconds "
                                                 "without a value (0 = wait forever).")] = 0.0,
     server: ServerTarget = LOCAL_SERVER,
+    channel: ChannelChoice = DEFAULT_CHANNEL,
 ) -> None:
     """Print each value published on TOPIC, one JSON document per line."""
     with server.connect("rlbridge-topic-echo") as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
                               transport=checked_transport(transport),
+                              qos=channel.qos(), policy=channel.policy(),
                               blocking=True, buffer_size=4096)
         seen = 0
         while count == 0 or seen < count:
@@ -131,6 +140,7 @@ def _read_while_open(bridge: Any, ch: Any, timeout: float | None) -> Any:
 @topic_app.command("hz")
 @one_line_errors
 @server_options
+@channel_options
 def topic_hz(
     topic: str,
     msg_type: Annotated[str, typer.Argument(metavar="TYPE")],
@@ -140,6 +150,7 @@ def topic_hz(
     = 0.0,
     transport: TransportOpt = "udp",
     server: ServerTarget = LOCAL_SERVER,
+    channel: ChannelChoice = DEFAULT_CHANNEL,
 ) -> None:
     """Measure the publishing rate of TOPIC, like `rostopic hz` (printed every second).
 
@@ -150,6 +161,7 @@ def topic_hz(
     with server.connect("rlbridge-topic-hz") as bridge:
         ch = bridge.subscribe(topic, msg_type, field or None,
                               transport=checked_transport(transport),
+                              qos=channel.qos(), policy=channel.policy(),
                               blocking=True, buffer_size=65536)
         arrivals: list[float] = []
         end = time.monotonic() + duration if duration > 0 else math.inf

@@ -1,7 +1,7 @@
-"""The key file: one format for the server (``--psk-file``) and the SDK (``psk_file=``).
+"""The key file: one format for the server (``--psk-file``) and the SDK (``Psk(file=...)``).
 
 A key is written in hex, everywhere: in this file, in ``$RLBRIDGE_PSK`` and in the SDK's
-``psk=`` (``openssl rand -hex 32`` makes one). One line per client::
+``Psk(key=...)`` (``openssl rand -hex 32`` makes one). One line per client::
 
     # name      key (hex) or -     rules (optional)
     robot-7     3f1c...e2          publish=/robot7/*,/cmd_vel subscribe=/robot7/* stats=own

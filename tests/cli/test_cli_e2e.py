@@ -238,3 +238,18 @@ def test_serve_with_a_bad_watchdog(cli: Any, free_port: Callable[[], int]) -> No
     result = cli.run("serve", "--heartbeat-ms", "500", "--timeout-ms", "400",
                      "--port", str(free_port()))
     assert_one_line_error(result, "--timeout-ms must be longer than --heartbeat-ms")
+
+
+def test_a_channel_option_the_channel_cannot_honour_is_one_line(
+        cli: Any, shared_cli_server: int) -> None:
+    """The SDK's option rules reach the command line unchanged: redundancy repeats values in
+    UDP datagrams, so a TCP echo refuses it, in one line, naming the option."""
+    result = cli.run("topic", "echo", "/x", F64, "--transport", "tcp", "--redundancy", "1",
+                     "--count", "1", "--port", str(shared_cli_server))
+    assert result.returncode == 1
+    assert result.stderr.strip().count("\n") == 0
+    assert "Policy(redundancy=1) repeats values in UDP datagrams" in result.stderr
+    bad = cli.run("topic", "pub", "/x", F64, "1.0", "--on-lost", "zero",
+                  "--port", str(shared_cli_server))
+    assert bad.returncode == 1
+    assert "--on-lost must be 'hold', 'raise' or a JSON value" in bad.stderr

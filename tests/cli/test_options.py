@@ -75,3 +75,24 @@ def test_every_command_that_opens_a_session_takes_the_same_server_options() -> N
     for path in SESSION_COMMANDS:
         opts = {o for p in commands[f"rlbridge {path}"].params for o in getattr(p, "opts", ())}
         assert wanted <= opts, f"{path}: lacks {sorted(wanted - opts)}"
+
+
+# -- QoS and Policy: the same objects as the SDK's, built in one place --------------------
+def test_the_channel_options_are_the_fields_of_qos_and_policy_one_to_one() -> None:
+    """``--help`` and the API cannot drift: one option per field, the SDK's defaults."""
+    from rlbridge import Policy, QoS
+    from rlbridge.cli_options import DEFAULT_CHANNEL, ChannelChoice
+
+    options = {f.name for f in fields(ChannelChoice)}
+    assert options == {f.name for f in fields(QoS)} | {f.name for f in fields(Policy)}
+    assert DEFAULT_CHANNEL.qos() == QoS()
+    assert DEFAULT_CHANNEL.policy() == Policy()
+    chosen = ChannelChoice(reliability="best_effort", depth=3, latest=True, max_age_ms=40,
+                           on_lost="-1.5")
+    assert chosen.qos() == QoS("best_effort", 3)
+    assert chosen.policy().on_lost.value == -1.5  # type: ignore[union-attr]  # a SafeValue
+    commands = dict(_all())
+    wanted = {"--" + name.replace("_", "-") for name in options}
+    for path in ("topic pub", "topic echo", "topic hz"):
+        opts = {o for p in commands[f"rlbridge {path}"].params for o in getattr(p, "opts", ())}
+        assert wanted <= opts, f"{path}: lacks {sorted(wanted - opts)}"

@@ -8,6 +8,7 @@ The option objects' own checks run where they are built; the call's checks befor
 from __future__ import annotations
 
 import inspect
+import re
 import ssl
 import threading
 from collections.abc import Callable
@@ -16,6 +17,7 @@ from typing import Any
 import pytest
 
 from rlbridge import Backoff, Bridge, Policy, Psk, QoS, SafeValue, Tls, Tuning
+from rlbridge.csp.option_table import RULES, refuse
 from rlbridge.server import ServerThread
 
 F64 = "std_msgs/msg/Float64"
@@ -39,44 +41,45 @@ def test_calls_take_few_keyword_options() -> None:
         assert not gone & set(inspect.signature(call).parameters), call.__name__
 
 
-#: Rules of the option objects alone: (what is built, the words the error must contain).
+#: Rules of the option objects alone: rule (a row of RULES) -> (what is built, the option as
+#: the message names it).
 OBJECT_RULES: dict[str, tuple[Callable[[], object], str]] = {
-    "max_age_ms negative": (lambda: Policy(max_age_ms=-1), r"max_age_ms=-1\): must be >= 0"),
-    "redundancy out of range": (lambda: Policy(redundancy=17), r"redundancy=17\): must be 0..16"),
-    "max_rate_hz not positive": (lambda: Policy(max_rate_hz=0.0), r"max_rate_hz=0.0\): must be"),
-    "adapt_rate without max_rate_hz": (lambda: Policy(adapt_rate=True),
-                                       r"adapt_rate=True\) needs max_rate_hz"),
-    "flow with latest": (lambda: Policy(flow=True, latest=True), r"flow=True, latest=True"),
-    "on_lost unknown": (lambda: Policy(on_lost="zero"),  # type: ignore[arg-type]
-                        r"on_lost='zero'\): must be 'hold', 'raise' or SafeValue"),
-    "setpoint without an age limit": (lambda: Policy.setpoint(max_age_ms=0),
-                                      r"setpoint\(max_age_ms=0\): a set-point needs"),
-    "QoS reliability unknown": (lambda: QoS(reliability="sometimes"),  # type: ignore[arg-type]
-                                r"reliability='sometimes'\): must be"),
-    "QoS durability unknown": (lambda: QoS(durability="forever"),  # type: ignore[arg-type]
-                               r"durability='forever'\): must be"),
-    "Psk with neither key nor file": (Psk, r"exactly one of key=.*got neither"),
-    "Psk with both key and file": (lambda: Psk(key=KEY, file="keys"),
-                                   r"exactly one of key=.*got both"),
-    "Tls context with other fields": (
-        lambda: Tls(context=ssl.create_default_context(), ca="ca.crt"),
-        r"Tls\(context=...\) is the whole TLS set-up"),
-    "Tls ca with fingerprint": (lambda: Tls(ca="ca.crt", fingerprint="ab" * 32),
-                                r"pinned fingerprint replaces the CA check"),
-    "Tls client_cert not a pair": (lambda: Tls(client_cert=("a",)),  # type: ignore[arg-type]
-                                   r"client_cert=...\) is a \(certificate file, key file\)"),
-    "Tuning control unknown": (lambda: Tuning(control="sctp"),  # type: ignore[arg-type]
-                               r"control='sctp'\): must be 'tcp' or 'udp'"),
-    "Tuning switch_interval not positive": (lambda: Tuning(switch_interval=0.0),
-                                            r"switch_interval=0.0\): must be a positive"),
+    "policy_max_age": (lambda: Policy(max_age_ms=-1), "max_age_ms=-1"),
+    "policy_redundancy": (lambda: Policy(redundancy=17), "redundancy=17"),
+    "policy_rate": (lambda: Policy(max_rate_hz=0.0), "max_rate_hz=0.0"),
+    "policy_adapt": (lambda: Policy(adapt_rate=True), "adapt_rate=True"),
+    "policy_flow_latest": (lambda: Policy(flow=True, latest=True), "flow=True, latest=True"),
+    "policy_on_lost": (lambda: Policy(on_lost="zero"),  # type: ignore[arg-type]
+                       "on_lost='zero'"),
+    "setpoint_age": (lambda: Policy.setpoint(max_age_ms=0), "max_age_ms=0"),
+    "qos_reliability": (lambda: QoS(reliability="sometimes"),  # type: ignore[arg-type]
+                        "reliability='sometimes'"),
+    "qos_durability": (lambda: QoS(durability="forever"),  # type: ignore[arg-type]
+                       "durability='forever'"),
+    "psk_one": (Psk, "neither key= nor file="),
+    "tls_context": (lambda: Tls(context=ssl.create_default_context(), ca="ca.crt"),
+                    "context= with ca=, fingerprint= or client_cert=:"),
+    "tls_pin": (lambda: Tls(ca="ca.crt", fingerprint="ab" * 32), "ca= with fingerprint=:"),
+    "tls_cert": (lambda: Tls(client_cert=("a",)),  # type: ignore[arg-type]
+                 "client_cert=('a',)"),
+    "tuning_control": (lambda: Tuning(control="sctp"),  # type: ignore[arg-type]
+                       "control='sctp'"),
+    "tuning_switch": (lambda: Tuning(switch_interval=0.0), "switch_interval=0.0"),
 }
 
 
 @pytest.mark.parametrize("rule", sorted(OBJECT_RULES))
 def test_an_option_object_refuses_what_cannot_take_effect(rule: str) -> None:
-    build, words = OBJECT_RULES[rule]
-    with pytest.raises(ValueError, match=words):
+    build, given = OBJECT_RULES[rule]
+    expected = str(refuse(rule, given))  # this rule's row, naming this option
+    with pytest.raises(ValueError, match=re.escape(expected)) as info:
         build()
+    assert str(info.value) == expected
+
+
+def test_psk_with_both_sources_is_refused_too() -> None:
+    with pytest.raises(ValueError, match="key= and file= both given: give exactly one"):
+        Psk(key=KEY, file="keys")
 
 
 def test_the_presets_are_what_the_docs_teach() -> None:
@@ -88,76 +91,89 @@ def test_the_presets_are_what_the_docs_teach() -> None:
         point.latest = False  # type: ignore[misc]  # frozen: one object, shared safely
 
 
-#: Rules of subscribe and publish: (call, keyword arguments, the words the error must contain).
-CALL_RULES: dict[str, tuple[str, dict[str, Any], str]] = {
-    "subscribe: unknown transport": ("subscribe", {"transport": "sctp"},
-                                     r"subscribe\(\): transport='sctp' must be"),
-    "subscribe: buffer_size 0": ("subscribe", {"buffer_size": 0}, r"buffer_size >= 1"),
-    "subscribe: QoS depth 0": ("subscribe", {"qos": QoS(depth=0)}, r"depth must be >= 1"),
-    "subscribe: initial on a blocking channel": (
-        "subscribe", {"blocking": True, "initial": 0.0}, r"subscribe\(\): initial= is what"),
-    "subscribe: redundancy on TCP": ("subscribe", {"transport": "tcp",
-                                                   "policy": Policy(redundancy=1)},
-                                     r"redundancy=1\) repeats values in UDP datagrams"),
-    "subscribe: flow on UDP": ("subscribe", {"policy": Policy(flow=True)},
-                               r"flow=True\) needs transport='tcp'"),
-    "subscribe: max_rate_hz": ("subscribe", {"policy": Policy(max_rate_hz=100.0)},
-                               r"max_rate_hz=..., adapt_rate=...\) limits what a publisher"),
-    "subscribe: not a Policy": ("subscribe", {"policy": {"latest": True}},
-                                r"must be a Policy"),
-    "subscribe: not a QoS": ("subscribe", {"qos": "reliable"}, r"must be a QoS"),
-    "publish: unknown transport": ("publish", {"transport": "quic"},
-                                   r"publish\(\): transport='quic' must be"),
-    "publish: buffer_size 0": ("publish", {"buffer_size": 0}, r"buffer_size >= 1"),
-    "publish: QoS depth 0": ("publish", {"qos": QoS(depth=0)}, r"depth must be >= 1"),
-    "publish: redundancy on TCP": ("publish", {"transport": "tcp",
-                                               "policy": Policy(redundancy=2)},
-                                   r"redundancy=2\) repeats values in UDP datagrams"),
-    "publish: flow on UDP": ("publish", {"policy": Policy.every_value()},
-                             r"flow=True\) needs transport='tcp'"),
-    "publish: on_lost": ("publish", {"policy": Policy(on_lost=SafeValue(0.0))},
-                         r"publish\(\): Policy\(on_lost=SafeValue"),
-    "publish: durability match": ("publish", {"qos": QoS(durability="match")},
-                                  r"QoS\(durability='match'\) copies the QoS"),
+#: Rules of subscribe and publish: case -> (rule, call, keyword arguments, the option as the
+#: message names it).
+CALL_RULES: dict[str, tuple[str, str, dict[str, Any], str]] = {
+    "subscribe transport": ("transport", "subscribe", {"transport": "sctp"},
+                            "transport='sctp'"),
+    "subscribe buffer_size": ("buffer_size", "subscribe", {"buffer_size": 0}, "buffer_size=0"),
+    "subscribe depth": ("depth", "subscribe", {"qos": QoS(depth=0)}, "QoS(depth=0)"),
+    "subscribe initial": ("initial_blocking", "subscribe", {"blocking": True, "initial": 0.0},
+                          "initial="),
+    "subscribe redundancy tcp": ("redundancy_tcp", "subscribe",
+                                 {"transport": "tcp", "policy": Policy(redundancy=1)},
+                                 "Policy(redundancy=1)"),
+    "subscribe flow udp": ("flow_udp", "subscribe", {"policy": Policy(flow=True)},
+                           "Policy(flow=True)"),
+    "subscribe rate": ("rate_subscribe", "subscribe", {"policy": Policy(max_rate_hz=100.0)},
+                       "Policy(max_rate_hz=..., adapt_rate=...)"),
+    "subscribe policy type": ("policy_type", "subscribe", {"policy": {"latest": True}},
+                              "policy={'latest': True}"),
+    "subscribe qos type": ("qos_type", "subscribe", {"qos": "reliable"}, "qos='reliable'"),
+    "publish transport": ("transport", "publish", {"transport": "quic"}, "transport='quic'"),
+    "publish buffer_size": ("buffer_size", "publish", {"buffer_size": 0}, "buffer_size=0"),
+    "publish depth": ("depth", "publish", {"qos": QoS(depth=0)}, "QoS(depth=0)"),
+    "publish redundancy tcp": ("redundancy_tcp", "publish",
+                               {"transport": "tcp", "policy": Policy(redundancy=2)},
+                               "Policy(redundancy=2)"),
+    "publish flow udp": ("flow_udp", "publish", {"policy": Policy.every_value()},
+                         "Policy(flow=True)"),
+    "publish on_lost": ("on_lost_publish", "publish", {"policy": Policy(on_lost=SafeValue(0.0))},
+                        "Policy(on_lost=SafeValue(value=0.0))"),
+    "publish adapt tcp": ("adapt_tcp", "publish", {"transport": "tcp", "policy": Policy(
+        max_rate_hz=100.0, adapt_rate=True)}, "Policy(adapt_rate=True)"),
+    "publish match": ("match_publish", "publish", {"qos": QoS(durability="match")},
+                      "QoS(durability='match')"),
 }
 
 
-@pytest.mark.parametrize("rule", sorted(CALL_RULES))
+@pytest.mark.parametrize("case", sorted(CALL_RULES))
 def test_a_channel_call_refuses_what_cannot_take_effect(
-        rule: str, bridge: Callable[..., Bridge]) -> None:
-    verb, options, words = CALL_RULES[rule]
+        case: str, bridge: Callable[..., Bridge]) -> None:
+    rule, verb, options, given = CALL_RULES[case]
     b = bridge()
-    with pytest.raises(ValueError, match=words):
+    expected = str(refuse(rule, given, f"{verb}()"))
+    with pytest.raises(ValueError, match=re.escape(expected)) as info:
         getattr(b, verb)("/rules", F64, **options)
+    assert str(info.value) == expected
     assert b.server_stats()["session"]["channels"] == {}  # refused before any binding
     # The same call without the offending option binds (the rule is about the combination).
     fine = getattr(b, verb)("/rules", F64)
     assert fine.channel_id in {int(k) for k in b.server_stats()["session"]["channels"]}
 
 
-#: Rules of Bridge.connect: (keyword arguments, the words the error must contain).
+#: Rules of Bridge.connect: rule -> (keyword arguments, the option as the message names it).
 CONNECT_RULES: dict[str, tuple[dict[str, Any], str]] = {
-    "security not Psk or Tls": ({"security": KEY}, r"security='ab.*must be Psk"),
-    "reconnect not bool or Backoff": ({"reconnect": 3}, r"reconnect=3 must be True, False"),
-    "tuning not a Tuning": ({"tuning": {"control": "udp"}}, r"must be a Tuning"),
-    "timeout not positive": ({"timeout": 0}, r"timeout=0 must be a positive"),
-    "send_rate_hz not positive": ({"send_rate_hz": 0.0}, r"send_rate_hz=0.0 must be positive"),
-    "TLS without a TCP connection": ({"security": Tls(), "tuning": Tuning(control="udp")},
-                                     r"security=Tls\(...\) protects the TCP connection"),
-    "nodelay without a TCP connection": ({"nodelay": True, "tuning": Tuning(control="udp")},
-                                         r"nodelay=True turns off Nagle"),
+    "security_type": ({"security": KEY}, f"security={KEY!r}"),
+    "reconnect_type": ({"reconnect": 3}, "reconnect=3"),
+    "tuning_type": ({"tuning": {"control": "udp"}}, "tuning={'control': 'udp'}"),
+    "timeout": ({"timeout": 0}, "timeout=0"),
+    "send_rate": ({"send_rate_hz": 0.0}, "send_rate_hz=0.0"),
+    "tls_udp": ({"security": Tls(), "tuning": Tuning(control="udp")}, "security=Tls(...)"),
+    "nodelay_udp": ({"nodelay": True, "tuning": Tuning(control="udp")}, "nodelay=True"),
 }
 
 
 @pytest.mark.parametrize("rule", sorted(CONNECT_RULES))
 def test_connect_refuses_what_cannot_take_effect(rule: str, server: ServerThread) -> None:
-    options, words = CONNECT_RULES[rule]
+    options, given = CONNECT_RULES[rule]
     before = threading.active_count()
-    with pytest.raises(ValueError, match=words):
+    expected = str(refuse(rule, given))
+    with pytest.raises(ValueError, match=re.escape(expected)) as info:
         Bridge.connect("127.0.0.1", server.port, **options)
+    assert str(info.value) == expected
     assert threading.active_count() == before  # refused before any socket or thread
     assert server.server.registry is not None
     assert server.server.registry.ctx.counters.get("sessions_opened", 0) == 0
+
+
+def test_every_rule_has_its_test() -> None:
+    tested = {*OBJECT_RULES, *CONNECT_RULES, *(rule for rule, *_ in CALL_RULES.values())}
+    assert tested == set(RULES)
+    for row in RULES.values():  # each row reads as a sentence: where, what, why
+        assert row.where, row
+        assert row.option, row
+        assert row.why[0].islower(), row
 
 
 def test_backoff_and_good_objects_are_accepted(server: ServerThread) -> None:

@@ -408,7 +408,7 @@ def test_fail_safes_hold_safe_value_and_raise_while_the_link_is_lost(
 
 
 def test_on_lost_refuses_unknown_policies(serve: Serve, bridges: Callable[..., Bridge]) -> None:
-    with pytest.raises(ValueError, match=r"on_lost='zero'\): must be 'hold', 'raise' or SafeValue"):
+    with pytest.raises(ValueError, match=r"on_lost='zero' must be 'hold', 'raise' or SafeValue"):
         bridges().subscribe("/fs/bad", F64, policy=Policy(on_lost="zero"))  # type: ignore[arg-type]
 
 

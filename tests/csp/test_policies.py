@@ -9,7 +9,7 @@ import time
 import pytest
 
 from benchmarks.redundancy import redundancy_cost
-from rlbridge import SecondWriterError
+from rlbridge import Policy, SecondWriterError
 from rlbridge.csp.bridge_channels import IncomingChannel, OutgoingChannel
 from rlbridge.csp.channel import Doorbell
 from rlbridge.csp.health import ChannelHealth
@@ -195,8 +195,8 @@ def test_redundant_udp_take_repeats_previous_values() -> None:
     tcp.take()
     tcp.write(3.0)
     assert tcp.take()[2] == [3.0]
-    with pytest.raises(ValueError, match="redundancy"):
-        outgoing(redundancy=17)
+    with pytest.raises(ValueError, match="redundancy=17"):  # checked where the policy is made
+        Policy(redundancy=17)
 
 
 def test_outgoing_max_age_drops_values_that_waited_too_long() -> None:

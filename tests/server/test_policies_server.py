@@ -14,7 +14,6 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from rlbridge import Policy
 from rlbridge.server import ServerThread
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.wire import (
@@ -133,7 +132,7 @@ def test_latest_tcp_channel_skips_the_backlog_of_a_stalled_reader(
     srv = make_server(timeout_ms=STALLED_WATCHDOG_MS)
     reader = StalledReader(srv.port)
     try:
-        reader.subscribe("/sp/latest", policy=Policy(latest=True))
+        reader.subscribe("/sp/latest", latest=True)
         sent = _publish_burst(lambda: raw_tcp(srv.port), "/sp/latest")
         # Every value was either written or overtaken; the last one may still wait for the
         # reader (or have been written already, if the socket drained in between).
@@ -158,7 +157,7 @@ def test_plain_tcp_channel_delivers_the_whole_backlog(
     srv = make_server(timeout_ms=STALLED_WATCHDOG_MS)
     reader = StalledReader(srv.port)
     try:
-        reader.subscribe("/sp/plain", policy=Policy(latest=False))
+        reader.subscribe("/sp/plain", latest=False)
         sent = _publish_burst(lambda: raw_tcp(srv.port), "/sp/plain")
         reader.drain_until(sent[-1])
         counters = reader.stats()

@@ -43,11 +43,12 @@ class QoS:
     durability: Durability = "volatile"
 
     def __post_init__(self) -> None:
+        # The words are rows of rlbridge.csp.option_table.RULES (a test keeps them equal).
         if self.reliability not in (None, "reliable", "best_effort"):
-            raise ValueError(f"QoS(reliability={self.reliability!r}): must be 'reliable', "
+            raise ValueError(f"QoS: reliability={self.reliability!r} must be 'reliable', "
                              "'best_effort' or None (by transport)")
         if self.durability not in ("volatile", "transient_local", "match"):
-            raise ValueError(f"QoS(durability={self.durability!r}): must be 'volatile', "
+            raise ValueError(f"QoS: durability={self.durability!r} must be 'volatile', "
                              "'transient_local' or 'match'")
 
 

@@ -192,7 +192,7 @@ def report(results: dict[str, list[Params]], settings: Settings, command: Sequen
         "every value goes client -> server -> bus -> server -> client. CPU per value read back "
         "(medians): SDK = its send and receive threads plus the loop's time inside SDK calls; "
         "client process = all of it, the loop's timer wake-ups included; server = the whole "
-        "server process. `single` is `Bridge.connect(bundles=False)`: one datagram per "
+        "server process. `single` is `Tuning(bundles=False)`: one datagram per "
         "channel and value, both ways. `inline` is bundled with `send(inline=True)`: the loop's "
         "thread sends the round's datagram itself, the send thread is not woken. `send loop` "
         "is bundled without `send()`: "

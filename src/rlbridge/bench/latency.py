@@ -381,7 +381,7 @@ def report(results: Sequence[CaseResult], settings: Settings, command: Sequence[
         "publisher's send-thread wake-up, hop 1 and the server; server send -> read includes "
         "hop 2, the receive thread and the reader's wake-up."
         + (" Idle rows: the SDK threads of publisher and subscriber wait by that strategy "
-           "(`Bridge.connect(idle=...)`); CPU % = user + system time of each whole process "
+           "(`Tuning(idle=...)`); CPU % = user + system time of each whole process "
            "over the stream, in % of one core; `pub loop late` = p99 of how late the "
            "publisher's paced loop woke for its next write (its own GIL and scheduler wait)."
            if settings.idle else ""),

@@ -49,7 +49,7 @@ class _SdkSession(Book):
 
         super().__init__(index, phase)
         transport = params["transport"]
-        # switch_interval=None: a hundred SDK threads in one process hand the GIL over at
+        # Tuning's switch_interval=None: a hundred SDK threads in one process hand the GIL over at
         # CPython's default pace; the shortened interval the SDK sets for HRT loops thrashes.
         self.bridge = Bridge.connect(params["host"], int(params["port"]), name=f"load-{index}",
                                      timeout=30.0,

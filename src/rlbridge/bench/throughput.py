@@ -81,7 +81,7 @@ class Case:
     send_form: str = ""
     #: The publisher's SDK idle strategy (csp/idle.py).
     idle: str = "park"
-    #: ``Bridge.connect(bundles=...)`` of both clients (UDP rows).
+    #: ``Tuning(bundles=...)`` of both clients (UDP rows).
     bundles: bool = True
 
 

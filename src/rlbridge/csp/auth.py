@@ -1,8 +1,9 @@
 """The client's half of pre-shared-key authentication (docs/security.md).
 
-Where the key comes from, in order: ``Bridge.connect(psk=...)`` (hex, or the key's bytes),
-``psk_file=`` (the key file format ``rlbridge serve --psk-file`` reads: the line of this
-client's name, else the default line), the ``RLBRIDGE_PSK`` environment variable (hex).
+Where the key comes from: ``Bridge.connect(security=Psk(key=...))`` (hex, or the key's
+bytes), ``Psk(file=...)`` (the key file format ``rlbridge serve --psk-file`` reads: the line of
+this client's name, else the default line), else the ``RLBRIDGE_PSK`` environment variable
+(hex). ``Tls(psk=Psk(...))`` runs the same handshake inside TLS.
 A client given a key insists on authentication: a server that answers the hello without a
 challenge (no key configured, or someone in the middle stripping it) is refused, so a key can
 never silently downgrade to a session anyone could spoof. Once the server has proven the key
@@ -49,16 +50,16 @@ def resolve_key(psk: bytes | str | None = None, psk_file: str | Path | None = No
                 ) -> bytes | None:
     """The key to authenticate with, from the first source that has one (module docstring).
 
-    ``psk`` is the key in hex (``openssl rand -hex 32``), as in the key file and
-    ``$RLBRIDGE_PSK``; ``bytes`` are taken as the key itself. ``psk_file`` is a key file in
-    the server's format: the line of client ``name``, else the default line. ``environ``
-    defaults to ``os.environ`` (tests pass their own mapping).
+    ``psk`` (``Psk.key``) is the key in hex (``openssl rand -hex 32``), as in the key file and
+    ``$RLBRIDGE_PSK``; ``bytes`` are taken as the key itself. ``psk_file`` (``Psk.file``) is
+    a key file in the server's format: the line of client ``name``, else the default line.
+    ``environ`` defaults to ``os.environ`` (tests pass their own mapping).
     """
     if isinstance(psk, str):
-        return parse_key(psk, "psk=")
+        return parse_key(psk, "Psk(key=...)")
     if psk is not None:
         if len(psk) < MIN_KEY_SIZE:
-            raise ValueError(f"psk of {len(psk)} bytes is too short; use at least "
+            raise ValueError(f"Psk(key=...) of {len(psk)} bytes is too short; use at least "
                              f"{MIN_KEY_SIZE} random bytes")
         return bytes(psk)
     if psk_file is not None:

@@ -47,7 +47,21 @@ _DEFAULT_TUNING = Tuning()
 
 
 class Bridge(BridgeStatus, ServiceMethods):
-    """A session with a bridge server. Thread-safe for SRT code; see the module docstring."""
+    """A session with a bridge server, and the channels bound through it.
+
+    ::
+
+        with Bridge.connect("127.0.0.1", 7411) as bridge:
+            cmd = bridge.subscribe("/cmd", "std_msgs/msg/Float64",
+                                   policy=Policy.setpoint(max_age_ms=50,
+                                                          on_lost=SafeValue(0.0)))
+            out = bridge.publish("/angle", "std_msgs/msg/Float64")
+            out.write(cmd.read())   # never blocks: the SDK's threads do the network
+
+    After ``connect`` the caller's thread only moves values through ring buffers; the SDK's
+    send and receive threads (and, with ``reconnect``, a supervisor) do the rest. Methods
+    are thread-safe; each channel has one writer and one reader thread at a time.
+    """
 
     def __init__(self, conn: Connection, send_loop: SendLoop,
                  backoff: Backoff | None = None) -> None:

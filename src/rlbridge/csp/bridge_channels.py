@@ -57,7 +57,13 @@ _NO_CLOCK = ClockOffset()
 # Compiled by mypyc (rlbridge/_compiled.py); GuardedChannel (csp/failsafe.py) subclasses it.
 @mypyc_attr(allow_interpreted_subclasses=True)
 class IncomingChannel(Channel[Any]):
-    """Middleware -> control code. Read it like any buffered channel."""
+    """Middleware -> control code: what ``Bridge.subscribe`` returns.
+
+    Read it like any buffered :class:`Channel` (``read``, ``try_read``, ``read_many``;
+    ``read_with_age`` adds each value's age); ``health()`` reports its delivery (RTT, jitter,
+    loss, age), ``statistics()`` its buffer. ``close()`` (or leaving a ``with`` block) unbinds
+    the topic. ``write`` stores a value locally, as if it had arrived (tests, simulation).
+    """
 
     __slots__ = ("_arrived", "_clock", "_credit_bell", "_credit_step", "_delivered",
                  "_jitter", "_link", "_max_age_ns", "_one_way", "_overtaken", "_tracker",
@@ -235,12 +241,17 @@ class IncomingChannel(Channel[Any]):
 
     # -- reading: the ring holds (stamp, value) pairs -----------------------------------------
     def read(self, timeout: float | None = None) -> Any:
+        """The next value (blocking channel: waits up to ``timeout``, then ``TimeoutError``)
+        or, non-blocking, the newest again when nothing is new (``initial`` before the first;
+        with neither, ``NoValueYet``). ``try_read`` never waits (``WouldBlock``)."""
         value = Channel.read(self, timeout)[1]
         if self._credit_bell is not None:
             self._consumed()
         return value
 
     def read_many(self, max_items: int | None = None) -> list[Any]:
+        """Every value not read yet (at most ``max_items``), oldest first, without waiting;
+        ``[]`` when nothing is new (the newest is not repeated here)."""
         values = list(map(_second, Channel.read_many(self, max_items)))
         if self._credit_bell is not None:
             self._consumed()

@@ -73,7 +73,7 @@ class Connection:
         self.control: Control = control
         self.timeout = timeout
         self.codec = PacketCodec()
-        #: Flags of every datagram: ``FLAG_BUNDLES`` unless ``Bridge.connect(bundles=False)``
+        #: Flags of every datagram: ``FLAG_BUNDLES`` unless ``Tuning(bundles=False)``
         #: (the server then sends this client one datagram per channel, too).
         self.udp_flags = FLAG_BUNDLES if bundles else 0
         #: Pre-shared key (csp/auth.py); with one, the session is authenticated and sealed.

@@ -1,7 +1,8 @@
 """Per-channel fail-safes: what an incoming channel's read does while the link is lost.
 
 A control loop that reads its inputs without blocking keeps running when the link drops; what
-it reads then is the channel's choice, made once at ``Bridge.subscribe(..., on_lost=...)``:
+it reads then is the channel's choice, made once at
+``Bridge.subscribe(..., policy=Policy(on_lost=...))``:
 
 ``"hold"`` (default)
     Nothing changes: the newest value again (``channel.age_ns`` keeps growing, so the loop can
@@ -32,12 +33,13 @@ from rlbridge.errors import LinkLost
 
 @dataclass(frozen=True, slots=True)
 class SafeValue:
-    """``on_lost=SafeValue(v)``: reads return ``v`` while the link is lost."""
+    """``Policy(on_lost=SafeValue(v))``: reads of the channel return ``v`` while the link is
+    lost (the value that puts the actuator in a safe state), then real values again."""
 
     value: Any
 
 
-#: What ``Bridge.subscribe(on_lost=...)`` accepts.
+#: What ``Policy(on_lost=...)`` accepts.
 OnLost = Literal["hold", "raise"] | SafeValue
 
 

@@ -5,7 +5,7 @@ thread for a readable socket (``poll``), a blocking read of an incoming channel 
 (its doorbell; it uses the receive thread's strategy). Parking in the kernel costs nothing
 while idle but a wake-up costs tens of microseconds on a VM (futex or socket wake, then the
 scheduler, then often the GIL); polling reacts within one poll but burns a core. The strategy
-is a named object, chosen per thread (``Bridge.connect(idle=...)``), that gets two functions
+is a named object, chosen per thread (``Tuning(idle=...)``), that gets two functions
 from the thread:
 
 * ``poll()``: look once without waiting (the send thread's work predicate; ``poll`` with a
@@ -134,7 +134,7 @@ class BusySpin:
 
 
 PARK = Park()
-#: Names ``Bridge.connect(idle=...)`` and ``rlbridge bench latency --idle`` accept.
+#: Names ``Tuning(idle=...)`` and ``rlbridge bench latency --idle`` accept.
 STRATEGIES: dict[str, Callable[[], IdleStrategy]] = {
     "park": Park, "spin": SpinThenPark, "busy": BusySpin}
 

@@ -4,8 +4,9 @@
 :class:`~rlbridge.Tls` and :class:`~rlbridge.Tuning` check what they can alone when they are
 built; this module checks what depends on the call: the transport, the direction, blocking or
 not. Each rule raises ``ValueError`` naming the option and why it cannot take effect, before
-anything is sent (docs/api.md has the table; ``tests/client/test_option_rules.py`` one test
-per rule). A rule is a line here, so a new option comes with its rule in the same place.
+anything is sent. The words of every rule are a row of :data:`~rlbridge.csp.option_table.RULES`
+(docs/api.md renders its table from them; ``tests/client/test_option_rules.py`` has a test per
+rule), so a new option comes with its row, its check here and its test.
 """
 
 from __future__ import annotations
@@ -13,52 +14,36 @@ from __future__ import annotations
 from typing import Any
 
 from rlbridge.adapters.base import QoS
+from rlbridge.csp.option_table import refuse
 from rlbridge.csp.options import Policy, Psk, Tls, Tuning
 from rlbridge.csp.reconnect import Backoff
 
 
-def _refuse(call: str, option: str, why: str) -> ValueError:
-    return ValueError(f"{call}(): {option} {why}")
-
-
 def _common(call: str, transport: str, qos: QoS, policy: Policy, buffer_size: int) -> None:
     if transport not in ("tcp", "udp"):
-        raise _refuse(call, f"transport={transport!r}", "must be 'udp' or 'tcp'")
+        raise refuse("transport", f"transport={transport!r}", call)
     if not isinstance(qos, QoS):
-        raise _refuse(call, f"qos={qos!r}", "must be a QoS(...)")
+        raise refuse("qos_type", f"qos={qos!r}", call)
     if not isinstance(policy, Policy):
-        raise _refuse(call, f"policy={policy!r}", "must be a Policy(...)")
+        raise refuse("policy_type", f"policy={policy!r}", call)
     if buffer_size < 1:
-        raise _refuse(call, f"buffer_size={buffer_size}",
-                      "is too small: a bridge channel needs buffer_size >= 1 (its ring holds at "
-                      "least the newest value)")
+        raise refuse("buffer_size", f"buffer_size={buffer_size}", call)
     if qos.depth < 1:
-        raise _refuse(call, f"QoS(depth={qos.depth})",
-                      "is too small: depth must be >= 1 (the middleware keeps at least the "
-                      "newest value)")
+        raise refuse("depth", f"QoS(depth={qos.depth})", call)
     if policy.redundancy and transport == "tcp":
-        raise _refuse(call, f"Policy(redundancy={policy.redundancy})",
-                      "repeats values in UDP datagrams; TCP already delivers every packet: "
-                      "drop it, or use transport='udp'")
+        raise refuse("redundancy_tcp", f"Policy(redundancy={policy.redundancy})", call)
     if policy.flow and transport == "udp":
-        raise _refuse(call, "Policy(flow=True)",
-                      "needs transport='tcp': UDP drops values instead of waiting for credit")
+        raise refuse("flow_udp", "Policy(flow=True)", call)
 
 
 def check_subscribe(transport: str, qos: QoS, policy: Policy, *, blocking: bool,
                     buffer_size: int, has_initial: bool) -> bool:
     """Refuse what ``subscribe`` cannot honour; return whether the channel is flow-controlled."""
-    call = "subscribe"
-    _common(call, transport, qos, policy, buffer_size)
+    _common("subscribe()", transport, qos, policy, buffer_size)
     if has_initial and blocking:
-        raise _refuse(call, "initial=",
-                      "is what a non-blocking read returns before the first value; a "
-                      "blocking read waits for a value instead: drop initial, or "
-                      "blocking=False")
+        raise refuse("initial_blocking", "initial=")
     if policy.max_rate_hz is not None or policy.adapt_rate:
-        raise _refuse(call, "Policy(max_rate_hz=..., adapt_rate=...)",
-                      "limits what a publisher sends; a subscriber cannot slow the topic's "
-                      "publishers: use it on publish, or Policy(latest=True) to keep up")
+        raise refuse("rate_subscribe", "Policy(max_rate_hz=..., adapt_rate=...)")
     if policy.flow is None:
         return transport == "tcp" and not policy.latest and blocking
     return policy.flow
@@ -66,16 +51,13 @@ def check_subscribe(transport: str, qos: QoS, policy: Policy, *, blocking: bool,
 
 def check_publish(transport: str, qos: QoS, policy: Policy, *, buffer_size: int) -> bool:
     """Refuse what ``publish`` cannot honour; return whether the channel is flow-controlled."""
-    call = "publish"
-    _common(call, transport, qos, policy, buffer_size)
+    _common("publish()", transport, qos, policy, buffer_size)
     if policy.on_lost != "hold":
-        raise _refuse(call, f"Policy(on_lost={policy.on_lost!r})",
-                      "is what reads of a subscribe channel do while the link is lost; "
-                      "writes to a publish channel wait in its buffer (health() shows it)")
+        raise refuse("on_lost_publish", f"Policy(on_lost={policy.on_lost!r})")
+    if policy.adapt_rate and transport == "tcp":
+        raise refuse("adapt_tcp", "Policy(adapt_rate=True)")
     if qos.durability == "match":
-        raise _refuse(call, "QoS(durability='match')",
-                      "copies the QoS of a topic's publishers into a subscription; a "
-                      "publisher chooses: 'volatile' or 'transient_local' (latched)")
+        raise refuse("match_publish", "QoS(durability='match')")
     if policy.flow is None:
         return transport == "tcp" and not policy.latest
     return policy.flow
@@ -84,25 +66,18 @@ def check_publish(transport: str, qos: QoS, policy: Policy, *, buffer_size: int)
 def check_connect(security: Any, reconnect: Any, tuning: Any, *, nodelay: bool,
                   timeout: float, send_rate_hz: float | None) -> None:
     """Refuse what ``Bridge.connect`` cannot honour, before any socket is opened."""
-    call = "Bridge.connect"
     if security is not None and not isinstance(security, Psk | Tls):
-        raise _refuse(call, f"security={security!r}",
-                      "must be Psk(key=... | file=...), Tls(...) or None ($RLBRIDGE_PSK if set)")
+        raise refuse("security_type", f"security={security!r}")
     if not isinstance(reconnect, bool | Backoff):
-        raise _refuse(call, f"reconnect={reconnect!r}", "must be True, False or Backoff(...)")
+        raise refuse("reconnect_type", f"reconnect={reconnect!r}")
     if not isinstance(tuning, Tuning):
-        raise _refuse(call, f"tuning={tuning!r}", "must be a Tuning(...)")
+        raise refuse("tuning_type", f"tuning={tuning!r}")
     if not timeout > 0:
-        raise _refuse(call, f"timeout={timeout}", "must be a positive number of seconds")
+        raise refuse("timeout", f"timeout={timeout}")
     if send_rate_hz is not None and not send_rate_hz > 0:
-        raise _refuse(call, f"send_rate_hz={send_rate_hz}",
-                      "must be positive (None: no send loop, values leave on write or send())")
+        raise refuse("send_rate", f"send_rate_hz={send_rate_hz}")
     if tuning.control == "udp":
         if isinstance(security, Tls):
-            raise _refuse(call, "security=Tls(...)",
-                          "protects the TCP connection, and Tuning(control='udp') has none: "
-                          "use Psk (it seals datagrams too), or control='tcp'")
+            raise refuse("tls_udp", "security=Tls(...)")
         if nodelay:
-            raise _refuse(call, "nodelay=True",
-                          "turns off Nagle on the TCP connection, and Tuning(control='udp') "
-                          "has none: drop it, or control='tcp'")
+            raise refuse("nodelay_udp", "nodelay=True")

@@ -23,6 +23,7 @@ from typing import Literal
 
 from rlbridge.csp.failsafe import OnLost, SafeValue
 from rlbridge.csp.idle import IdleSpec
+from rlbridge.csp.option_table import refuse
 from rlbridge.csp.session_owner import Control
 
 
@@ -55,23 +56,17 @@ class Policy:
 
     def __post_init__(self) -> None:
         if self.max_age_ms < 0:
-            raise ValueError(f"Policy(max_age_ms={self.max_age_ms}): must be >= 0 "
-                             "(0: no limit)")
+            raise refuse("policy_max_age", f"max_age_ms={self.max_age_ms}")
         if not 0 <= self.redundancy <= 16:
-            raise ValueError(f"Policy(redundancy={self.redundancy}): must be 0..16 previous "
-                             "values repeated in each datagram")
+            raise refuse("policy_redundancy", f"redundancy={self.redundancy}")
         if self.max_rate_hz is not None and not self.max_rate_hz > 0:
-            raise ValueError(f"Policy(max_rate_hz={self.max_rate_hz}): must be positive "
-                             "(None: no limit)")
+            raise refuse("policy_rate", f"max_rate_hz={self.max_rate_hz}")
         if self.adapt_rate and self.max_rate_hz is None:
-            raise ValueError("Policy(adapt_rate=True) needs max_rate_hz: the rate it starts "
-                             "from and never exceeds")
+            raise refuse("policy_adapt", "adapt_rate=True")
         if self.flow and self.latest:
-            raise ValueError("Policy(flow=True, latest=True): a latest channel drops old "
-                             "values instead of waiting for credit; choose one")
+            raise refuse("policy_flow_latest", "flow=True, latest=True")
         if not (self.on_lost in ("hold", "raise") or isinstance(self.on_lost, SafeValue)):
-            raise ValueError(f"Policy(on_lost={self.on_lost!r}): must be 'hold', 'raise' or "
-                             "SafeValue(value)")
+            raise refuse("policy_on_lost", f"on_lost={self.on_lost!r}")
 
     @classmethod
     def setpoint(cls, *, max_age_ms: int, on_lost: OnLost = "hold") -> Policy:
@@ -79,8 +74,7 @@ class Policy:
         are dropped, and (on a subscribe channel) reads while the link is lost do what
         ``on_lost`` says, e.g. ``SafeValue(0.0)`` to stop an actuator."""
         if max_age_ms <= 0:
-            raise ValueError(f"Policy.setpoint(max_age_ms={max_age_ms}): a set-point needs a "
-                             "positive age limit (how old a command may be and still act)")
+            raise refuse("setpoint_age", f"max_age_ms={max_age_ms}")
         return cls(latest=True, max_age_ms=max_age_ms, on_lost=on_lost)
 
     @classmethod
@@ -101,8 +95,8 @@ class Psk:
 
     def __post_init__(self) -> None:
         if (self.key is None) == (self.file is None):
-            raise ValueError("Psk needs exactly one of key= (hex or bytes) and file= (a key "
-                             f"file), got {'both' if self.key is not None else 'neither'}")
+            raise refuse("psk_one", "key= and file= both" if self.key is not None
+                         else "neither key= nor file=")
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,14 +119,11 @@ class Tls:
 
     def __post_init__(self) -> None:
         if self.context is not None and (self.ca or self.fingerprint or self.client_cert):
-            raise ValueError("Tls(context=...) is the whole TLS set-up: load the CA, pin and "
-                             "client certificate into that context instead of passing ca=, "
-                             "fingerprint= or client_cert= beside it")
+            raise refuse("tls_context", "context= with ca=, fingerprint= or client_cert=:")
         if self.ca is not None and self.fingerprint is not None:
-            raise ValueError("Tls(ca=..., fingerprint=...): a pinned fingerprint replaces the "
-                             "CA check, so the CA file would be ignored; give one of them")
+            raise refuse("tls_pin", "ca= with fingerprint=:")
         if self.client_cert is not None and len(self.client_cert) != 2:
-            raise ValueError("Tls(client_cert=...) is a (certificate file, key file) pair")
+            raise refuse("tls_cert", f"client_cert={self.client_cert!r}")
 
 
 Idle = IdleSpec | tuple[IdleSpec, IdleSpec]
@@ -158,10 +149,9 @@ class Tuning:
 
     def __post_init__(self) -> None:
         if self.control not in ("tcp", "udp"):
-            raise ValueError(f"Tuning(control={self.control!r}): must be 'tcp' or 'udp'")
+            raise refuse("tuning_control", f"control={self.control!r}")
         if self.switch_interval is not None and not self.switch_interval > 0:
-            raise ValueError(f"Tuning(switch_interval={self.switch_interval}): must be a "
-                             "positive number of seconds (None: leave it alone)")
+            raise refuse("tuning_switch", f"switch_interval={self.switch_interval}")
 
 
 Security = Psk | Tls | None

@@ -50,7 +50,9 @@ def _no_reader(topic: str, verb: str) -> ChannelMisuseError:
 
 
 class OutgoingChannel:
-    """Control code -> middleware. ``write`` never blocks and never touches a socket."""
+    """Control code -> middleware (``Bridge.publish``). ``write``/``try_write`` never wait
+    or touch a socket: a full buffer drops its oldest value (``statistics().overwritten``);
+    the reading verbs raise ``ChannelMisuseError``; ``close()``/``with`` unbind the topic."""
 
     __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
                  "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
@@ -107,7 +109,6 @@ class OutgoingChannel:
         self._hop_base = (0, 0)
         self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
         self._rejected = self._refused = 0  # refused at ``write``; by the server
-        #: Called once by the first :meth:`close` (the Bridge unbinds the topic there).
         self.on_close: Callable[[OutgoingChannel], None] | None = None
 
     def bound(self, ack: TopicAck) -> None:
@@ -155,8 +156,7 @@ class OutgoingChannel:
                 bell.ring()
 
     def try_write(self, value: Any) -> None:
-        """:meth:`write` (which never waits: a full buffer drops its oldest value), under the
-        name every channel has, so code written for any channel runs on this one."""
+        """:meth:`write`, which never waits; the name every channel has for a write."""
         self.write(value)
 
     def read(self, timeout: float | None = None) -> Any:

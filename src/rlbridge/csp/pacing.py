@@ -10,12 +10,13 @@ Two limits, either or both:
 * **Credit** (TCP channels that promise every value, docs/policies.md): the server grants
   ``limit``, the sequence number the channel may send up to (``TopicAck.credit``, then
   ``Credit`` packets as the subscribers consume); ``None`` means no flow control.
-* **Rate** (``publish(..., max_rate_hz=...)``): a token bucket refilled at ``rate_hz`` that
-  holds at most :data:`BURST_S` seconds' worth. With ``adapt=True`` the rate follows the
-  server's loss reports: halved when a report shows more than :data:`LOSS_TOLERANCE` of the
-  values lost at the first hop, raised by :data:`GROWTH` (5 %) after a report without loss,
-  never above ``max_rate_hz``. A constant step (TCP's additive increase) would have to be
-  sized to the path; a relative one finds the path's rate from any start, in a few reports.
+* **Rate** (``publish(..., policy=Policy(max_rate_hz=...))``): a token bucket refilled at
+  ``rate_hz`` that holds at most :data:`BURST_S` seconds' worth. With ``adapt=True``
+  (``adapt_rate``) the rate follows the server's loss reports: halved when a report shows more
+  than :data:`LOSS_TOLERANCE` of the values lost at the first hop, raised by :data:`GROWTH`
+  (5 %) after a report without loss, never above ``max_rate_hz``. A constant step (TCP's
+  additive increase) would have to be sized to the path; a relative one finds the path's rate
+  from any start, in a few reports.
 
 Pure bookkeeping: time is a parameter (``now_ns``), no thread, lock or clock here.
 """

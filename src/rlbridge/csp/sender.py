@@ -38,7 +38,7 @@ thread also grants credit for flow-controlled incoming channels whose reader con
 (a ``Credit`` frame in the same ``sendall`` as the values).
 
 How the thread waits for work is its :mod:`~rlbridge.csp.idle` strategy (park, spin then
-park, busy spin): ``Bridge.connect(idle=...)``.
+park, busy spin): ``Bridge.connect(tuning=Tuning(idle=...))``.
 
 **Inline rounds** (``Bridge.send(inline=True)``): a caller may run the round itself, in its
 own thread, under the same round lock (:mod:`rlbridge.csp.inline_round`).
