@@ -56,7 +56,7 @@ OBJECT_RULES: dict[str, tuple[Callable[[], object], str]] = {
                         "reliability='sometimes'"),
     "qos_durability": (lambda: QoS(durability="forever"),  # type: ignore[arg-type]
                        "durability='forever'"),
-    "psk_one": (Psk, "neither key= nor file="),
+    "psk_one": (Psk, "neither key= nor file= given:"),
     "tls_context": (lambda: Tls(context=ssl.create_default_context(), ca="ca.crt"),
                     "context= with ca=, fingerprint= or client_cert=:"),
     "tls_pin": (lambda: Tls(ca="ca.crt", fingerprint="ab" * 32), "ca= with fingerprint=:"),

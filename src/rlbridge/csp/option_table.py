@@ -41,7 +41,7 @@ RULES: dict[str, Rule] = {
     "qos_durability": Rule("QoS", "durability not 'volatile', 'transient_local', 'match'",
                            "must be 'volatile', 'transient_local' or 'match'"),
     "psk_one": Rule("Psk", "both or neither of key= and file=",
-                    "given: give exactly one, key= (hex or bytes) or file= (a key file)"),
+                    "give exactly one, key= (hex or bytes) or file= (a key file)"),
     "tls_context": Rule("Tls", "context= with ca=, fingerprint= or client_cert=",
                         "context= is the whole TLS set-up: load the CA, pin and client "
                         "certificate into that context instead"),

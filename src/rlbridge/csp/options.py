@@ -95,8 +95,8 @@ class Psk:
 
     def __post_init__(self) -> None:
         if (self.key is None) == (self.file is None):
-            raise refuse("psk_one", "key= and file= both" if self.key is not None
-                         else "neither key= nor file=")
+            raise refuse("psk_one", "key= and file= both given:" if self.key is not None
+                         else "neither key= nor file= given:")
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,4 +155,7 @@ class Tuning:
 
 
 Security = Psk | Tls | None
+"""What ``Bridge.connect(security=...)`` takes (``None``: ``$RLBRIDGE_PSK`` if set, else plain)."""
+
 Transport = Literal["tcp", "udp"]
+"""Per channel: ``udp`` when the newest value matters most, ``tcp`` when every value must arrive."""
