@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
-"""Generate docs/cli.md and docs/api.md from the code, their single source.
+"""Generate docs/cli.md from the code, its single source (docs/api.md: scripts/gen_api.py).
 
-    python scripts/gen_docs.py           rewrite both files
-    python scripts/gen_docs.py --check   write nothing; exit 1 naming what is stale
+    python scripts/gen_docs.py           rewrite it
+    python scripts/gen_docs.py --check   write nothing; exit 1 if it is stale
 
 docs/cli.md is every command's ``--help`` (nested groups too), rendered by click's plain
 formatter as a terminal of 100 columns or more shows it (the app's help is plain text, wrapped
@@ -10,10 +10,6 @@ at 98: rlbridge.cli), so the output does not depend on the terminal it runs in. 
 tree is the one ``rlbridge`` itself builds: :func:`rlbridge.cli.commands.build_app` (the ``bench``,
 ``demo`` and ``netem`` groups added), walked depth first.
 
-docs/api.md is the public SDK and server API, rendered by ``scripts/api_reference.py`` from
-signatures and docstrings, in the order of its ``API`` list (add new public objects there).
-A public object or member without a docstring is an error (``--check`` fails on it too):
-the reference must say why and when.
 ``tests/docs/test_docs.py`` runs ``--check``.
 """
 
@@ -23,9 +19,6 @@ import os
 
 # Before typer is imported: plain click help (typer decides once, at import time).
 os.environ["TYPER_USE_RICH"] = "0"
-# Before rlbridge is imported: the Python files, whose source the API reference reads (a module
-# compiled by mypyc, setup.py, has none).
-os.environ["RLBRIDGE_PURE_PYTHON"] = "1"
 
 import argparse
 import sys
@@ -33,12 +26,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import api_reference  # scripts/ is on sys.path when this file runs as a script
-from api_reference import anchor
+from gen_api import anchor  # scripts/ is on sys.path when this file runs as a script
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI_MD = ROOT / "docs" / "cli.md"
-API_MD = ROOT / "docs" / "api.md"
 WIDTH = 100
 #: What click's help formatter makes of a terminal WIDTH columns wide (or wider): two less.
 HELP_WIDTH = WIDTH - 2
@@ -109,27 +100,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--check", action="store_true",
                         help="write nothing; exit 1 if a generated file is stale")
     parser.add_argument("--docs", type=Path, default=ROOT / "docs",
-                        help="directory of cli.md and api.md (default: the repository's docs/)")
+                        help="directory of cli.md (default: the repository's docs/)")
     args = parser.parse_args(argv)
-    api_header = HEADER.format(cmd=REGENERATE,
-                               src="the signatures and docstrings in `src/rlbridge`")
-    targets = {args.docs / CLI_MD.name: render_cli(),
-               args.docs / API_MD.name: api_reference.render_api(api_header)}
+    targets = {args.docs / CLI_MD.name: render_cli()}
     for path, text in targets.items():
         _check_portable(path.name, text)
-    if api_reference.MISSING:
-        print("gen_docs: public API without a docstring (say why and when to use it):\n  "
-              + "\n  ".join(api_reference.MISSING), file=sys.stderr)
     stale = [path for path, text in targets.items()
              if not path.exists() or path.read_text(encoding="utf-8") != text]
     if args.check:
         for path in stale:
             print(f"gen_docs: {_shown(path)} is stale: run {REGENERATE}", file=sys.stderr)
-        return 1 if stale or api_reference.MISSING else 0
+        return 1 if stale else 0
     for path in stale:
         path.write_text(targets[path], encoding="utf-8")
         print(f"wrote {_shown(path)}")
-    return 1 if api_reference.MISSING else 0
+    return 0
 
 
 if __name__ == "__main__":

@@ -140,11 +140,11 @@ def control_code_example(port: int) -> str:
 
 
 def pattern_example(port: int) -> str:
-    from rlbridge.hrt.shm import ShmLink
+    from rlbridge import ShmLink
 
     if not ShmLink.supported():
         return "coupling pattern: skipped (its default layout needs x86)"
-    code = (the_block("patterns.receive_nonblocking").replace(ADDRESS, f'"127.0.0.1", {port}')
+    code = (the_block("receive_nonblocking(").replace(ADDRESS, f'"127.0.0.1", {port}')
             .replace("cycles=5000", "cycles=300"))
     with tempfile.TemporaryDirectory(prefix="rlbridge-readme-") as tmp:
         script = Path(tmp) / "tracker.py"
