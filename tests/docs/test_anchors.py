@@ -50,14 +50,7 @@ def test_anchor_slugs_follow_github() -> None:
     assert "io-threads-how-they-wait-idle-strategies" in anchors(page)
 
 
-UNCLOSED_FENCE = pytest.mark.xfail(
-    strict=True, reason="docs/protocol.md: the hex dump before '### 14.11' never closes its code "
-    "block, so 14.11 to 14.13 render as code and their anchors do not exist")
-
-
-@pytest.mark.parametrize("page", [pytest.param(p, marks=UNCLOSED_FENCE)
-                                  if p.name == "protocol.md" else p for p in PAGES],
-                         ids=lambda p: str(p.relative_to(ROOT)))
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_section_links_resolve(page: Path) -> None:
     broken = []
     for target, anchor in LINK.findall(page.read_text()):
