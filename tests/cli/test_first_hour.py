@@ -189,8 +189,9 @@ def test_version_of_a_pure_wheel_does_not_advise_installing_it_again(tmp_path: P
     assert installed.returncode == 0, installed.stderr[-2000:]
     version = subprocess.run(
         [sys.executable, "-m", "rlbridge", "--version"], capture_output=True, text=True,
-        timeout=60, check=False, cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(target)})
+        timeout=60, check=False, cwd=tmp_path,  # as a user runs it: no RLBRIDGE_PURE_PYTHON
+        env={k: v for k, v in os.environ.items() if k != "RLBRIDGE_PURE_PYTHON"}
+        | {"PYTHONPATH": str(target)})
     assert version.returncode == 0, version.stderr
     lines = version.stdout.splitlines()
     assert lines[1] == "value path: pure Python (not compiled for this interpreter)"
