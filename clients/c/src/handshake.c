@@ -115,7 +115,10 @@ static const uint8_t *next(rlb_conn *k, int64_t deadline, size_t *len) {
         if (left <= 0) return NULL;
         struct pollfd p = {k->tcp, POLLIN, 0};
         if (!rlbi_tls_pending(k) && poll(&p, 1, (int)left) < 0 && errno != EINTR) return NULL;
-        if (!rlbi_tcp_read(k) && k->in_len - k->in_off < 8) return NULL;
+        if (!rlbi_tcp_read(k)) { /* the stream ended or broke: what is buffered is all */
+            f = rlbi_tcp_next_frame(k, len, &bad);
+            return bad ? NULL : f;
+        }
     }
 }
 
