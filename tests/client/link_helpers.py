@@ -2,35 +2,28 @@
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from typing import Any
 
+from waiting import poll_until
+
+#: A reconnect takes a watchdog timeout, a back-off and a handshake: more than waiting.WAIT.
 WAIT = 20.0
 
 
-def wait_for(predicate: Callable[[], object], what: str, timeout: float = WAIT) -> None:
-    """Poll ``predicate`` until it is true; fail after ``timeout`` naming ``what``."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.01)
-
-
 def roundtrip(out: Any, inbox: Any, value: float) -> bool:
-    """Write ``value`` until it arrives in ``inbox`` (a blocking channel).
+    """Write ``value`` until it arrives in ``inbox`` (a blocking channel); whether it did
+    within ``WAIT`` (callers assert with their own message).
 
     Writing again covers a value sent before the peer's binding existed (after a reconnect the
-    two ends bind again in any order); bounded by ``WAIT``.
+    two ends bind again in any order).
     """
-    deadline = time.monotonic() + WAIT
-    while time.monotonic() < deadline:
+    def arrived() -> bool:
         out.write(value)
         try:
-            while True:
+            while True:  # older values first; the read blocks 0.2 s at most
                 if inbox.read(timeout=0.2) == value:
                     return True
         except TimeoutError:
-            continue
-    return False
+            return False
+
+    return bool(poll_until(arrived, timeout=WAIT, interval=0))

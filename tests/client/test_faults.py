@@ -21,13 +21,14 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
-from link_helpers import WAIT, roundtrip, wait_for
+from link_helpers import WAIT, roundtrip
 
 from rlbridge.client.bridge import Bridge
 from rlbridge.client.session.link_events import LinkEvent
 from rlbridge.client.session.reconnect import Backoff, ClientState
 from rlbridge.server import ServerConfig
 from rlbridge.wire.link import LinkState
+from waiting import wait_until
 
 F64 = "std_msgs/msg/Float64"
 TIMEOUT_MS = ServerConfig().timeout_ms
@@ -106,7 +107,8 @@ def test_killed_client_is_dropped_and_other_sessions_keep_flowing(
         victim.send_signal(signal.SIGKILL)
         killed = time.monotonic()
         victim.wait(WAIT)
-        wait_for(lambda: topic not in healthy.topics(), "the server to drop the dead session")
+        wait_until(lambda: topic not in healthy.topics(),
+                   "the server to drop the dead session", timeout=WAIT)
         dropped_ms = (time.monotonic() - killed) * 1e3
     finally:
         if victim.poll() is None:
@@ -185,11 +187,12 @@ def test_cut_link_is_noticed_by_both_sides_and_the_client_resumes_when_it_return
         def told() -> bool:  # link_state says lost a moment before the event is written
             seen.extend(events.read_many())
             return any(e.state is LinkState.LOST for e in seen)
-        wait_for(lambda: victim.link_state is LinkState.LOST and told(), "the client to notice")
+        wait_until(lambda: victim.link_state is LinkState.LOST and told(),
+                   "the client to notice", timeout=WAIT)
         lost = next(e for e in seen if e.state is LinkState.LOST)
         client_ms = (lost.at_ns - cut_at) / 1e6
         # The victim's TCP connection is half-open on the server now: no FIN, no RST came.
-        wait_for(lambda: healthy.timed_out() > timed_out, "the server's watchdog")
+        wait_until(lambda: healthy.timed_out() > timed_out, "the server's watchdog", timeout=WAIT)
         server_ms = (time.monotonic_ns() - cut_at) / 1e6
         print(f"\nlink cut: client noticed after {client_ms:.0f} ms ({lost.reason}); server "
               f"reaped the half-open session within {server_ms:.0f} ms (watchdog {TIMEOUT_MS} ms)")
@@ -199,8 +202,8 @@ def test_cut_link_is_noticed_by_both_sides_and_the_client_resumes_when_it_return
         assert victim.state is ClientState.RECONNECTING
 
         nft.restore()
-        wait_for(lambda: victim.reconnects >= 1 and victim.link_state is LinkState.CONNECTED,
-                 "the client to resume once the link is back")
+        wait_until(lambda: victim.reconnects >= 1 and victim.link_state is LinkState.CONNECTED,
+                   "the client to resume once the link is back", timeout=WAIT)
         assert all(roundtrip(out, inbox, 2.0) for out, inbox in loops)
         assert healthy.flows()
         assert healthy.bridge.reconnects == 0

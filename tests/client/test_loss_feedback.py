@@ -15,12 +15,13 @@ import time
 from collections.abc import Callable
 
 import pytest
-from link_helpers import wait_for
+from link_helpers import WAIT
 
 from rlbridge import Policy
 from rlbridge.client.bridge import Bridge
 from rlbridge.client.channels.incoming import OutgoingChannel
 from rlbridge.server import ServerThread
+from waiting import poll_until, wait_until
 
 F64 = "std_msgs/msg/Float64"
 CHUNK = 1000
@@ -55,10 +56,7 @@ def _flood_until_lost(server: ServerThread, bridge: Bridge, out: OutgoingChannel
         for start in range(0, FLOOD, CHUNK):
             out.write_many([float(x) for x in range(start, start + CHUNK)])
             bridge.send(wait=True)
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline and out.health().lost <= 0:
-            time.sleep(0.02)
-        if out.health().lost > 0:
+        if poll_until(lambda: out.health().lost > 0, timeout=5.0, interval=0.02):
             return
     raise AssertionError("five floods through a stalled server and no loss was reported")
 
@@ -85,7 +83,7 @@ def test_udp_flood_loss_is_reported_to_the_publisher(server: ServerThread) -> No
             h = out.health()
             return bool(ch["lost"] == h.lost and ch["values_in"] == h.arrived)
 
-        wait_for(same_as_server, "the reported counts to match the server's")
+        wait_until(same_as_server, "the reported counts to match the server's", timeout=WAIT)
 
 
 def test_adaptive_rate_backs_off_on_reported_loss(server: ServerThread) -> None:
@@ -95,7 +93,7 @@ def test_adaptive_rate_backs_off_on_reported_loss(server: ServerThread) -> None:
                         policy=Policy(max_rate_hz=top, adapt_rate=True))
         assert out.health().rate_limit_hz == top
         _flood_until_lost(server, b, out)
-        wait_for(lambda: out.health().rate_limit_hz < top, "the rate to back off")
+        wait_until(lambda: out.health().rate_limit_hz < top, "the rate to back off", timeout=WAIT)
 
 
 def test_rate_limit_holds_values_in_the_ring_and_loses_none(server: ServerThread) -> None:
@@ -144,10 +142,8 @@ def test_bundled_flood_loss_is_reported_per_channel_as_the_server_counted(
                 b.send(wait=True)
                 if time.monotonic() > stall_end:
                     break
-            deadline = time.monotonic() + 5.0
-            while time.monotonic() < deadline and min(o.health().lost for o in outs) <= 0:
-                time.sleep(0.02)
-            if min(o.health().lost for o in outs) > 0:
+            if poll_until(lambda: min(o.health().lost for o in outs) > 0, timeout=5.0,
+                          interval=0.02):
                 break
         else:
             raise AssertionError("five bundled floods through a stalled server, no loss reported")
@@ -162,7 +158,8 @@ def test_bundled_flood_loss_is_reported_per_channel_as_the_server_counted(
                     return False
             return True
 
-        wait_for(same_as_server, "every channel's reported counts to match the server's")
+        wait_until(same_as_server,
+                   "every channel's reported counts to match the server's", timeout=WAIT)
         sent = [o.statistics().read for o in outs]
         for out, taken in zip(outs, sent, strict=True):
             h = out.health()

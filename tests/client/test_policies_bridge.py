@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import socket
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -24,18 +23,11 @@ from rlbridge.wire import (
     TopicConnect,
     Value,
 )
+from waiting import wait_until
 
 F64 = "std_msgs/msg/Float64"
 STR = "std_msgs/msg/String"
 WAIT = 10.0
-
-
-def _wait(pred: Callable[[], object], what: str) -> Any:
-    deadline = time.monotonic() + WAIT
-    while not (result := pred()):
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.01)
-    return result
 
 
 def test_udp_redundancy_from_the_sdk_is_deduplicated_by_the_server(
@@ -48,7 +40,7 @@ def test_udp_redundancy_from_the_sdk_is_deduplicated_by_the_server(
         b.send(wait=True)  # one datagram per value, each repeating up to 2 earlier ones
     got = [sub.read(timeout=WAIT) for _ in range(20)]
     assert got == [float(i) for i in range(20)]
-    channel = _wait(lambda: (c := b.server_stats()["session"]["channels"][str(out.channel_id)])
+    channel = wait_until(lambda: (c := b.server_stats()["session"]["channels"][str(out.channel_id)])
                     ["values"] == 20 and c, "server counters")
     assert channel["duplicates"] == 2 * 20 - 3  # 0 + 1 + 2 * 18 copies dropped
     assert channel["lost"] == 0
@@ -63,7 +55,7 @@ def test_health_on_both_channel_kinds(bridge: Callable[..., Bridge]) -> None:
     for i in range(5):
         out.write(float(i))
     assert [sub.read(timeout=WAIT) for _ in range(5)] == [0.0, 1.0, 2.0, 3.0, 4.0]
-    _wait(lambda: b.rtt_ns > 0, "an RTT sample")
+    wait_until(lambda: b.rtt_ns > 0, "an RTT sample")
     h = sub.health()
     assert isinstance(h, ChannelHealth)
     assert (h.values, h.lost, h.expired) == (5, 0, 0)
@@ -91,9 +83,9 @@ def test_max_age_drops_on_the_sdk_side(bridge: Callable[..., Bridge]) -> None:
     strict = b.subscribe("/age", F64, transport="tcp", initial=-1.0, policy=Policy(max_age_ms=1))
     out = b.publish("/age", F64, transport="tcp")
     out.write(1.0)
-    _wait(lambda: sub.read() == 1.0, "the value on the unlimited channel")
+    wait_until(lambda: sub.read() == 1.0, "the value on the unlimited channel")
     # Whether it expired depends on the machine's speed; it is counted either way.
-    _wait(lambda: strict.health().expired + strict.health().values == 1, "the strict channel")
+    wait_until(lambda: strict.health().expired + strict.health().values == 1, "the strict channel")
     assert strict.health().expired == 1 or strict.read() == 1.0
 
 
@@ -139,16 +131,21 @@ class StallingServer:
 
     def drain_until(self, last: Any) -> None:
         assert self.conn is not None
-        deadline = time.monotonic() + WAIT
-        while not self.values or self.values[-1][1] != last:
-            assert time.monotonic() < deadline, (
-                f"{last[:8]!r} never arrived ({len(self.values)} values did)")
-            for packet in self.decoder.feed(self.conn.recv(1 << 16)):
+        conn = self.conn
+
+        def arrived() -> bool:
+            if self.values and self.values[-1][1] == last:
+                return True
+            for packet in self.decoder.feed(conn.recv(1 << 16)):
                 if isinstance(packet, Value):
                     self.values.append((packet.seq, packet.value))
                 elif isinstance(packet, Batch):
                     self.values.extend(
                         (packet.first_seq + i, v) for i, v in enumerate(packet.values))
+            return False
+
+        wait_until(arrived, lambda: f"{last[:8]!r} ({len(self.values)} values came)",
+                   timeout=WAIT, interval=0)
 
     def close(self) -> None:
         self._thread.join(WAIT)
@@ -177,7 +174,7 @@ def test_sdk_latest_channel_holds_while_the_server_stalls(
         for value in sent:
             out.write(value)
         if latest:  # the send thread saw the kernel queue back up and held values back
-            _wait(lambda: out.health().overtaken > 0, "overtaken values")
+            wait_until(lambda: out.health().overtaken > 0, "overtaken values")
         stalling_server.drain_until(sent[-1])
         h = out.health()
     finally:

@@ -11,13 +11,12 @@ import random
 import socket
 import subprocess
 import threading
-import time
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from link_helpers import WAIT, roundtrip, wait_for
+from link_helpers import WAIT, roundtrip
 
 from rlbridge import LinkLost, Policy, Psk, Tuning, WouldBlock
 from rlbridge.client.bridge import Bridge
@@ -26,6 +25,7 @@ from rlbridge.client.session.link_events import LinkEvent
 from rlbridge.client.session.reconnect import Backoff, ClientState
 from rlbridge.errors import ChannelClosed
 from rlbridge.wire.link import LinkState
+from waiting import assert_running, wait_until, wait_until_ok
 
 F64 = "std_msgs/msg/Float64"
 I32 = "std_msgs/msg/Int32"
@@ -75,17 +75,16 @@ class Serve:
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self) -> Serve:
-        self.proc = self.cli.popen("serve", "--port", str(self.port), *self.extra)
-        deadline = time.monotonic() + WAIT
-        while True:  # ready when a session can be opened (the loop serves, not just listens)
-            try:
-                Bridge.connect("127.0.0.1", self.port, timeout=1.0, reconnect=False,
-                               security=None if self.psk is None else Psk(key=self.psk)).close()
-                return self
-            except Exception:
-                if self.proc.poll() is not None or time.monotonic() > deadline:
-                    raise
-                time.sleep(0.05)
+        proc = self.proc = self.cli.popen("serve", "--port", str(self.port), *self.extra)
+        security = None if self.psk is None else Psk(key=self.psk)
+
+        def session() -> None:  # ready when a session opens: the loop serves, not just listens
+            Bridge.connect("127.0.0.1", self.port, timeout=1.0, reconnect=False,
+                           security=security).close()
+
+        wait_until_ok(session, f"a session with rlbridge serve on port {self.port}",
+                      timeout=WAIT, between=lambda: assert_running(proc))
+        return self
 
     def kill(self) -> None:
         assert self.proc is not None
@@ -155,11 +154,11 @@ def test_server_restart_mid_stream_resumes_both_ways_on_tcp_and_udp(
     channels = {b_: b_.server_stats()["session"]["channels"] for b_ in (a, b)}
 
     getattr(serve, how)()
-    wait_for(lost(a, b), "both bridges to see the link lost")
+    wait_until(lost(a, b), "both bridges to see the link lost", timeout=WAIT)
     assert a.state is ClientState.RECONNECTING
     assert not a.closed
     serve.start()  # same port; nobody tells the bridges
-    wait_for(reconnected(a, b), "both bridges to reconnect by themselves")
+    wait_until(reconnected(a, b), "both bridges to reconnect by themselves", timeout=WAIT)
     for bridge, before in channels.items():  # the same channel ids, directions, on a new server
         after = bridge.server_stats()["session"]["channels"]
         assert {c: d["direction"] for c, d in after.items()} == {
@@ -182,7 +181,7 @@ def test_values_written_during_the_outage_follow_their_channel_policy(
     assert every.read(timeout=WAIT) == -1
 
     serve.kill()
-    wait_for(lost(b), "the link lost")
+    wait_until(lost(b), "the link lost", timeout=WAIT)
     for i in range(20):
         keep.write(i)
         latest.write(i)
@@ -194,7 +193,7 @@ def test_values_written_during_the_outage_follow_their_channel_policy(
     assert keep.pending() == 8
 
     serve.start()
-    wait_for(reconnected(b), "the reconnect")
+    wait_until(reconnected(b), "the reconnect", timeout=WAIT)
     assert [every.read(timeout=WAIT) for _ in range(8)] == list(range(12, 20))
     assert newest.read(timeout=WAIT) == 19
     with pytest.raises(TimeoutError):
@@ -228,9 +227,9 @@ def test_a_flow_controlled_channel_is_credited_afresh_after_a_reconnect(
     assert stream(4 * ring) == list(range(4 * ring))
     assert inbox.credited > ring  # credit was granted in this session
     serve.kill()
-    wait_for(lost(sub, pub), "the link lost")
+    wait_until(lost(sub, pub), "the link lost", timeout=WAIT)
     serve.start()
-    wait_for(reconnected(sub, pub), "the reconnect")
+    wait_until(reconnected(sub, pub), "the reconnect", timeout=WAIT)
     assert stream(4 * ring) == list(range(4 * ring))
     assert inbox.lost == 0
 
@@ -244,11 +243,12 @@ def test_blocking_reader_waits_across_a_reconnect(serve: Serve,
     reader = threading.Thread(target=lambda: got.append(inbox.read(timeout=60)))
     reader.start()
     serve.kill()
-    wait_for(lost(sub, pub), "the link lost")
+    wait_until(lost(sub, pub), "the link lost", timeout=WAIT)
     serve.start()
-    wait_for(reconnected(sub, pub), "the reconnect")
+    wait_until(reconnected(sub, pub), "the reconnect", timeout=WAIT)
     assert reader.is_alive(), "the blocked reader gave up during the outage"
-    wait_for(lambda: out.write(5.0) or not reader.is_alive(), "the reader to get a value")
+    wait_until(lambda: out.write(5.0) or not reader.is_alive(),
+               "the reader to get a value", timeout=WAIT)
     reader.join(WAIT)
     assert got == [5.0]
 
@@ -268,7 +268,8 @@ def test_close_wakes_a_reader_without_timeout_and_stops_mid_backoff(
     reader = threading.Thread(target=read_forever)
     reader.start()
     serve.kill()
-    wait_for(lambda: b.state is ClientState.RECONNECTING, "the supervisor to back off")
+    wait_until(lambda: b.state is ClientState.RECONNECTING,
+               "the supervisor to back off", timeout=WAIT)
     closer = threading.Thread(target=b.close)
     closer.start()
     closer.join(10.0)  # the backoff is 60 s: only an interrupted wait ends sooner
@@ -286,7 +287,7 @@ def test_close_aborts_a_handshake_that_gets_no_answer(serve: Serve,
                                                       bridges: Callable[..., Bridge]) -> None:
     b = bridges(timeout=60.0)
     serve.kill()
-    wait_for(lost(b), "the link lost")
+    wait_until(lost(b), "the link lost", timeout=WAIT)
     with socket.socket() as mute:  # takes the server's port, accepts, never answers
         mute.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         mute.bind(("127.0.0.1", serve.port))
@@ -342,7 +343,7 @@ def test_link_events_callback_and_property_report_loss_and_return(
     assert events.read_many() == []
 
     serve.kill()
-    wait_for(lost(b), "the link lost")
+    wait_until(lost(b), "the link lost", timeout=WAIT)
     down = events.read_many()
     assert [e.state for e in down][-1] is LinkState.LOST
     assert "server closed the TCP connection" in down[-1].reason or \
@@ -352,7 +353,7 @@ def test_link_events_callback_and_property_report_loss_and_return(
         down[-1].state = LinkState.CONNECTED  # type: ignore[misc]  # frozen
 
     serve.start()
-    wait_for(reconnected(b), "the reconnect")
+    wait_until(reconnected(b), "the reconnect", timeout=WAIT)
     back = events.read_many()
     assert back[-1].state is LinkState.CONNECTED
     assert back[-1].reason.startswith("reconnected: session")
@@ -378,32 +379,33 @@ def test_fail_safes_hold_safe_value_and_raise_while_the_link_is_lost(
     outs = [pub.publish(f"/fs/{n}", F64, transport="udp") for n in ("hold", "safe", "raise")]
     for out in outs:
         out.write(3.0)
-    wait_for(lambda: hold.read() == 3.0 and safe.read() == 3.0, "the first values")
+    wait_until(lambda: hold.read() == 3.0 and safe.read() == 3.0, "the first values", timeout=WAIT)
     assert strict.read(timeout=WAIT) == 3.0
 
     events = sub.link_events()
     getattr(serve, how)()
-    wait_for(lost(sub), "the link lost")
+    wait_until(lost(sub), "the link lost", timeout=WAIT)
     assert safe.read() == -1.0  # the same source: lost means the fail-safes have engaged
     # The goodbye's session has ended: nothing it still reads may report the link back up.
-    wait_for(session_over(sub), "the ended session's receive thread to exit")
+    wait_until(session_over(sub), "the ended session's receive thread to exit", timeout=WAIT)
     assert sub.link_state is LinkState.LOST
     states = [e.state for e in events.read_many()]
     assert LinkState.LOST in states
     assert set(states[states.index(LinkState.LOST):]) == {LinkState.LOST}  # never back up
     age = hold.age_ns
     assert hold.read() == 3.0
-    wait_for(lambda: hold.age_ns > age, "the held value to age")
+    wait_until(lambda: hold.age_ns > age, "the held value to age", timeout=WAIT)
     assert safe.read() == -1.0
     assert safe.try_read() == -1.0
     with pytest.raises(LinkLost, match="on_lost='raise'"):
         strict.read(timeout=60)  # raises at once: no wait for a value that cannot come
 
     serve.start()
-    wait_for(reconnected(sub, pub), "the reconnect")
+    wait_until(reconnected(sub, pub), "the reconnect", timeout=WAIT)
     for out in outs:
         out.write(4.0)
-    wait_for(lambda: hold.read() == 4.0 and safe.read() == 4.0, "values after the reconnect")
+    wait_until(lambda: hold.read() == 4.0 and safe.read() == 4.0,
+               "values after the reconnect", timeout=WAIT)
     assert strict.read(timeout=WAIT) == 4.0
 
 
@@ -425,7 +427,7 @@ def test_io_priority_reports_thread_ids_and_follows_a_reconnect(
     assert all(os.sched_getscheduler(tid) == os.SCHED_FIFO for tid in ids if tid)
     serve.kill()
     serve.start()
-    wait_for(reconnected(b), "the reconnect")
+    wait_until(reconnected(b), "the reconnect", timeout=WAIT)
     recv = [t.native_id for t in threading.enumerate() if t.name == "rlbridge-recv"]
     assert recv
     assert recv[0] not in ids
@@ -440,9 +442,9 @@ def test_udp_only_session_reconnects_over_udp(serve: Serve,
     out = b.publish("/udp_only", F64, transport="udp")
     assert roundtrip(out, inbox, 1.0)
     serve.kill()
-    wait_for(lost(b), "the watchdog to declare the link lost")
+    wait_until(lost(b), "the watchdog to declare the link lost", timeout=WAIT)
     serve.start()
-    wait_for(reconnected(b), "the reconnect over UDP")
+    wait_until(reconnected(b), "the reconnect over UDP", timeout=WAIT)
     assert roundtrip(out, inbox, 2.0)
 
 
@@ -462,9 +464,9 @@ def test_keyed_session_reconnects_with_fresh_keys_and_link(
         assert roundtrip(out, inbox, 1.0)
         first_link = b._conn.link
         server.kill()
-        wait_for(lost(b), "the link lost")
+        wait_until(lost(b), "the link lost", timeout=WAIT)
         server.start()
-        wait_for(reconnected(b), "the keyed reconnect")
+        wait_until(reconnected(b), "the keyed reconnect", timeout=WAIT)
         assert roundtrip(out, inbox, 2.0)
         assert b._conn.link is not first_link
         assert inbox._link is b._conn.link

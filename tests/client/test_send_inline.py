@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from link_helpers import WAIT, wait_for
+from link_helpers import WAIT
 
 from rlbridge import Policy, Psk, RealTimeWarning, Tuning
 from rlbridge.client.bridge import Bridge
@@ -31,6 +31,7 @@ from rlbridge.server import ServerThread
 from rlbridge.wire import Batch, Bundle, Value
 from rlbridge.wire.bundle import DatagramPacker
 from rlbridge.wire.codec import PacketCodec
+from waiting import wait_until
 
 F64 = "std_msgs/msg/Float64"
 STR = "std_msgs/msg/String"
@@ -45,7 +46,7 @@ def arrived(out: OutgoingChannel, inbox: IncomingChannel, bridge: Bridge) -> Non
             return bool(inbox.read(timeout=0.2) == -1.0)
         except TimeoutError:
             return False
-    wait_for(once, "a first value through the server")
+    wait_until(once, "a first value through the server", timeout=WAIT)
 
 
 def read_until(inbox: IncomingChannel, last: float) -> list[float]:
@@ -56,15 +57,15 @@ def read_until(inbox: IncomingChannel, last: float) -> list[float]:
         got.extend(inbox.read_many())
         return bool(got) and got[-1] == last
 
-    wait_for(done, f"value {last}")
+    wait_until(done, f"value {last}", timeout=WAIT)
     return got
 
 
 def thread_done(sender: SendLoop, rounds: int) -> None:
     """Wait until the send thread has run ``rounds`` rounds and left the last one (it holds
     the round lock until then, and an inline ``send`` in that moment rings it instead)."""
-    wait_for(lambda: sender.rounds >= rounds and not sender._round.locked(),
-             "the send thread's round to end")
+    wait_until(lambda: sender.rounds >= rounds and not sender._round.locked(),
+               "the send thread's round to end", timeout=WAIT)
 
 
 class Recorder:
@@ -173,8 +174,8 @@ def test_two_inline_callers_and_paced_rounds_never_overlap(server: ServerThread)
             t.join(WAIT * 3)
             assert not t.is_alive()
         pub.send(wait=True)  # what waits goes out through the thread
-        wait_for(lambda: all(len(recorder.values().get(o.channel_id, ())) == count
-                             for o in outs), "every value recorded")
+        wait_until(lambda: all(len(recorder.values().get(o.channel_id, ())) == count
+                               for o in outs), "every value recorded", timeout=WAIT)
         sent = recorder.values()
         for out in outs:
             seqs = [s for s, _ in sent[out.channel_id]]
@@ -214,7 +215,7 @@ def test_a_channel_with_a_policy_or_tcp_goes_through_the_thread(
     assert plain_inbox.read(timeout=WAIT) == 1.0
     assert inbox.read(timeout=WAIT) == 7.0
     assert sender.inline_fallbacks == fallbacks + 1
-    wait_for(lambda: sender.rounds > rounds, "the send thread's round")
+    wait_until(lambda: sender.rounds > rounds, "the send thread's round", timeout=WAIT)
 
 
 def test_flow_controlled_incoming_channels_do_not_stop_inline_rounds(

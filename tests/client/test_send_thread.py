@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import threading
 
-from link_helpers import WAIT, roundtrip, wait_for
+from link_helpers import WAIT, roundtrip
 
 from rlbridge.client.bridge import Bridge
 from rlbridge.client.channels.pacing import Pacing
 from rlbridge.client.session.reconnect import Backoff
 from rlbridge.server import ServerThread
+from waiting import wait_until
 
 F64 = "std_msgs/msg/Float64"
 FAST = Backoff(initial=0.02, max_delay=0.2)
@@ -77,10 +78,12 @@ def test_send_thread_survives_a_session_closed_under_its_round(server: ServerThr
         sender.add(source)
         sender.doorbell.ring()
         assert source.fired.wait(WAIT)
-        wait_for(lambda: sender.send_errors > errors, "the failed send to be counted")
+        wait_until(lambda: sender.send_errors > errors,
+                   "the failed send to be counted", timeout=WAIT)
         sender.remove(source)
         assert sender.native_id == thread_id, "the send thread ended with the session"
-        wait_for(lambda: pub.reconnects >= 1, "the supervisor to open a new session")
+        wait_until(lambda: pub.reconnects >= 1,
+                   "the supervisor to open a new session", timeout=WAIT)
         assert roundtrip(out, inbox, 2.0), "values flow again on the new session"
         assert sender.native_id == thread_id
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import threading
 
-from link_helpers import WAIT, wait_for
+from link_helpers import WAIT
 
 from rlbridge import ConnectionFailed
 from rlbridge.client.session.reconnect import Backoff, ReconnectSupervisor
+from waiting import wait_until
 
 
 class ScriptedConnection:
@@ -83,7 +84,7 @@ def test_a_failing_rebind_counts_as_a_failed_attempt() -> None:
     sup.start()
     try:
         assert conn.reopened.wait(WAIT)
-        wait_for(lambda: sup.reconnects, "the second bind")
+        wait_until(lambda: sup.reconnects, "the second bind", timeout=WAIT)
         assert sup.reconnects == 1
         assert sup.failed_attempts == 1
         assert len(calls) == 2
