@@ -45,7 +45,7 @@ from rlbridge.wire import (
     PacketCodec,
     Stats,
 )
-from waiting import WAIT, wait_until
+from waiting import WAIT, assert_running, wait_until
 
 P = TypeVar("P")
 
@@ -154,11 +154,13 @@ class RawTcp:
     def stats(self) -> dict[str, Any]:
         """Ask for the server's counters; skips whatever else arrives first."""
         self.send(Stats())
-        deadline = time.monotonic() + WAIT
-        while True:
-            packet = self.recv(max(0.01, deadline - time.monotonic()))
-            if isinstance(packet, Stats):
-                return packet.body
+
+        def answer() -> dict[str, Any] | None:
+            packet = self.recv()  # fails the test by itself when nothing comes
+            return packet.body if isinstance(packet, Stats) else None
+
+        body: dict[str, Any] = wait_until(answer, "the server's Stats answer", interval=0)
+        return body
 
     def wait_closed(self, timeout: float = WAIT) -> list[Packet]:
         """Read until the server closes the connection; return what came before the EOF."""
@@ -201,11 +203,15 @@ class RawUdp:
         return token, packet
 
     def recv(self, timeout: float = WAIT, *, skip: tuple[type, ...] = (Heartbeat,)) -> Packet:
-        deadline = time.monotonic() + timeout
-        while True:
-            _token, packet = self.recv_datagram(max(0.001, deadline - time.monotonic()))
-            if not isinstance(packet, skip):
-                return packet
+        """The next packet that is not of a ``skip`` type; fails the test on timeout."""
+        def wanted() -> Packet | None:
+            _token, packet = self.recv_datagram(timeout)
+            return None if isinstance(packet, skip) else packet
+
+        names = ", ".join(cls.__name__ for cls in skip)
+        packet: Packet = wait_until(wanted, f"a packet other than {names}", timeout=timeout,
+                                    interval=0)
+        return packet
 
     def expect(self, cls: type[P], timeout: float = WAIT) -> P:
         packet = self.recv(timeout)
@@ -346,26 +352,24 @@ def wait_server_ready(port: int, proc: subprocess.Popen[str] | None = None,
     """
     codec = PacketCodec()
     hello = codec.encode_datagram(Hello(PROTOCOL_VERSION, "ready-probe"), 0)
-    deadline = time.monotonic() + timeout
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.connect(("127.0.0.1", port))
-        while time.monotonic() < deadline:
-            if proc is not None and proc.poll() is not None:
-                _out, err = proc.communicate()
-                raise AssertionError(f"server exited with {proc.returncode}: {err}")
-            sock.settimeout(0.1)
+        sock.settimeout(0.1)
+
+        def answered() -> bool:
             try:
                 sock.send(hello)
                 data = sock.recv(1 << 16)
             except (TimeoutError, ConnectionRefusedError):
-                continue
+                return False
             _flags, _token, packet = codec.decode_datagram(data)
             if isinstance(packet, ConnectAck):
                 sock.send(codec.encode_datagram(Disconnect(0, "probe done"), packet.token))
-                return
-            if isinstance(packet, ConnectError | AuthChallenge):  # a key or TLS is needed
-                return
-    raise AssertionError(f"server on port {port} not ready within {timeout} s")
+                return True
+            return isinstance(packet, ConnectError | AuthChallenge)  # a key or TLS is needed
+
+        wait_until(answered, f"the server on port {port} to answer a hello", timeout=timeout,
+                   between=None if proc is None else lambda: assert_running(proc))
 
 
 def start_cli_server(procs: CliProcesses, *extra: str) -> tuple[int, subprocess.Popen[str]]:
