@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import signal
-import time
 from collections.abc import Iterator
 
 import pytest
@@ -61,11 +60,8 @@ def publish_while_running(peer: Bridge, topic: str, value: float, coupling: Isol
     assert isinstance(incoming, IncomingChannel)
     seen = incoming.statistics().written
     before = coupling.link.get(0)
-    deadline = time.monotonic() + WAIT
-    while incoming.statistics().written == seen:
-        assert time.monotonic() < deadline, f"{value} never reached the SDK process"
-        out.write(value)
-        time.sleep(0.01)
+    wait_until(lambda: incoming.statistics().written != seen, f"{value} to reach the SDK process",
+               between=lambda: out.write(value))
     wait_until(lambda: coupling.link.get(0) != before, f"{value} to reach the loop's slot")
     target = coupling.released + releases
     wait_until(lambda: coupling.released >= target, f"{releases} releases after {value}")

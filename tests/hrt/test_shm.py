@@ -18,6 +18,7 @@ from rlbridge.csp.process import Parallel
 from rlbridge.hrt.coupling import Ticker
 from rlbridge.hrt.shm import HrtProcess, ShmLink, ShmLinkError, forwarder
 from rlbridge.server import ServerConfig, ServerThread
+from waiting import poll_until, wait_until
 
 F64 = "std_msgs/msg/Float64"
 WAIT = 60.0
@@ -129,9 +130,12 @@ def test_ring_across_processes_loses_nothing_and_keeps_order() -> None:
         proc = HrtProcess(link, _count_to, n)
         proc.start()
         got: list[float] = []
-        deadline = time.monotonic() + WAIT
-        while len(got) < n and time.monotonic() < deadline:
+
+        def all_came() -> bool:  # the ring holds 64: drain while the loop pushes
             got.extend(link.drain(0))
+            return len(got) >= n
+
+        poll_until(all_came, timeout=WAIT, interval=0)
         assert proc.join(WAIT)
         assert proc.exitcode == 0
         got.extend(link.drain(0))
@@ -148,9 +152,12 @@ def test_latest_value_across_processes_is_never_torn_or_older() -> None:
                 link.put(0, float(k))
                 if k % 64 == 0:
                     seen.extend(link.drain(0))
-            deadline = time.monotonic() + WAIT
-            while (not seen or seen[-1] != 100_000.0) and time.monotonic() < deadline:
+
+            def last_came() -> bool:
                 seen.extend(link.drain(0))
+                return bool(seen) and seen[-1] == 100_000.0
+
+            poll_until(last_came, timeout=WAIT, interval=0)
         finally:
             assert proc.stop() == 0
     assert seen
@@ -188,15 +195,16 @@ def test_loop_process_through_a_live_server() -> None:
         with HrtProcess(link, _double):
             pumps.start()
             try:
-                deadline = time.monotonic() + WAIT
-                value = 0.0
-                while value != 5.0 and time.monotonic() < deadline:
+
+                def doubled() -> bool:
                     setpoint.write(2.5)
-                    value = float(result.read(timeout=WAIT))
+                    return float(result.read(timeout=WAIT)) == 5.0
+
+                wait_until(doubled, "2.5 doubled by the loop process (5.0) through the server",
+                           timeout=WAIT, interval=0)
             finally:
                 pumps.stop()
                 pumps.join(WAIT)
-        assert value == 5.0
         assert link.dropped(0) == 0
 
 
