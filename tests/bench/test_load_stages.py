@@ -11,12 +11,12 @@ from __future__ import annotations
 import os
 import socket
 import sys
-import time
 
 import pytest
 
 from rlbridge.bench.load_sockets import parse_proc_net_udp, udp_drops, udp_queued, udp_sockets
 from rlbridge.bench.load_stages import KernelDrops, stage_table, stages
+from waiting import wait_until
 
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/net/udp")
 
@@ -34,10 +34,8 @@ def test_a_full_receive_buffer_is_counted_on_its_socket() -> None:
         sent = 200
         for _ in range(sent):
             tx.sendto(b"x" * 512, ("127.0.0.1", port))
-        deadline = time.monotonic() + 5.0
-        while udp_queued(os.getpid()) == 0 and time.monotonic() < deadline:
-            time.sleep(0.01)  # loopback delivers in a softirq: normally already done
-        assert udp_queued(os.getpid()) > 0  # what fitted waits to be read
+        # What fitted waits to be read (loopback delivers in a softirq: normally already done).
+        wait_until(lambda: udp_queued(os.getpid()) > 0, "datagrams queued on the socket")
         rx.settimeout(0.5)  # read what fitted; a deferred softirq has time to deliver
         read = 0
         try:

@@ -8,6 +8,8 @@ import subprocess
 import threading
 import time
 
+from waiting import wait_until
+
 
 class CProcess:
     """An example program running, its stdout and stderr read line by line by two threads."""
@@ -31,28 +33,36 @@ class CProcess:
 
     def wait_err(self, text: str, count: int = 1, timeout: float = 30.0) -> None:
         """Until ``count`` stderr lines contain ``text`` (the process tells its state there)."""
-        deadline = time.monotonic() + timeout
-        while sum(text in line for line in self.err) < count:
-            if time.monotonic() > deadline:
-                raise AssertionError(f"{self.argv[0]} never said {text!r} ({count}x); "
-                                     f"stderr: {self.err}, exit: {self.proc.poll()}")
+        def said() -> bool:
+            if sum(text in line for line in self.err) >= count:
+                return True
             if self.proc.poll() is not None and self._lines.empty():
                 time.sleep(0.05)  # the pumps may still hold the last lines
                 if sum(text in line for line in self.err) >= count:
-                    return
+                    return True
                 raise AssertionError(f"{self.argv[0]} exited with {self.proc.returncode} "
                                      f"before saying {text!r}; stderr: {self.err}")
-            with contextlib.suppress(queue.Empty):
-                self._lines.get(timeout=0.1)
+            self._next_line()
+            return False
+
+        wait_until(said, lambda: f"{self.argv[0]} to say {text!r} ({count}x); stderr: "
+                                 f"{self.err}, exit: {self.proc.poll()}",
+                   timeout=timeout, interval=0)
 
     def wait_out(self, lines: int, timeout: float = 30.0) -> None:
-        deadline = time.monotonic() + timeout
-        while len(self.out) < lines:
-            if time.monotonic() > deadline:
-                raise AssertionError(f"{len(self.out)} of {lines} lines on stdout; "
-                                     f"stderr: {self.err}")
-            with contextlib.suppress(queue.Empty):
-                self._lines.get(timeout=0.1)
+        def printed() -> bool:
+            if len(self.out) >= lines:
+                return True
+            self._next_line()
+            return False
+
+        wait_until(printed, lambda: f"{lines} lines on stdout ({len(self.out)} came); "
+                                    f"stderr: {self.err}", timeout=timeout, interval=0)
+
+    def _next_line(self) -> None:
+        """Block until a pump read another line (0.1 s at most): the waits' pause."""
+        with contextlib.suppress(queue.Empty):
+            self._lines.get(timeout=0.1)
 
     def finish(self, timeout: float = 60.0) -> int:
         """The exit code, once the process has ended and both pumps have read everything."""

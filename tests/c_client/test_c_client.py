@@ -23,6 +23,7 @@ import pytest
 from c_programs import CProcess
 
 from rlbridge import Bridge
+from waiting import assert_running, wait_until_ok
 
 COUNT = 200
 RATE_HZ = 400  # paced so that loopback keeps up on a loaded machine
@@ -251,15 +252,10 @@ def _serve(cli: Any, port: int) -> subprocess.Popen[str]:
     """``rlbridge serve`` on ``port``, returned once a session can be opened."""
     proc: subprocess.Popen[str] = cli.popen("serve", "--port", str(port), "--log-level",
                                             "warning")
-    deadline = time.monotonic() + WAIT
-    while True:
-        try:
-            Bridge.connect("127.0.0.1", port, timeout=1.0, reconnect=False).close()
-            return proc
-        except Exception:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise
-            time.sleep(0.05)
+    wait_until_ok(lambda: Bridge.connect("127.0.0.1", port, timeout=1.0, reconnect=False).close(),
+                  f"a session with rlbridge serve on port {port}", timeout=WAIT,
+                  between=lambda: assert_running(proc))
+    return proc
 
 
 def _publish(port: int, topic: str, values: range) -> None:

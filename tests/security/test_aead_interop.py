@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
 from rlbridge.wire import aead
 from rlbridge.wire.aead import AEAD_ENV, CRYPTOGRAPHY, IMPLEMENTATIONS, LIBSODIUM
+from waiting import wait_until_ok
 
 KEY = bytes(range(32))
 F64 = "std_msgs/msg/Float64"
@@ -26,14 +26,11 @@ WAIT = 30.0
 
 def _connect(port: int) -> Bridge:
     """Connect once the server subprocess listens (it may take seconds on a loaded machine)."""
-    deadline = time.monotonic() + WAIT
-    while True:
-        try:
-            return Bridge.connect("127.0.0.1", port, security=Psk(key=KEY), timeout=5.0)
-        except ConnectionFailed:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)
+    bridge: Bridge = wait_until_ok(
+        lambda: Bridge.connect("127.0.0.1", port, security=Psk(key=KEY), timeout=5.0),
+        f"a session with the server on port {port}", errors=(ConnectionFailed,), timeout=WAIT,
+        interval=0.2)
+    return bridge
 
 
 @pytest.mark.skipif(LIBSODIUM not in IMPLEMENTATIONS,

@@ -11,7 +11,6 @@ import os
 import select
 import socket
 import struct
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -44,17 +43,18 @@ class Wire:
     def sniff(self, src_port: int, dst_port: int, want: Callable[[bytes], bool],
               timeout: float = WAIT) -> bytes:
         """The payload of the next datagram ``src_port -> dst_port`` that ``want`` accepts."""
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            if not select.select([self.sock], [], [], left)[0]:
-                break
+        def wanted() -> bytes | None:  # (a datagram of the protocol is never empty)
+            if not select.select([self.sock], [], [], 0.1)[0]:
+                return None
             packet = self.sock.recv(65536)
             ihl = (packet[0] & 0x0F) * 4
             src, dst, _length, _sum = UDP_HEADER.unpack_from(packet, ihl)
             payload = packet[ihl + UDP_HEADER.size :]
-            if (src, dst) == (src_port, dst_port) and want(payload):
-                return payload
-        raise AssertionError(f"no datagram {src_port} -> {dst_port} seen within {timeout} s")
+            return payload if (src, dst) == (src_port, dst_port) and want(payload) else None
+
+        payload: bytes = wait_until(wanted, f"a datagram {src_port} -> {dst_port} the test wants",
+                                    timeout=timeout, interval=0)
+        return payload
 
     def close(self) -> None:
         self.sock.close()
