@@ -20,7 +20,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -31,7 +30,7 @@ from localhost import rlbridge_command
 from rlbridge import QoS
 from rlbridge.client.bridge import Bridge
 from rlbridge.errors import NoSuchFieldError, TypeClashError, UnknownTypeError
-from waiting import wait_until
+from waiting import poll_until, wait_until
 
 if TYPE_CHECKING:
     from ros_peers import PeerProcess
@@ -126,15 +125,15 @@ def _tail_is(expected: list[Any]) -> Callable[[list[Any]], bool]:
 
 
 def _read_until(ch: Any, done: Callable[[list[Any]], bool], got: list[Any]) -> bool:
-    """Blocking reads into ``got`` until ``done(got)`` or the deadline."""
-    deadline = time.monotonic() + TIMEOUT
-    while not done(got):
-        left = deadline - time.monotonic()
-        if left <= 0:
-            return False
-        with contextlib.suppress(TimeoutError):
-            got.append(ch.read(min(left, 0.2)))
-    return True
+    """Blocking reads into ``got`` until ``done(got)``; whether it came within ``TIMEOUT``
+    (callers assert, showing ``got``)."""
+    def read_one() -> bool:
+        if not done(got):
+            with contextlib.suppress(TimeoutError):
+                got.append(ch.read(0.2))
+        return done(got)
+
+    return bool(poll_until(read_one, timeout=TIMEOUT, interval=0))
 
 
 #: (transport, type, field, probe, values): rclpy publisher -> bridge -> SDK subscriber.

@@ -26,6 +26,7 @@ from reach_netns import World, world
 
 from rlbridge.client.bridge import Bridge
 from rlbridge.client.channels.incoming import IncomingChannel
+from waiting import wait_until
 
 pytestmark = [pytest.mark.ros2, pytest.mark.netem, pytest.mark.timeout(240)]
 
@@ -62,10 +63,13 @@ def read_until(ch: IncomingChannel, last: int, received: list[int]) -> float:
     writer repairs a sample lost in transport at its next heartbeat, up to 3 s later with
     Fast DDS's defaults, and what is still in flight then is neither delivered nor lost yet.
     Returns the longest stop between two arrivals (seconds), for the printout."""
-    deadline = time.monotonic() + 120
     at = time.monotonic()
     longest = 0.0
-    while received[-1] != last:
+
+    def last_came() -> bool:
+        nonlocal at, longest
+        if received[-1] == last:
+            return True
         got = ch.read_many()
         if not got:
             with contextlib.suppress(TimeoutError):
@@ -73,8 +77,11 @@ def read_until(ch: IncomingChannel, last: int, received: list[int]) -> float:
         if got:
             now = time.monotonic()
             longest, at = max(longest, now - at), now
-            received += got
-        assert time.monotonic() < deadline, f"{last} never arrived; {len(received)} did"
+            received.extend(got)
+        return received[-1] == last
+
+    wait_until(last_came, lambda: f"{last} ({len(received)} values came)", timeout=120,
+               interval=0)
     return longest
 
 
@@ -103,10 +110,11 @@ def test_node_to_client_flood_every_loss_counted(flood_world: World, sdk: Bridge
     assert ch.health().overwritten == 0
     assert stats["dropped"] == 0
     assert (len(received) - 1) + lost == expected
-    deadline = time.monotonic() + 10  # the RosLoss report, once per heartbeat period
-    while ch.health().ros_lost != lost and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert ch.health().ros_lost == lost if lost else ch.health().ros_lost in (-1, 0)
+    if lost:  # the RosLoss report, once per heartbeat period
+        wait_until(lambda: ch.health().ros_lost == lost, f"the RosLoss report of {lost}",
+                   interval=0.05)
+    else:
+        assert ch.health().ros_lost in (-1, 0)
     totals = sdk.server_stats()["server"]
     assert totals["ros_lost"] >= lost
 
@@ -115,11 +123,15 @@ def test_client_to_node_flood_every_loss_counted(flood_world: World, sdk: Bridge
     node = flood_world.peer("count", "/flood/up", "10", str(N - 1), watch=r"^first (-?\d+)")
     out = sdk.publish("/flood/up", INT64, transport="tcp", buffer_size=4 * N)
     try:
-        probes = 0
-        while node.match is None and probes < 1200:  # until the node took one (discovery)
-            probes += 1
-            out.write(-probes)
-            time.sleep(0.05)
+        probed: list[int] = []
+
+        def probe() -> None:
+            probed.append(-len(probed) - 1)
+            out.write(probed[-1])
+
+        wait_until(lambda: node.match is not None, "the node to take a probe (discovery)",
+                   timeout=60, interval=0.05, between=probe)
+        probes = len(probed)
         first = int(node.wait_ready().group(1))
         for i in range(N):
             out.write(i)

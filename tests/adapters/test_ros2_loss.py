@@ -10,7 +10,6 @@ table and the client's ``health()`` (the ``RosLoss`` report).
 from __future__ import annotations
 
 import contextlib
-import time
 import urllib.request
 from collections.abc import Callable
 
@@ -40,15 +39,18 @@ def test_a_burst_is_delivered_or_counted(ros_env: int,
         ch = bridge.subscribe(topic, "std_msgs/msg/Int64", transport="tcp", blocking=True,
                               buffer_size=4 * N)
         pub = node.create_publisher(topic, "std_msgs/msg/Int64", "data", QoS(depth=N))
-        first = None
-        probes = 0
-        deadline = time.monotonic() + 30
-        while first is None and time.monotonic() < deadline:  # discovery
-            probes += 1
-            pub.publish([-probes])
+        probed: list[int] = []
+
+        def probe_arrived() -> int | None:  # discovery: a probe (-k) through proves the path
+            probed.append(-len(probed) - 1)
+            pub.publish(probed[-1:])
             with contextlib.suppress(TimeoutError):
-                first = ch.read(timeout=0.1)
-        assert first is not None
+                return int(ch.read(timeout=0.1))
+            return None
+
+        first: int = wait_until(probe_arrived, "a probe through the server's subscription",
+                                timeout=30, interval=0)
+        probes = len(probed)
         assert first < 0
         pub.publish(list(range(N)))
         # Until the burst's last value: a KEEP_LAST queue never drops its newest message, so
@@ -56,11 +58,14 @@ def test_a_burst_is_delivered_or_counted(ros_env: int,
         # quiet": a reliable writer repairs a sample lost in transport at its next heartbeat
         # (3 s with Fast DDS's defaults), so a burst can pause that long and still come.
         received: list[int] = []
-        deadline = time.monotonic() + 60
-        while received[-1:] != [N - 1]:
-            assert time.monotonic() < deadline, f"{N - 1} never arrived: {len(received)} did"
+
+        def last_came() -> bool:
             with contextlib.suppress(TimeoutError):
                 received.append(ch.read(timeout=1.0))
+            return received[-1:] == [N - 1]
+
+        wait_until(last_came, lambda: f"{N - 1} ({len(received)} values came)", timeout=60,
+                   interval=0)
         channel = bridge.server_stats()["session"]["channels"][str(ch.channel_id)]
         lost = channel["ros_lost"]
         print(f"{N} published in one go, {len(received)} delivered, {lost} counted lost")

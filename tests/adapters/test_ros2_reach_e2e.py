@@ -12,12 +12,13 @@ import json
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from reach_netns import PEER, LoggedProcess, World, in_namespace, run_cli, world
+
+from waiting import wait_until
 
 pytest.importorskip("test_msgs.action", reason="needs ros-test-msgs")
 pytest.importorskip("std_srvs.srv", reason="needs ros-std-srvs")
@@ -168,11 +169,9 @@ def test_a_latched_value_from_the_sdk_reaches_a_late_rclpy_subscriber(
     topic = f"/reach/sdk_map_{transport}"
     out = sdk.publish(topic, "std_msgs/msg/String", transport=transport,
                       qos=QoS(durability="transient_local"))
-    deadline = time.monotonic() + 30
-    while not _published(sdk, topic):  # a lost datagram is written again
-        assert time.monotonic() < deadline, f"the server never published on {topic}"
-        out.write(f"sdk map over {transport}")
-        time.sleep(0.2)
+    # Written until the server published it (again and again: a datagram may be lost).
+    wait_until(lambda: _published(sdk, topic), f"the server to publish on {topic}", timeout=30,
+               interval=0.2, between=lambda: out.write(f"sdk map over {transport}"))
     late = reach.peer("latched", topic)
     assert late.wait(90) == 0, late.log
     late.stop()

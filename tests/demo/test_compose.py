@@ -22,7 +22,6 @@ import shutil
 import signal
 import subprocess
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ import yaml
 
 from localhost import rlbridge_command
 from rlbridge.demo.vision import Lissajous
+from waiting import wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 COMPOSE = REPO / "docker-compose.yml"
@@ -138,16 +138,16 @@ class Service:
             self.lines.put(line)
 
     def wait_for_line(self, predicate: Callable[[str], bool], timeout: float) -> str:
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
+        def matching() -> str | None:
             try:
-                line = self.lines.get(timeout=left)
+                line = self.lines.get(timeout=0.1)
             except queue.Empty:
-                break
-            if predicate(line):
-                return line
-        raise AssertionError(f"{self.name}: no matching line within {timeout} s:\n"
-                             + "".join(self.output))
+                return None
+            return line if predicate(line) else None
+
+        found: str = wait_until(matching, lambda: f"a matching line from {self.name}; it "
+                                f"said:\n{''.join(self.output)}", timeout=timeout, interval=0)
+        return found
 
     def wait(self, timeout: float) -> int:
         code = self.proc.wait(timeout)

@@ -18,6 +18,7 @@ import pytest
 
 from rlbridge import ShmLink
 from rlbridge.server import ServerConfig, ServerThread
+from waiting import wait_until
 
 README = Path(__file__).resolve().parents[2] / "README.md"
 
@@ -73,9 +74,8 @@ def test_ctrl_c_on_the_readme_pattern_example_stops_quietly_with_130(
             assert proc.stdout is not None
             segment = proc.stdout.readline().strip()
             assert segment, proc.communicate(timeout=30)
-            deadline = time.monotonic() + 60
-            while not loop_is_running(proc.pid) and time.monotonic() < deadline:
-                time.sleep(0.1)
+            wait_until(lambda: loop_is_running(proc.pid), "the loop process to start",
+                       timeout=60, interval=0.1)
             time.sleep(after)
             os.killpg(proc.pid, signal.SIGINT)
             out, err = proc.communicate(timeout=60)
@@ -87,10 +87,14 @@ def test_ctrl_c_on_the_readme_pattern_example_stops_quietly_with_130(
     assert err == ""  # no traceback, neither the loop process's nor the script's
     assert out == ""
     assert not (Path("/dev/shm") / segment).exists(), f"{segment} left in /dev/shm"
-    deadline = time.monotonic() + 10
-    while _group_alive(proc.pid) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert _group_alive(proc.pid) == []
+    alive: list[str] = []
+
+    def group_gone() -> bool:
+        alive[:] = _group_alive(proc.pid)
+        return not alive
+
+    wait_until(group_gone, lambda: f"the process group to end; still running: {alive}",
+               interval=0.1)
 
 
 def loop_is_running(pgid: int) -> bool:

@@ -21,7 +21,6 @@ from rlbridge.wire import (
     Batch,
     ConnectAck,
     FrameDecoder,
-    Heartbeat,
     Hello,
     Malformed,
     PacketCodec,
@@ -74,9 +73,9 @@ class StalledReader:
 
     def drain_until(self, last: str) -> None:
         """Read everything until the value ``last`` arrived; record (seq, value)."""
-        deadline = time.monotonic() + WAIT
-        while not self.values or self.values[-1][1] != last:
-            assert time.monotonic() < deadline, f"{last!r} never arrived"
+        def arrived() -> bool:
+            if self.values and self.values[-1][1] == last:
+                return True
             for packet in self.decoder.feed(self.sock.recv(1 << 16)):
                 assert not isinstance(packet, Malformed)
                 if isinstance(packet, Value):
@@ -84,17 +83,23 @@ class StalledReader:
                 elif isinstance(packet, Batch):
                     self.values.extend(
                         (packet.first_seq + i, v) for i, v in enumerate(packet.values))
+            return False
+
+        wait_until(arrived, lambda: f"{last[:8]!r} ({len(self.values)} values came)",
+                   timeout=WAIT, interval=0)
 
     def stats(self) -> dict[str, Any]:
         self.send(Stats())
-        deadline = time.monotonic() + WAIT
-        while time.monotonic() < deadline:
+
+        def answer() -> dict[str, Any] | None:  # values and heartbeats before it are skipped
             for packet in self.decoder.feed(self.sock.recv(1 << 16)):
                 if isinstance(packet, Stats):
                     return packet.body["session"]["channels"]["1"]  # type: ignore[no-any-return]
-                if isinstance(packet, Value | Batch | Heartbeat):
-                    continue
-        raise AssertionError("no stats")
+            return None
+
+        channel: dict[str, Any] = wait_until(answer, "the server's Stats answer", timeout=WAIT,
+                                             interval=0)
+        return channel
 
     def close(self) -> None:
         self.sock.close()
@@ -125,10 +130,8 @@ def _wait_server(srv: ServerThread, pred: Callable[[dict[str, Any]], bool]) -> d
         seen[0] = chans[0].health(-1)
         return seen[0] if pred(seen[0]) else None
 
-    try:
-        found: dict[str, Any] = wait_until(counters, "the server's counters", interval=0.02)
-    except AssertionError:
-        raise AssertionError(f"server counters stuck at {seen[0]}") from None
+    found: dict[str, Any] = wait_until(counters, lambda: f"the server's counters (stuck at "
+                                       f"{seen[0]})", interval=0.02)
     return found
 
 

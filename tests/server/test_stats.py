@@ -9,7 +9,6 @@ sessions counted.
 from __future__ import annotations
 
 import socket
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -26,6 +25,7 @@ from rlbridge.wire import (
     Value,
 )
 from rlbridge.wire.codec import DATAGRAM_HEADER, FRAME_HEADER, MAGIC, PROTOCOL_VERSION
+from waiting import wait_until
 
 F64 = "std_msgs/msg/Float64"
 #: Value(channel 1, seq="x", ...): decodes far enough to name channel 1, then fails.
@@ -155,13 +155,17 @@ def test_slow_consumer_is_bounded_and_counted(make_server: Callable[..., Any]) -
     def read_until(sock: socket.socket, pred: Callable[[Any], bool]) -> list[Any]:
         decoder = decoders.setdefault(sock.fileno(), FrameDecoder(codec))
         seen: list[Any] = []
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
+
+        def arrived() -> bool:
             for packet in decoder.feed(sock.recv(1 << 16)):
                 seen.append(packet)
                 if pred(packet):
-                    return seen
-        raise AssertionError("expected packet did not arrive")
+                    return True
+            return False
+
+        wait_until(arrived, lambda: f"the expected packet (came: {seen[-5:]})", timeout=30,
+                   interval=0)
+        return seen
 
     decoders: dict[int, FrameDecoder] = {}
     slow = connect("slow", rcvbuf=4096)
