@@ -24,17 +24,16 @@
 #include <errno.h>
 #include <netinet/in.h>
 #include <pthread.h>
-#include <sched.h>
 #include <stdatomic.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/mman.h>
 #include <sys/resource.h>
 #include <sys/socket.h>
 #include <time.h>
 #include <unistd.h>
 
+#include "progs.h"
 #include "rlbridge.h"
 
 #define MAX_CH 64
@@ -74,30 +73,7 @@ static void print_dist(const char *name, double *v, size_t n, bool last) {
 }
 
 static unsigned long arg_ul(const char *s, const char *what) {
-    char *end;
-    unsigned long v = strtoul(s, &end, 10);
-    if (*end || v == 0) {
-        fprintf(stderr, "rlb_rt_bench: %s must be a positive integer, not %s\n", what, s);
-        exit(2);
-    }
-    return v;
-}
-
-static bool start_fifo(pthread_t *t, void *(*fn)(void *), void *arg) {
-    (void)mlockall(MCL_CURRENT | MCL_FUTURE);
-    pthread_attr_t attr;
-    pthread_attr_init(&attr);
-    struct sched_param sp = {.sched_priority = 80};
-    pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
-    pthread_attr_setschedpolicy(&attr, SCHED_FIFO);
-    pthread_attr_setschedparam(&attr, &sp);
-    bool fifo = pthread_create(t, &attr, fn, arg) == 0;
-    pthread_attr_destroy(&attr);
-    if (!fifo && pthread_create(t, NULL, fn, arg) != 0) {
-        fprintf(stderr, "rlb_rt_bench: cannot start the loop thread\n");
-        exit(1);
-    }
-    return fifo;
+    return positive_arg("rlb_rt_bench", what, s);
 }
 
 /* -- the client: declare, connect, start ------------------------------------------------- */
@@ -195,7 +171,7 @@ static int mode_jitter(int argc, char **argv) {
     l.write_ns = calloc(l.periods, sizeof(double));
     if (!l.late_us || !l.dev_us || !l.write_ns) return 1;
     pthread_t t;
-    bool fifo = start_fifo(&t, run, &l);
+    bool fifo = start_rt_thread("rlb_rt_bench", &t, run, &l);
     pthread_join(t, NULL);
     unsigned long long sent = 0;
     if (c != NULL) {
@@ -242,7 +218,7 @@ static int mode_pub(int argc, char **argv, bool raw) {
     }
     double cpu0 = cpu_s(), wall0 = now_s(CLOCK_MONOTONIC);
     pthread_t t;
-    bool fifo = start_fifo(&t, run, &l);
+    bool fifo = start_rt_thread("rlb_rt_bench", &t, run, &l);
     pthread_join(t, NULL);
     unsigned long long sent = l.written;
     if (c != NULL) {

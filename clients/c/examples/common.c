@@ -1,11 +1,8 @@
 #include "common.h"
 
-#include <errno.h>
-#include <sched.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/mman.h>
 
 void parse_args(int argc, char **argv, const char *usage, args *a) {
     memset(a, 0, sizeof *a);
@@ -71,11 +68,7 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
     }
     a->port = (uint16_t)port;
     a->topic = p[2];
-    a->count = strtoul(p[3], &end, 10);
-    if (*end || a->count == 0) {
-        fprintf(stderr, "%s: COUNT must be a positive integer, not %s\n", argv[0], p[3]);
-        exit(2);
-    }
+    a->count = positive_arg(argv[0], "COUNT", p[3]);
     if (want == 4) return;
     a->number = strtod(p[4], &end);
     if (*end || !(a->number > 0)) {
@@ -125,21 +118,4 @@ void setup_failed(const char *prog, const args *a, int status) {
     else if (a->tls_ca || a->tls_fingerprint)
         why = " (a TLS CA, certificate or key file that does not load, or a bad fingerprint)";
     fprintf(stderr, "%s: cannot set up the client: %s%s\n", prog, rlb_status_text(status), why);
-}
-
-bool start_rt_thread(pthread_t *t, void *(*fn)(void *), void *arg) {
-    (void)mlockall(MCL_CURRENT | MCL_FUTURE); /* no page faults in the loop, where permitted */
-    pthread_attr_t attr;
-    pthread_attr_init(&attr);
-    struct sched_param sp = {.sched_priority = 80};
-    pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
-    pthread_attr_setschedpolicy(&attr, SCHED_FIFO);
-    pthread_attr_setschedparam(&attr, &sp);
-    bool fifo = pthread_create(t, &attr, fn, arg) == 0;
-    pthread_attr_destroy(&attr);
-    if (!fifo && pthread_create(t, NULL, fn, arg) != 0) {
-        fprintf(stderr, "cannot start the loop thread\n");
-        exit(1);
-    }
-    return fifo;
 }

@@ -1,11 +1,12 @@
-/* What rlb_pub and rlb_sub share: arguments, the key file and the real-time set-up. */
+/* What the examples share: arguments, the key file, the set-up's error line (the real-time
+ * loop thread is progs.h's, which the proof and benchmark programs use too). */
 #ifndef RLB_EXAMPLES_COMMON_H
 #define RLB_EXAMPLES_COMMON_H
 
-#include <pthread.h>
 #include <stdbool.h>
 #include <stdint.h>
 
+#include "progs.h"
 #include "rlbridge.h"
 
 typedef struct args {
@@ -30,8 +31,5 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
                  uint8_t key[RLB_MAX_KEY]);
 /* The line for a client that could not be set up (rlb_client_new's status). */
 void setup_failed(const char *prog, const args *a, int status);
-/* Starts fn as the loop thread: SCHED_FIFO (priority 80) when permitted, else normal.
- * Locks memory first (mlockall) when permitted. Returns whether it got SCHED_FIFO. */
-bool start_rt_thread(pthread_t *t, void *(*fn)(void *), void *arg);
 
 #endif

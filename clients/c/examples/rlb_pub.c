@@ -104,7 +104,7 @@ int main(int argc, char **argv) {
     }
     rlb_start(c);
     pthread_t t;
-    bool fifo = start_rt_thread(&t, run, &l);
+    bool fifo = start_rt_thread("rlb_pub", &t, run, &l);
     pthread_join(t, NULL);
     rc = rlb_flush(c, 30000);
     unsigned long long sent = 0;

@@ -1,5 +1,6 @@
 # The proofs of issue 28's points 6 and 7 and the C client's benchmark program, included at the
-# end of clients/c/CMakeLists.txt (the library, its warnings and the test switch exist by now).
+# end of clients/c/CMakeLists.txt (the library, its warnings, rlb_progs and the test switch exist
+# by now).
 #
 #  - rt_seccomp: the loop thread under a seccomp filter (tests/c_client/test_c_realtime.py).
 #  - fuzz_decode: the fuzz corpus and random bytes through the receive path (ctest).
@@ -20,11 +21,11 @@ endfunction()
 
 if(CMAKE_SYSTEM_NAME STREQUAL "Linux")
   rlb_proof_program(rt_seccomp ${RLB_PROOF_DIR}/rt_seccomp.c)
-  target_link_libraries(rt_seccomp PRIVATE rlbridge)
+  target_link_libraries(rt_seccomp PRIVATE rlbridge rlb_progs)
 endif()
 
 rlb_proof_program(rlb_rt_bench ${RLB_REPO_ROOT}/benchmarks/c_client/rlb_rt_bench.c)
-target_link_libraries(rlb_rt_bench PRIVATE rlbridge)
+target_link_libraries(rlb_rt_bench PRIVATE rlbridge rlb_progs)
 
 # The receive path through the library's internal functions (src/conn.h): the static
 # library only (a shared one exports rlb_* alone).

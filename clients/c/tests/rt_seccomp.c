@@ -24,18 +24,17 @@
 #include <linux/audit.h>
 #include <linux/filter.h>
 #include <linux/seccomp.h>
-#include <sched.h>
 #include <stdatomic.h>
 #include <stddef.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/mman.h>
 #include <sys/prctl.h>
 #include <sys/syscall.h>
 #include <time.h>
 #include <unistd.h>
 
+#include "progs.h"
 #include "rlbridge.h"
 
 #if defined(__x86_64__)
@@ -159,13 +158,7 @@ static void wait_state(const loop *l, int at_least) {
 }
 
 static unsigned long number(const char *s, const char *what) {
-    char *end;
-    unsigned long v = strtoul(s, &end, 10);
-    if (*end || v == 0) {
-        fprintf(stderr, "rt_seccomp: %s must be a positive integer, not %s\n", what, s);
-        exit(2);
-    }
-    return v;
+    return positive_arg("rt_seccomp", what, s);
 }
 
 int main(int argc, char **argv) {
@@ -214,20 +207,8 @@ int main(int argc, char **argv) {
         fprintf(stderr, "rt_seccomp: cannot set up the client: %s\n", rlb_status_text(rc));
         return 1;
     }
-    (void)mlockall(MCL_CURRENT | MCL_FUTURE);
-    pthread_attr_t attr;
-    pthread_attr_init(&attr);
-    struct sched_param sp = {.sched_priority = 80};
-    pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
-    pthread_attr_setschedpolicy(&attr, SCHED_FIFO);
-    pthread_attr_setschedparam(&attr, &sp);
     pthread_t t;
-    bool fifo = pthread_create(&t, &attr, run, &l) == 0;
-    if (!fifo && pthread_create(&t, NULL, run, &l) != 0) {
-        fprintf(stderr, "rt_seccomp: cannot start the loop thread\n");
-        return 1;
-    }
-    pthread_attr_destroy(&attr);
+    bool fifo = start_rt_thread("rt_seccomp", &t, run, &l);
     wait_state(&l, 1);
     if (atomic_load(&l.state) < 0) {
         fprintf(stderr, "rt_seccomp: the kernel refused the seccomp filter: %s\n",
