@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from rlbridge.adapters.base import QoS
+from rlbridge.adapters.inproc import InProcessBus
 from rlbridge.client.session.auth import ClientAuth
 from rlbridge.server import ServerThread
 from rlbridge.wire import (
@@ -32,6 +34,9 @@ from rlbridge.wire import (
     Hello,
     PacketCodec,
     Stats,
+    TopicAck,
+    TopicConnect,
+    Value,
 )
 from rlbridge.wire.aead import chacha20_poly1305
 from rlbridge.wire.records import RECORD_MAX, RecordOpener, SealedStreamDecoder, stream_sealers
@@ -43,6 +48,7 @@ CODEC = PacketCodec()
 SEALED = 0x01
 #: The largest length field of a record: 65 536 bytes of frames and the 16-byte tag.
 RECORD_LIMIT = RECORD_MAX + 16
+F64 = "std_msgs/msg/Float64"
 
 
 @pytest.fixture
@@ -176,6 +182,62 @@ def test_a_record_cut_short_by_the_end_of_the_stream_closes_quietly(
     assert client.until_closed() == []
     got = counters(psk_server)
     assert (got.get("tcp_rejected_records", 0), got.get("malformed", 0)) == (0, 0)
+
+
+def publishing_client(srv: ServerThread, topic: str) -> tuple[SealedClient, list[object]]:
+    """A sealed client with channel 1 bound to publish on ``topic``, and every value the
+    server's in-process bus delivers there (synchronously, on the server's loop)."""
+    registry = srv.server.registry
+    assert registry is not None
+    bus = registry.ctx.adapter
+    assert isinstance(bus, InProcessBus)
+    published: list[object] = []
+    bus.subscribe(topic, F64, "data", QoS(), published.extend)
+    client = SealedClient(srv.port)
+    client.sock.sendall(client.sealer.seal(CODEC.encode_frame(
+        TopicConnect(1, "publish", topic, F64, transport="tcp"))))
+    got: list[object] = []
+    while not any(isinstance(p, TopicAck) for p in got):  # bounded by the socket's timeout
+        got += client.decoder.feed(client.sock.recv(65536))
+    return client, published
+
+
+@pytest.mark.parametrize(("case", "code", "reason", "counter"), [
+    ("injected-frame", ErrorCode.AUTH_FAILED, "unsealed frame", "tcp_rejected_records"),
+    ("bad-frame-in-record", ErrorCode.MALFORMED, "bad magic b'XX'", "malformed"),
+])
+def test_records_before_a_bad_one_in_the_same_write_run_first(
+        psk_server: ServerThread, case: str, code: ErrorCode, reason: str,
+        counter: str) -> None:
+    """Records of values, then a plain frame injected after them, or a record whose last
+    frame has a bad header, all in one write: every value before the fault is published,
+    then the stream is refused as it would be alone."""
+    client, published = publishing_client(psk_server, "/sealed/run")
+    seal = client.sealer.seal
+    values = [CODEC.encode_frame(Value(1, i, 0, float(i))) for i in range(4)]
+    stream = seal(b"".join(values[:2])) + seal(values[2])  # sealed in order: the counter
+    if case == "injected-frame":
+        stream += seal(values[3]) + FRAME_HEADER.pack(MAGIC, PROTOCOL_VERSION, 0, 2) + b"\x91\x0a"
+    else:
+        stream += seal(values[3] + FRAME_HEADER.pack(b"XX", PROTOCOL_VERSION, 0, 2))
+    client.sock.sendall(stream)
+    ends_with(client.until_closed(), code, reason)
+    assert published == [0.0, 1.0, 2.0, 3.0]
+    assert counters(psk_server).get(counter) == 1
+
+
+def test_a_hello_and_a_bad_header_in_one_write_get_the_challenge_then_the_refusal(
+        psk_server: ServerThread) -> None:
+    """The hello before the bad header is answered (AuthChallenge) before the stream is
+    refused (ConnectError(2), plain: no session exists), as if each had come alone."""
+    sock = socket.create_connection(("127.0.0.1", psk_server.port), timeout=WAIT)
+    auth = ClientAuth(KEY, "raw")
+    sock.sendall(CODEC.encode_frame(Hello(PROTOCOL_VERSION, "raw", auth.nonce))
+                 + FRAME_HEADER.pack(b"XX", PROTOCOL_VERSION, 0, 2))
+    answer = plain_answer(sock)
+    assert [type(p) for p in answer] == [AuthChallenge, ConnectError]
+    assert isinstance(answer[1], ConnectError)
+    assert (answer[1].code, "bad magic" in answer[1].reason) == (ErrorCode.MALFORMED, True)
 
 
 # -- section 2: flags bit 0 where no record can be --------------------------------------------

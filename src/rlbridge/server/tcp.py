@@ -56,7 +56,9 @@ class TcpConnection(asyncio.Protocol):
     """One client socket. The first packet must be a hello; then everything goes to its session.
 
     Packets are decoded whole as soon as their last byte arrives (``data_received``), and every
-    value in them is delivered before the next read: nothing polls (thesis 3.2.2).
+    value in them is delivered before the next read: nothing polls (thesis 3.2.2). A header
+    that loses the framing is answered after the packets before it in the same read have
+    been handled, so what the server does never depends on how the stream was cut into reads.
     """
 
     def __init__(self, registry: SessionRegistry) -> None:
@@ -126,13 +128,7 @@ class TcpConnection(asyncio.Protocol):
             if not plain:
                 return
             data = plain
-        try:
-            packets = self._decoder.feed(data)
-        except RemoteProtocolError as exc:
-            self._registry.ctx.count("tcp_rejected_records" if exc.code == ErrorCode.AUTH_FAILED
-                                     else "malformed")
-            self._fatal(exc.code, exc.reason)
-            return
+        packets, fault = self._decoder.feed_until_fault(data)
         session = self._session
         if session is not None:
             session.bytes_in += len(data)
@@ -140,6 +136,9 @@ class TcpConnection(asyncio.Protocol):
             self._to_session(session, packets)
         else:
             self._handshake(packets)
+        if fault is not None:
+            self._lost_framing(fault)
+            return
         if self._refeed:
             self._refeed = False
             self.data_received(b"")
@@ -241,6 +240,17 @@ class TcpConnection(asyncio.Protocol):
             result.codec = sealed_codec(tls_datagram_keys(secret, result.token), server=True)
         self._sink.send(self._registry.ack(result, secret))
         result.acknowledged()
+
+    def _lost_framing(self, fault: RemoteProtocolError) -> None:
+        """A header (or record) that loses the framing, answered once every packet before it
+        in the same read was handled: unless those packets ended the connection themselves
+        (a Disconnect, a refused hello), whose later bytes are then never read, as they would
+        not be had they come in a read of their own."""
+        if self._transport is None or self._transport.is_closing():
+            return
+        self._registry.ctx.count("tcp_rejected_records" if fault.code == ErrorCode.AUTH_FAILED
+                                 else "malformed")
+        self._fatal(fault.code, fault.reason)
 
     def _fatal(self, code: ErrorCode, reason: str) -> None:
         """The byte stream cannot be trusted any more: say why, then close.

@@ -191,42 +191,55 @@ def _tag_and_channel(raw: object) -> tuple[int | None, int | None]:
     return None, None
 
 
-def check_header(magic: bytes, version: int) -> None:
-    """Refuse a header that is not ours, or ours in a version this code does not speak."""
+def header_error(magic: bytes, version: int) -> RemoteProtocolError | None:
+    """Why a header is not ours, or ours in a version this code does not speak (``None``: it
+    is ours). Returned, not raised: a decoder stops on it and still hands out what came
+    before (:meth:`FrameDecoder.feed_until_fault`)."""
     if magic in _TLS_STARTS:
-        raise RemoteProtocolError(
+        return RemoteProtocolError(
             ErrorCode.MALFORMED,
             "a TLS handshake on a port without TLS: connect without TLS, or start the server "
             "with --tls-cert and --tls-key",
             fatal=True,
         )
     if magic != MAGIC:
-        raise RemoteProtocolError(
+        return RemoteProtocolError(
             ErrorCode.MALFORMED,
             f"bad magic {magic!r}: this port speaks the rlbridge protocol (magic b'RB')",
             fatal=True,
         )
     if version != PROTOCOL_VERSION:
-        raise RemoteProtocolError(
+        return RemoteProtocolError(
             ErrorCode.UNSUPPORTED_VERSION,
             f"protocol version {version} is not supported; this peer speaks version "
             f"{PROTOCOL_VERSION}",
             fatal=True,
         )
+    return None
 
 
-def refuse_sealed(flags: int) -> None:
-    """Refuse a frame header with bit 0 (``SEALED``): it is set on the outer headers of a
-    sealed TCP stream only (docs/protocol.md, sections 2 and 16.5), and it changes how the
-    bytes after the header are read, so where a plain frame belongs it loses the framing:
-    before the key handshake, on a session without sealed records, inside a record."""
+def check_header(magic: bytes, version: int) -> None:
+    """Refuse a header that is not ours, or ours in a version this code does not speak."""
+    error = header_error(magic, version)
+    if error is not None:
+        raise error
+
+
+def sealed_flag_error(flags: int) -> RemoteProtocolError | None:
+    """Why a frame header with bit 0 (``SEALED``) is refused (``None``: bit 0 is clear).
+
+    The bit is set on the outer headers of a sealed TCP stream only (docs/protocol.md,
+    sections 2 and 16.5), and it changes how the bytes after the header are read, so where a
+    plain frame belongs it loses the framing: before the key handshake, on a session without
+    sealed records, inside a record."""
     if flags & FLAG_MAC:
-        raise RemoteProtocolError(
+        return RemoteProtocolError(
             ErrorCode.MALFORMED,
             "a frame header with flags bit 0 (a sealed record) where a plain frame belongs: "
             "records exist only after the key handshake of a pre-shared-key session without TLS",
             fatal=True,
         )
+    return None
 
 
 class FrameDecoder:
@@ -251,12 +264,31 @@ class FrameDecoder:
     def feed(self, data: bytes) -> list[Packet | Malformed]:
         """Every packet the bytes so far complete, in order (a read chunk in one go).
 
-        Per frame the loop makes one C call to decode (msgspec's, on a view of the buffer:
-        no copy per frame); only a body that does not decode takes the slower path that
-        grades its error (:meth:`PacketCodec.decode_body`).
+        Raises the fault that broke the stream (a fatal :class:`RemoteProtocolError`), and
+        then the packets completed before it in the same bytes are dropped: a receiver that
+        must act on those first (the server) calls :meth:`feed_until_fault`.
+        """
+        packets, fault = self.feed_until_fault(data)
+        if fault is not None:
+            raise fault
+        return packets
+
+    def feed_until_fault(
+        self, data: bytes
+    ) -> tuple[list[Packet | Malformed], RemoteProtocolError | None]:
+        """Every packet the bytes so far complete, in order, and the fault that broke the
+        stream (``None`` while it holds).
+
+        A header that loses the framing (bad magic or version, flags bit 0, a length over
+        ``max_packet``) stops the decoding there: the packets before it are returned with
+        it, so none is lost to the bytes that followed it in the same read; from then on
+        every call returns no packet and the same fault. Per frame the loop makes one C call
+        to decode (msgspec's, on a view of the buffer: no copy per frame); only a body that
+        does not decode takes the slower path that grades its error
+        (:meth:`PacketCodec.decode_body`).
         """
         if self._broken is not None:
-            raise self._broken
+            return [], self._broken
         buf = self._buf
         buf += data
         out: list[Packet | Malformed] = []
@@ -267,24 +299,21 @@ class FrameDecoder:
         size = len(buf)
         hsize = FRAME_HEADER.size
         limit = self._max
+        fault: RemoteProtocolError | None = None
         view = memoryview(buf)
         try:
             while size - pos >= hsize:
                 magic, version, flags, length = unpack(buf, pos)
                 if magic != MAGIC or version != PROTOCOL_VERSION or flags & FLAG_MAC:
-                    try:
-                        check_header(magic, version)
-                        refuse_sealed(flags)
-                    except RemoteProtocolError as exc:
-                        self._broken = exc
-                        raise
+                    fault = header_error(magic, version) or sealed_flag_error(flags)
+                    break
                 if length > limit:
-                    self._broken = RemoteProtocolError(
+                    fault = RemoteProtocolError(
                         ErrorCode.TOO_LARGE,
                         f"frame of {length} bytes exceeds the limit of {limit} bytes",
                         fatal=True,
                     )
-                    raise self._broken
+                    break
                 end = pos + hsize + length
                 if end > size:
                     break
@@ -295,9 +324,12 @@ class FrameDecoder:
                 pos = end
         finally:
             view.release()
-        if pos:
+        if fault is not None:
+            self._broken = fault
+            buf.clear()  # nothing after a fault is read: hold none of it
+        elif pos:
             del buf[:pos]
-        return out
+        return out, fault
 
     def _invalid(self, body: memoryview) -> Packet | Malformed:
         """A body the fast decode refused, with its error graded as ``decode_body`` does."""

@@ -127,19 +127,45 @@ class SealedStreamDecoder:
         self._strict = strict
 
     def feed(self, data: bytes) -> list[Packet | Malformed]:
-        if self._broken is not None:
-            raise self._broken
-        try:
-            return self._feed(data)
-        except RemoteProtocolError as exc:
-            if exc.fatal:
-                self._broken = exc
-            raise
+        """As :meth:`FrameDecoder.feed <rlbridge.wire.codec.FrameDecoder.feed>`: raises the
+        fault, dropping the packets before it (a receiver that must act on those first calls
+        :meth:`feed_until_fault`)."""
+        packets, fault = self.feed_until_fault(data)
+        if fault is not None:
+            raise fault
+        return packets
 
-    def _feed(self, data: bytes) -> list[Packet | Malformed]:
+    def feed_until_fault(
+        self, data: bytes
+    ) -> tuple[list[Packet | Malformed], RemoteProtocolError | None]:
+        """The packets the bytes so far complete, and the fault that ended the stream, if one
+        did: every packet of the records (or plain frames) before it comes out with it,
+        those of the record whose inner frame broke included (as ``FrameDecoder``'s
+        :meth:`~rlbridge.wire.codec.FrameDecoder.feed_until_fault`)."""
+        if self._broken is not None:
+            return [], self._broken
+        out: list[Packet | Malformed] = []
+        try:
+            self._feed(data, out)
+        except RemoteProtocolError as exc:  # every error _feed raises loses the stream
+            self._broken = exc
+            self._buf.clear()
+            return out, exc
+        return out, None
+
+    def _frames_of(self, chunk: bytes, out: list[Packet | Malformed]) -> list[Packet | Malformed]:
+        """The packets of a stretch of the frame stream onto ``out`` (and returned); a
+        fault inside it is raised once those before it are on ``out``."""
+        got, fault = self._frames.feed_until_fault(chunk)
+        out += got
+        if fault is not None:
+            raise fault
+        return got
+
+    def _feed(self, data: bytes, out: list[Packet | Malformed]) -> None:
+        """Decode onto ``out``, so that what was decoded before an error raised stays there."""
         buf = self._buf
         buf += data
-        out: list[Packet | Malformed] = []
         pos, size, hsize = 0, len(buf), FRAME_HEADER.size
         try:
             while size - pos >= hsize:
@@ -154,8 +180,7 @@ class SealedStreamDecoder:
                                 f"limit of {self._max} bytes", fatal=True)
                         if end > size:
                             break
-                        got = self._frames.feed(bytes(buf[pos:end]))
-                        out += got
+                        got = self._frames_of(bytes(buf[pos:end]), out)
                         pos = end
                         if (self._stop_after is not None and self._opener is None
                                 and any(isinstance(p, self._stop_after) for p in got)):
@@ -178,12 +203,11 @@ class SealedStreamDecoder:
                 plain = self._opener.open(bytes(buf[pos:pos + hsize]),
                                           bytes(buf[pos + hsize:end]))
                 self.records += 1
-                out += self._frames.feed(plain)
                 pos = end
+                self._frames_of(plain, out)
         finally:
             if pos:
                 del buf[:pos]
-        return out
 
 
 def refuse_record(magic: bytes, version: int, flags: int, length: int) -> None:
