@@ -126,7 +126,13 @@ class Receiver:
                         if not data:
                             conn.end_session("server closed the TCP connection", generation)
                             return
-                        self._stream(decoder.feed(conn.tcp_received(data)))
+                        # The packets before a header that broke the stream still count:
+                        # handed on first, then the fault ends the session.
+                        packets, fault = decoder.feed_until_fault(conn.tcp_received(data))
+                        self._stream(packets)
+                        if fault is not None:
+                            self._flush_values()
+                            raise fault
                     elif fd == udp_fd and udp is not None:
                         self._receive_datagrams(udp, token, queued)
                     else:
