@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import typing
 from collections.abc import Iterator
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 import typer
@@ -96,3 +98,30 @@ def test_the_channel_options_are_the_fields_of_qos_and_policy_one_to_one() -> No
     for path in ("topic pub", "topic echo", "topic hz"):
         opts = {o for p in commands[f"rlbridge {path}"].params for o in getattr(p, "opts", ())}
         assert wanted <= opts, f"{path}: lacks {sorted(wanted - opts)}"
+
+
+def _help_of(option: Any) -> str:
+    """The help text an ``Annotated[..., typer.Option(...)]`` definition carries."""
+    return str(typing.get_args(option)[1].help)
+
+
+def _param(path: str, long: str) -> Any:
+    found = [p for p in dict(_all())[path].params if long in getattr(p, "opts", ())]
+    assert len(found) == 1, f"{path}: {long}"
+    return found[0]
+
+
+# -- --psk-file: one definition, one builder (the session commands and the demo) ----------
+def test_every_client_side_psk_file_is_the_one_definition_built_by_psk_of(
+        tmp_path: Path) -> None:
+    """``demo --psk-file`` had its own option and built its ``Psk`` where it connected."""
+    from rlbridge import Psk
+    from rlbridge.cli.options import PskFileOpt, psk_of
+
+    for path in (*(f"rlbridge {c}" for c in SESSION_COMMANDS), "rlbridge demo"):
+        assert _param(path, "--psk-file").help == _help_of(PskFileOpt), path
+    key = tmp_path / "key"
+    assert psk_of(None) is None  # $RLBRIDGE_PSK then applies, as for security=None
+    assert psk_of(key) == Psk(file=key)
+    assert ServerTarget(psk_file=str(key)).security() == psk_of(str(key))
+

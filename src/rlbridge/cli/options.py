@@ -5,6 +5,11 @@ every command that has a host (``serve`` and ``demo`` included), ``-t`` is ``--t
 wherever there is a transport, and no command gives either letter another meaning
 (``tests/cli/test_options.py`` walks every command to check). :func:`option` builds a
 ``typer.Option`` with the long name, its short one if it has one, and the help text.
+
+The options that stand for the SDK's objects are defined here once and built into those
+objects here only, so ``--help`` and the API cannot drift: ``ServerTarget`` (host, port,
+``Tls``, ``Psk`` by :func:`psk_of`, which ``demo --psk-file`` calls too) and
+``ChannelChoice`` (``QoS`` and ``Policy``).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import re
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, cast
 
 import typer
@@ -138,12 +144,21 @@ class ServerTarget:
         """The ``security=`` these options stand for, built here only: ``--psk-file`` is
         ``Psk(file=...)``; ``--tls``, ``--ca``, ``--fingerprint`` and a client certificate
         turn on ``Tls(...)`` (with the key inside it, if both are given)."""
-        from rlbridge.client.options import Psk, Tls
+        from rlbridge.client.options import Tls
 
-        psk = None if self.psk_file is None else Psk(file=self.psk_file)
+        psk = psk_of(self.psk_file)
         if not (self.tls or self.ca or self.fingerprint or client_cert):
             return psk
         return Tls(ca=self.ca, fingerprint=self.fingerprint, client_cert=client_cert, psk=psk)
+
+
+def psk_of(psk_file: str | Path | None) -> Psk | None:
+    """``--psk-file``'s ``Psk(file=...)``, or None without one (``$RLBRIDGE_PSK`` then
+    applies, as for ``security=None``): the one builder of every command with the option, the
+    session commands (:meth:`ServerTarget.security`) and ``demo`` alike."""
+    from rlbridge.client.options import Psk
+
+    return None if psk_file is None else Psk(file=psk_file)
 
 
 #: The ``server`` parameter's default, for calling a command function directly.
@@ -260,3 +275,4 @@ def channel_options(command: F) -> F:
     """Give ``command`` the :class:`ChannelChoice` options in place of its ``channel``
     parameter: every command that binds a topic takes the same QoS and policy options."""
     return _option_group(command, "channel", ChannelChoice)
+
