@@ -8,12 +8,14 @@ cannot work, and "pip install again" cannot change a pure-Python wheel (``py3-no
 nothing in it compiles). pip records where it installed a distribution from (PEP 610,
 ``direct_url.json``): an editable checkout, a checkout directory, or a wheel file.
 :func:`install_source` reads it; :func:`pip_install` and :func:`compile_hint` word their
-advice for that source. Standard library only: setup.py and every part may import this.
+advice for that source, and the latter names only the build packages this machine lacks.
+Standard library only: setup.py and every part may import this.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from urllib.parse import unquote, urlparse
 
@@ -87,21 +89,59 @@ def pip_install(extra: str, source: InstallSource | None = None) -> str:
     return f"pip install {'-e ' if source.editable else ''}'{source.path}[{extra}]'"
 
 
-def compile_hint(source: InstallSource | None = None) -> str:
-    """What builds the compiled value path and libsodium's cipher into this install.
+#: What setup.py needs to build each part, as Debian and Ubuntu name the packages: mypyc's
+#: value path a C compiler and Python's headers, libsodium's cipher (a C extension) the same
+#: and libsodium's headers.
+NEEDS: dict[str, tuple[str, ...]] = {
+    "value path": ("gcc", "python3-dev"),
+    "cipher": ("gcc", "python3-dev", "libsodium-dev"),
+}
 
-    An editable checkout or a checkout directory: the build tools, then installing from it
+
+def present(package: str) -> bool:
+    """Whether this machine has what ``package`` (one named in :data:`NEEDS`) gives a build
+    now: the C compiler Python was built with (or ``gcc``, ``cc``) on the ``PATH``, this
+    interpreter's ``Python.h``, libsodium's ``sodium.h``."""
+    import shutil
+    import sysconfig
+    from pathlib import Path
+
+    if package == "gcc":
+        configured = str(sysconfig.get_config_var("CC") or "").split()
+        return any(shutil.which(cc) for cc in (*configured[:1], "gcc", "cc"))
+    if package == "python3-dev":
+        return Path(sysconfig.get_paths()["include"], "Python.h").is_file()
+    dirs = ["/usr/include", "/usr/local/include", str(sysconfig.get_config_var("INCLUDEDIR"))]
+    return any(Path(d, "sodium.h").is_file() for d in dirs)
+
+
+def missing_packages(unbuilt: Sequence[str],
+                     have: Callable[[str], bool] = present) -> list[str]:
+    """The packages the ``unbuilt`` parts (keys of :data:`NEEDS`) need that this machine
+    lacks, each once: with the value path compiled and only the cipher missing, that is
+    ``libsodium-dev`` alone (the compiler and headers are evidently there)."""
+    wanted = dict.fromkeys(p for part in unbuilt for p in NEEDS[part])
+    return [p for p in wanted if not have(p)]
+
+
+def compile_hint(unbuilt: Sequence[str] = tuple(NEEDS), source: InstallSource | None = None,
+                 have: Callable[[str], bool] = present) -> str:
+    """What builds the ``unbuilt`` parts (the compiled value path, libsodium's cipher) into
+    this install, naming only the packages this machine lacks for them.
+
+    An editable checkout or a checkout directory: those packages, then installing from it
     again. A pure wheel: nothing installed from it compiles, so a wheel built on a machine
     like this one (or an install from a checkout) is the way.
     """
     if source is None:
         source = install_source()
-    tools = "apt install gcc python3-dev libsodium-dev"
+    missing = missing_packages(unbuilt, have)
+    tools = f"apt install {' '.join(missing)}, then " if missing else ""
     if source is not None and not source.wheel:
         again = f"pip install {'-e ' if source.editable else ''}{source.path}"
-        return f"{tools}, then {again} again (without RLBRIDGE_PURE_PYTHON)"
+        return f"{tools}{again} again (without RLBRIDGE_PURE_PYTHON)"
     if source is not None and source.pure_wheel:
         return (f"this is a pure-Python wheel ({source.path.rsplit('/', 1)[-1]}): installing "
-                f"it again changes nothing; {tools}, then pip install . {_FROM_CHECKOUT} on "
+                f"it again changes nothing; {tools}pip install . {_FROM_CHECKOUT} on "
                 "this machine (README, Install)")
-    return f"{tools}, then pip install . {_FROM_CHECKOUT} on this machine (README, Install)"
+    return f"{tools}pip install . {_FROM_CHECKOUT} on this machine (README, Install)"

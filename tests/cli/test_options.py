@@ -3,10 +3,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import typing
 from collections.abc import Iterator
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
+import pytest
 import typer
 
 from rlbridge.cli.commands import build_app
@@ -96,3 +101,64 @@ def test_the_channel_options_are_the_fields_of_qos_and_policy_one_to_one() -> No
     for path in ("topic pub", "topic echo", "topic hz"):
         opts = {o for p in commands[f"rlbridge {path}"].params for o in getattr(p, "opts", ())}
         assert wanted <= opts, f"{path}: lacks {sorted(wanted - opts)}"
+
+
+def _help_of(option: Any) -> str:
+    """The help text an ``Annotated[..., typer.Option(...)]`` definition carries."""
+    return str(typing.get_args(option)[1].help)
+
+
+def _param(path: str, long: str) -> Any:
+    found = [p for p in dict(_all())[path].params if long in getattr(p, "opts", ())]
+    assert len(found) == 1, f"{path}: {long}"
+    return found[0]
+
+
+# -- --psk-file: one definition, one builder (the session commands and the demo) ----------
+def test_every_client_side_psk_file_is_the_one_definition_built_by_psk_of(
+        tmp_path: Path) -> None:
+    """``demo --psk-file`` had its own option and built its ``Psk`` where it connected."""
+    from rlbridge import Psk
+    from rlbridge.cli.options import PskFileOpt, psk_of
+
+    for path in (*(f"rlbridge {c}" for c in SESSION_COMMANDS), "rlbridge demo"):
+        assert _param(path, "--psk-file").help == _help_of(PskFileOpt), path
+    key = tmp_path / "key"
+    assert psk_of(None) is None  # $RLBRIDGE_PSK then applies, as for security=None
+    assert psk_of(key) == Psk(file=key)
+    assert ServerTarget(psk_file=str(key)).security() == psk_of(str(key))
+
+
+# -- --idle and --bundles: fields of Tuning, built in one place ---------------------------
+def test_the_tuning_options_are_fields_of_tuning_and_build_it_in_one_place() -> None:
+    """``bench latency --idle`` and ``bench load --bundles`` checked and built their
+    ``Tuning`` in the bench's own code; now one definition each and :func:`tuning_of`."""
+    from rlbridge import Tuning
+    from rlbridge.cli.options import BundlesOpt, IdleOpt, idle_specs, tuning_of
+
+    names = {f.name for f in fields(Tuning)}
+    assert {"idle", "bundles"} <= names
+    assert tuning_of() == Tuning()
+    assert tuning_of(idle="spin", bundles=False) == Tuning(idle="spin", bundles=False)
+    assert tuning_of(idle="park/busy") == Tuning(idle=("park", "busy"))
+    for bad in ("nap", "park/nap", "/spin", "park/", "park/spin/busy", ""):
+        with pytest.raises(ValueError, match=r"^--idle: .*choose from park, spin, busy"):
+            tuning_of(idle=bad)
+    assert idle_specs(" park, spin/park ,") == ("park", "spin/park")
+    with pytest.raises(ValueError, match="--idle: unknown idle strategy 'nap'"):
+        idle_specs("park,nap")
+    assert _param("rlbridge bench latency", "--idle").help == _help_of(IdleOpt)
+    bundles = _param("rlbridge bench load", "--bundles")
+    assert bundles.help == _help_of(BundlesOpt)
+    assert bundles.secondary_opts == ["--no-bundles"]
+
+
+def test_a_wrong_idle_strategy_is_one_line_naming_the_option_before_anything_runs(
+        tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, "-m", "rlbridge", "bench", "latency", "--idle",
+                           "park,nap"], capture_output=True, text=True, timeout=60, check=False,
+                          cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stdout == ""
+    assert proc.stderr == ("rlbridge bench latency: error: --idle: unknown idle strategy 'nap'; "
+                           "choose from park, spin, busy (send/receive for one per thread)\n")

@@ -380,3 +380,43 @@ def test_the_summary_says_why_no_sample_settled() -> None:
     idle = DemoResult("bridge", "here", 1.0, "time", [(0.1, "idle")], Diagnostics(),
                       tracking_metrics(nothing), nothing)
     assert "never reached tracking" in "\n".join(summary(idle))
+
+
+# -- the key: --psk-file built once (rlbridge.cli.options.psk_of), served and used ----------
+def test_a_keyed_demo_makes_its_key_file_and_the_controller_connects_with_it(
+        tmp_path: Path) -> None:
+    """``--psk-file`` is the session commands' option and builder: the bridge side serves the
+    file it made, and the controller must present that key (without it the server refuses)."""
+    key = tmp_path / "demo.key"
+    env = _env()
+    env.pop("RLBRIDGE_PSK", None)  # the key file is the only key there is
+    proc = subprocess.run([*rlbridge_command(), "demo", "--seconds", "1", "--no-dashboard",
+                           "--no-plot", "--psk-file", str(key)], capture_output=True,
+                          text=True, timeout=120, env=env, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert f"made a new key file {key}: give the controller a copy" in proc.stdout
+    assert "controller connected" in proc.stdout
+    assert key.stat().st_mode & 0o777 == 0o600
+
+
+@pytest.mark.filterwarnings(RT_REFUSED)
+def test_a_controller_with_another_key_is_refused_at_once(tmp_path: Path) -> None:
+    from rlbridge import AuthenticationFailed, keyfile
+    from rlbridge.cli.options import psk_of
+
+    served, other = tmp_path / "served.key", tmp_path / "other.key"
+    assert keyfile.create(served)
+    assert keyfile.create(other)
+    with middleware_side(psk_file=served) as mw:
+        # Not retried: retrying would end, after the timeout, in ConnectionFailed instead.
+        with pytest.raises(AuthenticationFailed):
+            connect_controller("127.0.0.1", mw.port, timeout=60, security=psk_of(other))
+        connect_controller("127.0.0.1", mw.port, timeout=30, security=psk_of(served)).close()
+
+
+def test_the_bridge_side_refuses_a_key_that_is_not_a_file() -> None:
+    from rlbridge import Psk
+
+    with pytest.raises(ValueError, match=r"DemoOptions.psk: .*Psk\(file=\.\.\.\)"):
+        DemoOptions(role="bridge", psk=Psk(key="ab" * 32)).key_file()
+    assert DemoOptions().key_file() is None

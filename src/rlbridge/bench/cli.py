@@ -13,6 +13,8 @@ from typing import Annotated
 
 import typer
 
+from rlbridge.cli.options import BundlesOpt, IdleOpt, idle_specs
+
 bench_app = typer.Typer(help="Measure rlbridge next to a baseline from the same run. The report "
                         "goes to stdout; --out FILE also writes it into FILE.",
                         no_args_is_help=True)
@@ -149,11 +151,7 @@ def latency(
     csv: Annotated[Path | None, typer.Option(
         "--csv", help="Per-sample CSV: seq,sent_ns,recv_ns,latency_ms (empty when lost).")]
     = None,
-    idle: Annotated[str, typer.Option(
-        help="SDK idle strategies (park, spin, busy, comma-separated; send/receive for one "
-             "per thread, e.g. park/spin): the rlbridge rows once per strategy, with CPU % "
-             "per process and the publisher loop's lateness.")]
-    = "",
+    idle: IdleOpt = "",
     stages: Annotated[bool, typer.Option(
         "--stages/--no-stages",
         help="Probe rlbridge UDP at the first rate stage by stage (send thread, server, receive "
@@ -172,14 +170,11 @@ def latency(
     if transport is not None or delay or loss or csv is not None:
         _latency_link(transport or "all", delay, loss, rate, count or 1000, direction, csv)
         return
-    from rlbridge.csp.idle import STRATEGIES
-
-    strategies = _keys(idle)
-    unknown = [k for s in strategies for k in s.split("/") if k not in STRATEGIES]
-    if unknown:
-        typer.echo(f"rlbridge bench latency: error: unknown idle strategy {unknown[0]!r}; "
-                   f"choose from {', '.join(STRATEGIES)}", err=True)
-        raise typer.Exit(2)
+    try:
+        strategies = idle_specs(idle)
+    except ValueError as exc:
+        typer.echo(f"rlbridge bench latency: error: {exc}", err=True)
+        raise typer.Exit(2) from None
     if stages:
         _latency_stages(ctx, strategies or ("park",), seconds, repeats,
                         float(_keys(rates)[0]), out)
@@ -219,8 +214,6 @@ Procs = Annotated[int, typer.Option(help="OS processes the client sessions are s
 Via = Annotated[str, typer.Option(help="Transport of SDK client channels: udp or tcp.")]
 Client = Annotated[str, typer.Option(help="raw: protocol-level UDP sessions, one thread per "
                                      "process; sdk: a Bridge per session.")]
-Bundles = Annotated[bool, typer.Option(help="Every channel of a session's tick in one datagram, "
-                                       "both ways; --no-bundles: one datagram per value.")]
 ServerRcvbuf = Annotated[int, typer.Option(
     help="Bytes the server asks for its UDP receive buffer (serve --udp-receive-buffer).")]
 
@@ -235,7 +228,8 @@ def _check_client(client: str, transport: str) -> None:
 @bench_app.command("load")
 def load(
     ctx: typer.Context, clients: Clients = 100, channels: Channels = 10, rate: RateHz = 100.0,
-    processes: Procs = 4, transport: Via = "udp", client: Client = "raw", bundles: Bundles = True,
+    processes: Procs = 4, transport: Via = "udp", client: Client = "raw",
+    bundles: BundlesOpt = True,
     phase_s: Annotated[float, typer.Option(help="Seconds per phase (base, reader, slow, after).")]
     = 20.0,
     slow_topics: Annotated[int, typer.Option(help="Topics the slow consumer subscribes.")]

@@ -52,7 +52,7 @@ from rlbridge.bench.common import (
     select_cases,
     wait_for_go,
 )
-from rlbridge.client.options import Tuning
+from rlbridge.cli.options import tuning_of
 
 MODULE = "rlbridge.bench.latency"
 TOPIC = "/bench/latency"
@@ -98,12 +98,6 @@ def with_idle(cases: Sequence[Case], strategies: Sequence[str]) -> tuple[Case, .
     return tuple(rows)
 
 
-def idle_param(spec: str) -> str | tuple[str, str]:
-    """``"spin"`` for both SDK threads, ``"park/spin"`` for (send thread, receive thread)."""
-    send, _, receive = spec.partition("/")
-    return (send, receive) if receive else send
-
-
 def paced_late(send: Callable[[int], object], rate_hz: float,
                count: int) -> tuple[int, float, float, list[int]]:
     """:func:`paced`, also recording each call's lateness behind its schedule (ns)."""
@@ -129,7 +123,7 @@ def publisher(params: Params) -> None:
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
                             name="bench-lat-pub",
-                            tuning=Tuning(idle=idle_param(str(params.get("idle", "park")))))
+                            tuning=tuning_of(idle=str(params.get("idle", "park"))))
     inline = bool(params.get("inline"))
     out = bridge.publish(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                          through_buffer=inline)
@@ -161,7 +155,7 @@ def subscriber(params: Params) -> None:
     control = Control()
     bridge = Bridge.connect(params["host"], int(params["port"]), nodelay=bool(params["nodelay"]),
                             name="bench-lat-sub",
-                            tuning=Tuning(idle=idle_param(str(params.get("idle", "park")))))
+                            tuning=tuning_of(idle=str(params.get("idle", "park"))))
     ch = bridge.subscribe(TOPIC, MSG_TYPE, "data", transport=params["transport"],
                           blocking=True, buffer_size=1024)
     emit("ready")

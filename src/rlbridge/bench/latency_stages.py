@@ -47,7 +47,8 @@ from rlbridge.bench.common import (
     rlbridge_flow,
     wait_for_go,
 )
-from rlbridge.bench.latency import MSG_TYPE, TOPIC, WARMUP, idle_param
+from rlbridge.bench.latency import MSG_TYPE, TOPIC, WARMUP
+from rlbridge.cli.options import tuning_of
 from rlbridge.client.options import Tuning
 from rlbridge.csp.idle import IdleStrategy, idle_pair
 
@@ -89,7 +90,7 @@ class ProbeIdle:
 def _connect(params: Params, name: str) -> tuple[Any, ProbeIdle, ProbeIdle]:
     from rlbridge.client.bridge import Bridge
 
-    send, receive = idle_pair(idle_param(str(params["idle"])))
+    send, receive = idle_pair(tuning_of(idle=str(params["idle"])).idle)
     probes = ProbeIdle(send), ProbeIdle(receive)
     bridge = Bridge.connect(params["host"], int(params["port"]), name=name,
                             tuning=Tuning(idle=probes))

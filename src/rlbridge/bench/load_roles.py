@@ -33,7 +33,7 @@ from typing import Any, Protocol
 from rlbridge.bench.common import Control, Params, Role, emit, hold
 from rlbridge.bench.load_book import F64, Book, topic
 from rlbridge.bench.load_raw import RawSessions
-from rlbridge.client.options import Tuning
+from rlbridge.cli.options import tuning_of
 from rlbridge.wire import PacketCodec
 
 BULK_TOPIC = "/load/bulk"
@@ -53,7 +53,7 @@ class _SdkSession(Book):
         # CPython's default pace; the shortened interval the SDK sets for HRT loops thrashes.
         self.bridge = Bridge.connect(params["host"], int(params["port"]), name=f"load-{index}",
                                      timeout=30.0,
-                                     tuning=Tuning(bundles=bool(params.get("bundles", True))))
+                                     tuning=tuning_of(bundles=bool(params.get("bundles", True))))
         n = int(params["channels"])
         self.subs = [self.bridge.subscribe(topic(index, c), F64, transport=transport,
                                            blocking=c == 0, buffer_size=64 if c == 0 else 1)

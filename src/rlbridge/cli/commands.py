@@ -46,7 +46,8 @@ LogLevel = Annotated[str | None, typer.Option(
 
 def _version(value: bool) -> None:
     """Version, value path and cipher; when either was not built, what builds it into this
-    install (an editable checkout, a checkout, or a wheel: rlbridge._version)."""
+    install (an editable checkout, a checkout, or a wheel), naming only the build packages
+    the parts not built need and this machine lacks (rlbridge._version)."""
     if value:
         from rlbridge._compiled import NOT_BUILT, STATE
         from rlbridge._version import compile_hint
@@ -55,8 +56,11 @@ def _version(value: bool) -> None:
 
         typer.echo(f"rlbridge {__version__}\nvalue path: {STATE}\n"
                    f"sealing (ChaCha20-Poly1305): {AEAD}")
-        if NOT_BUILT in (STATE, AEAD) or NO_LIBSODIUM in (STATE, AEAD):
-            typer.echo(f"to compile: {compile_hint()}")
+        unbuilt = [part for part, state, not_built in (("value path", STATE, NOT_BUILT),
+                                                       ("cipher", AEAD, NO_LIBSODIUM))
+                   if state == not_built]
+        if unbuilt:
+            typer.echo(f"to compile: {compile_hint(unbuilt)}")
         raise typer.Exit()
 
 

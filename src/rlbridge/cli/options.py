@@ -5,6 +5,12 @@ every command that has a host (``serve`` and ``demo`` included), ``-t`` is ``--t
 wherever there is a transport, and no command gives either letter another meaning
 (``tests/cli/test_options.py`` walks every command to check). :func:`option` builds a
 ``typer.Option`` with the long name, its short one if it has one, and the help text.
+
+The options that stand for the SDK's objects are defined here once and built into those
+objects here only, so ``--help`` and the API cannot drift: ``ServerTarget`` (host, port,
+``Tls``, ``Psk`` by :func:`psk_of`, which ``demo --psk-file`` calls too), ``ChannelChoice``
+(``QoS`` and ``Policy``), and ``--idle``/``--bundles`` (``Tuning`` by :func:`tuning_of`,
+which the bench's worker processes call with the options' text).
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import re
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, cast
 
 import typer
@@ -28,7 +35,7 @@ if TYPE_CHECKING:
 
     from rlbridge.adapters.base import QoS
     from rlbridge.client.bridge import Bridge
-    from rlbridge.client.options import Policy, Psk, Tls
+    from rlbridge.client.options import Policy, Psk, Tls, Tuning
 
 #: Long option -> its one short form, for every command.
 SHORT_OPTIONS: dict[str, str] = {
@@ -138,12 +145,21 @@ class ServerTarget:
         """The ``security=`` these options stand for, built here only: ``--psk-file`` is
         ``Psk(file=...)``; ``--tls``, ``--ca``, ``--fingerprint`` and a client certificate
         turn on ``Tls(...)`` (with the key inside it, if both are given)."""
-        from rlbridge.client.options import Psk, Tls
+        from rlbridge.client.options import Tls
 
-        psk = None if self.psk_file is None else Psk(file=self.psk_file)
+        psk = psk_of(self.psk_file)
         if not (self.tls or self.ca or self.fingerprint or client_cert):
             return psk
         return Tls(ca=self.ca, fingerprint=self.fingerprint, client_cert=client_cert, psk=psk)
+
+
+def psk_of(psk_file: str | Path | None) -> Psk | None:
+    """``--psk-file``'s ``Psk(file=...)``, or None without one (``$RLBRIDGE_PSK`` then
+    applies, as for ``security=None``): the one builder of every command with the option, the
+    session commands (:meth:`ServerTarget.security`) and ``demo`` alike."""
+    from rlbridge.client.options import Psk
+
+    return None if psk_file is None else Psk(file=psk_file)
 
 
 #: The ``server`` parameter's default, for calling a command function directly.
@@ -260,3 +276,38 @@ def channel_options(command: F) -> F:
     """Give ``command`` the :class:`ChannelChoice` options in place of its ``channel``
     parameter: every command that binds a topic takes the same QoS and policy options."""
     return _option_group(command, "channel", ChannelChoice)
+
+
+# -- the SDK's Tuning, as far as a command reaches it: --idle and --bundles ---------------
+IdleOpt = Annotated[str, typer.Option(
+    "--idle", help="SDK idle strategies (park, spin, busy, comma-separated; send/receive for "
+    "one per thread, e.g. park/spin): the rlbridge rows once per strategy, with CPU % per "
+    "process and the publisher loop's lateness.")]
+BundlesOpt = Annotated[bool, typer.Option(
+    "--bundles/--no-bundles", help="Every channel of a session's tick in one datagram, both "
+    "ways; --no-bundles: one datagram per value.")]
+
+
+def idle_specs(text: str) -> tuple[str, ...]:
+    """``--idle``'s comma-separated strategies, each checked by :func:`tuning_of` (a
+    ``ValueError`` naming ``--idle`` and the choices for one that is not a strategy)."""
+    specs = tuple(s.strip() for s in text.split(",") if s.strip())
+    for spec in specs:
+        tuning_of(idle=spec)
+    return specs
+
+
+def tuning_of(*, idle: str = "park", bundles: bool = True) -> Tuning:
+    """The :class:`~rlbridge.Tuning` of one ``--idle`` strategy (``spin`` for both SDK
+    threads, ``park/spin`` for the send and the receive thread) and ``--bundles``, built here
+    only: the bench's worker processes get the options' text and call this too."""
+    from rlbridge.client.options import Tuning
+    from rlbridge.csp.idle import STRATEGIES
+
+    parts = idle.split("/")
+    unknown = [k for k in parts if k not in STRATEGIES]
+    if unknown or len(parts) > 2:
+        what = f"unknown idle strategy {unknown[0]!r}" if unknown else f"{idle!r}"
+        raise ValueError(f"--idle: {what}; choose from {', '.join(STRATEGIES)} "
+                         "(send/receive for one per thread)")
+    return Tuning(idle=(parts[0], parts[1]) if len(parts) == 2 else idle, bundles=bundles)

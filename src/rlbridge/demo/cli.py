@@ -14,7 +14,7 @@ from typing import Annotated, Literal
 import typer
 
 from rlbridge.cli.errors import fail, one_line_errors
-from rlbridge.cli.options import option
+from rlbridge.cli.options import PskFileOpt, option, psk_of
 from rlbridge.demo.plot import DEFAULT_NAME, resolve_path
 
 ROLES = ("all", "bridge", "controller")
@@ -62,11 +62,7 @@ def register_demo(app: typer.Typer) -> None:
         namespace: Annotated[str, typer.Option(help="Topic namespace.")] = "/pan_tilt",
         connect_timeout: Annotated[float, typer.Option(
             help="controller: keep trying to reach the server this long (s).")] = 30.0,
-        psk_file: Annotated[Path | None, typer.Option(
-            help="Key file. bridge/all: made (a new random key, mode 600) if missing; "
-                 "controller: the key to connect with. Default for a bridge on an address "
-                 f"other than loopback: ./{DEMO_KEY} (without $RLBRIDGE_PSK).",
-            show_default=False)] = None,
+        psk_file: PskFileOpt = None,
         lost_exit: Annotated[float, typer.Option(
             help="controller: exit with status 3 after the link was lost this long (s); "
                  "0: never, reconnect and resume.")]
@@ -77,6 +73,10 @@ def register_demo(app: typer.Typer) -> None:
         The controller reads set-points from non-blocking UDP channels, sends its angles back
         sub-sampled to 50 Hz and its state (idle, tracking, safe, lost-link) over TCP. The
         vision node follows a target on a Lissajous path, losing it for a moment halfway.
+
+        --psk-file: the bridge side (all, bridge) makes the file (a new random key, mode 600)
+        if it is missing and serves with it; the controller connects with it. A bridge on an
+        address other than loopback without $RLBRIDGE_PSK uses ./rlbridge-demo.key.
         """
         from rlbridge.demo.plot import PlotUnavailable
         from rlbridge.demo.run import DemoOptions, run_demo
@@ -94,7 +94,7 @@ def register_demo(app: typer.Typer) -> None:
             raise fail("--seconds must be >= 0", 2)
         if (psk_file is None and role != "controller" and not is_loopback(host)
                 and not os.environ.get(PSK_ENV)):
-            psk_file = Path(DEMO_KEY)  # secure by default: a bridge others can reach has a key
+            psk_file = DEMO_KEY  # secure by default: a bridge others can reach has a key
         chosen: Literal["all", "bridge", "controller"] = role  # type: ignore[assignment]
         middleware: Literal["inproc", "ros2"] = adapter  # type: ignore[assignment]
         options = DemoOptions(
@@ -111,7 +111,7 @@ def register_demo(app: typer.Typer) -> None:
             report=report,
             connect_timeout=connect_timeout,
             lost_exit=lost_exit,
-            psk_file=psk_file,
+            psk=psk_of(psk_file),
         )
         try:
             result = run_demo(options, sys.stdout)

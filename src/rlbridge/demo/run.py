@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
-from rlbridge import keyfile
+from rlbridge import Psk, keyfile
 from rlbridge.demo.controller import PanTiltController
 from rlbridge.demo.dashboard import WINDOW, AnsiDashboard, LineReport, Status, View, states_line
 from rlbridge.demo.loop import ControllerState
@@ -66,8 +66,20 @@ class DemoOptions:
     connect_timeout: float = 30.0
     lost_exit: float = 0.0
     """Exit with status 3 after the link was lost this long (s); 0: never, ride it out."""
-    psk_file: Path | None = None
-    """The key file: the bridge side makes one if it is missing, the controller reads it."""
+    psk: Psk | None = None
+    """The key, ``Psk(file=...)`` (the CLI's ``--psk-file``): the bridge side makes the file
+    if it is missing and serves with it, the controller connects with it. None: the server and
+    the controller take ``$RLBRIDGE_PSK`` if set."""
+
+    def key_file(self) -> Path | None:
+        """The file of :attr:`psk` (a server reads its keys from a file: ``Psk(key=...)``
+        is refused with a ``ValueError`` naming ``psk``)."""
+        if self.psk is None:
+            return None
+        if self.psk.file is None:
+            raise ValueError("DemoOptions.psk: the bridge side serves keys from a file: give "
+                             "Psk(file=...), not Psk(key=...)")
+        return Path(self.psk.file)
 
 
 @dataclass
@@ -142,12 +154,13 @@ def run_demo(options: DemoOptions, out: TextIO) -> DemoResult:
 def _run_middleware(opts: DemoOptions, stop: threading.Event, out: TextIO) -> DemoResult:
     topics = Topics(opts.namespace)
     with ExitStack() as stack:
-        if opts.psk_file is not None and keyfile.create(opts.psk_file):
-            out.write(f"made a new key file {opts.psk_file}: give the controller a copy "
+        key_file = opts.key_file()
+        if key_file is not None and keyfile.create(key_file):
+            out.write(f"made a new key file {key_file}: give the controller a copy "
                       "(--psk-file)\n")
         mw = stack.enter_context(middleware_side(
             host=opts.host, port=opts.port, adapter=opts.adapter, topics=topics,
-            vision_start=opts.vision_start, dropout=opts.dropout, psk_file=opts.psk_file))
+            vision_start=opts.vision_start, dropout=opts.dropout, psk_file=key_file))
         address = f"{opts.host}:{mw.port}"
         out.write(f"bridge server on {address} ({opts.adapter}); vision node publishing "
                   f"{topics.setpoint('pan')}, {topics.setpoint('tilt')} at 30 Hz\n")
@@ -156,7 +169,7 @@ def _run_middleware(opts: DemoOptions, stop: threading.Event, out: TextIO) -> De
             stack.enter_context(switch_interval(0.0005))
             local = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(opts.host, opts.host)
             bridge = connect_controller(local, mw.port, timeout=opts.connect_timeout,
-                                        stop=stop, psk_file=opts.psk_file)
+                                        stop=stop, security=opts.psk)
             stack.callback(bridge.close)
             controller = PanTiltController(bridge, topics=topics).start()
             stack.callback(controller.close)  # idempotent; runs first on an error
@@ -201,7 +214,7 @@ def _run_controller(opts: DemoOptions, stop: threading.Event, out: TextIO) -> De
     with ExitStack() as stack:
         stack.enter_context(switch_interval(0.0005))
         bridge = connect_controller(opts.host, opts.port, timeout=opts.connect_timeout,
-                                    stop=stop, psk_file=opts.psk_file)
+                                    stop=stop, security=opts.psk)
         stack.callback(bridge.close)
         out.write(f"controller connected to {address}: 1 kHz loop running\n")
         out.flush()

@@ -82,23 +82,23 @@ def middleware_side(*, host: str = "127.0.0.1", port: int = 0, adapter: AdapterN
 def connect_controller(host: str, port: int, *, timeout: float = 30.0,
                        stop: threading.Event | None = None,
                        name: str = CONTROLLER_NAME,
-                       psk_file: Path | None = None) -> Bridge:
+                       security: Psk | None = None) -> Bridge:
     """``Bridge.connect`` again and again (backing off to 1 s) until it works or ``timeout``.
 
-    Raises :class:`~rlbridge.client.session.connection.ConnectionFailed` with the last reason when
-    the
-    time is up or ``stop`` is set. A key file that does not exist yet (the bridge side makes
-    it when it starts) is waited for like a server that does not answer yet.
+    Raises :class:`~rlbridge.ConnectionFailed` with the last reason when the time is up or
+    ``stop`` is set. ``security``: the key (``rlbridge demo --psk-file`` builds it in the CLI's
+    one place); a key file that does not exist yet (the bridge side makes it when it starts)
+    is waited for like a server that does not answer yet.
     """
     deadline = time.monotonic() + timeout
     delay = 0.1
     while True:
         remaining = deadline - time.monotonic()
         try:
-            if psk_file is not None and not psk_file.exists():
-                raise ConnectionFailed(f"no key file {psk_file} yet")
-            key = None if psk_file is None else Psk(file=psk_file)
-            return Bridge.connect(host, port, nodelay=True, name=name, security=key,
+            if security is not None and security.file is not None \
+                    and not Path(security.file).exists():
+                raise ConnectionFailed(f"no key file {security.file} yet")
+            return Bridge.connect(host, port, nodelay=True, name=name, security=security,
                                   timeout=min(2.0, max(0.2, remaining)))
         except AuthenticationFailed:
             raise  # a wrong key or certificate: trying again will not help
