@@ -12,7 +12,8 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from test_reconnect import Serve, bridges, lost, reconnected, serve, wait_for
+from link_helpers import WAIT
+from test_reconnect import Serve, bridges, lost, reconnected, serve
 
 from rlbridge import LocalProtocolError
 from rlbridge.client.bridge import Bridge
@@ -30,6 +31,7 @@ from rlbridge.errors import (
     UnknownTypeError,
 )
 from rlbridge.server import ServerThread
+from waiting import wait_until
 
 __all__ = ["bridges", "serve"]  # the reconnect tests' fixtures, used here too
 
@@ -142,7 +144,8 @@ def test_one_provider_per_service_and_withdrawing(pair: tuple[Bridge, Bridge]) -
         requests.read(timeout=0.1)
     # The withdrawal travels on the provider's connection: until the server has it, a call
     # on another connection may still reach the offer.
-    wait_for(lambda: not caller.service_list(), "the withdrawal to reach the server")
+    wait_until(lambda: not caller.service_list(), "the withdrawal to reach the server",
+               timeout=WAIT)
     with pytest.raises(NoServiceError):
         caller.call("/single", TRIGGER, timeout=0.5)
     again = caller.serve_service("/single", TRIGGER)  # free again
@@ -190,10 +193,10 @@ def test_a_provided_service_is_offered_again_after_a_reconnect(
     thread = answer(requests, lambda req: req.reply({"success": req.data["data"]}), 2)
     assert caller.call("/re/offer", SET_BOOL, {"data": True})["success"] is True
     serve.kill()
-    wait_for(lost(caller, provider), "the link lost")
+    wait_until(lost(caller, provider), "the link lost", timeout=WAIT)
     with pytest.raises(ConnectionClosed):  # no session to call through (within its timeout)
         caller.call("/re/offer", SET_BOOL, {"data": True}, timeout=0.1)
     serve.start()
-    wait_for(reconnected(caller, provider), "the reconnect")
+    wait_until(reconnected(caller, provider), "the reconnect", timeout=WAIT)
     assert caller.call("/re/offer", SET_BOOL, {"data": False})["success"] is False
     thread.join(10)
