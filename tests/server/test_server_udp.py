@@ -210,7 +210,8 @@ def test_malformed_datagram_with_a_live_token_is_answered(raw_udp: Callable[...,
 
 
 def test_a_stats_answer_too_large_for_a_datagram_is_refused_and_counted(
-        server: ServerThread, raw_udp: Callable[..., Any], raw_tcp: Callable[..., Any]) -> None:
+        server: ServerThread, raw_udp: Callable[..., Any], raw_tcp: Callable[..., Any],
+        caplog: pytest.LogCaptureFixture) -> None:
     """The answer would be a datagram over 65 507 bytes, which no socket sends: it used to
     vanish (the client waited out its patience); now a small TOO_LARGE Error says to ask over
     TCP, the server counts it, and the session goes on."""
@@ -234,6 +235,9 @@ def test_a_stats_answer_too_large_for_a_datagram_is_refused_and_counted(
     answer = over_tcp.expect(Stats)
     assert len(msgspec.msgpack.encode(answer)) > MAX_DATAGRAM  # it really could not fit
     assert answer.body["server"]["udp_too_large_out"] == 1
+    told = [r.getMessage() for r in caplog.records if "does not fit a datagram" in r.getMessage()]
+    assert len(told) == 1
+    assert "a Stats of" in told[0]
 
 
 @pytest.mark.parametrize(("packet", "answer"), [
