@@ -261,3 +261,20 @@ def test_section_14_dumps_are_what_the_server_encodes() -> None:
     line = re.search(r'^Error\(13, "bad", 2, 0\): ([0-9a-f ]+)$', text, re.M)
     assert line is not None
     assert bytes(codec.encode_frame(Error(13, "bad", 2))) == bytes.fromhex(line[1])
+
+
+def test_a_udp_answer_too_large_for_a_datagram_is_a_too_large_error(
+        session: ic.IndependentClient) -> None:
+    """Doc 3 (size), 12.2, 15.13: a Stats answer over 65 507 bytes is not sent over UDP; a
+    small Error(3) takes its place and the server counts it; TCP carries the whole answer."""
+    for channel in range(1, 201):  # each channel adds its counters and a 200-character topic
+        session.bind(channel, "publish", f"/normative/big/c{channel:03d}/" + "t" * 180, F64)
+    session.send_udp([ic.TAG_STATS])
+    err = session.recv_tag(ic.TAG_ERROR, via="udp")
+    assert (err.field(1), err.field(3)) == (ic.TOO_LARGE, None)
+    assert "ask over TCP" in err.field(2)
+    assert_carried(err, ic.TOO_LARGE)
+    session.send_tcp([ic.TAG_STATS])
+    answer = session.recv_tag(ic.TAG_STATS, via="tcp")
+    assert len(ic.packb([ic.TAG_STATS, answer.field(1)])) > 65507
+    assert answer.field(1)["server"]["udp_too_large_out"] == 1

@@ -108,3 +108,24 @@ def test_an_open_server_has_no_rules_and_shows_every_session(make_server: Callab
             Bridge.connect("127.0.0.1", srv.port, name="b", reconnect=False):
         a.publish("/anything/at_all", F64)
         assert {s["name"] for s in a.server_stats()["sessions"]} == {"a", "b"}
+
+
+def test_a_refusal_quoting_a_long_rule_arrives_cut(make_server: Callable[..., ServerThread],
+                                                   tmp_path: Path) -> None:
+    """A NOT_ALLOWED reason quotes the client's rules; a long rule made it longer than a
+    reason may be, and the client took the TopicError for malformed and waited out its
+    patience. The server cuts it, so the refusal arrives as one."""
+    rule = ",".join(f"/state/sensor_{n:03d}/*" for n in range(80))
+    path = tmp_path / "keys"
+    path.write_text(f"robot {ROBOT.hex()} publish= subscribe={rule}\n")
+    path.chmod(0o600)
+    srv = make_server(psk_file=path)
+    with Bridge.connect("127.0.0.1", srv.port, name="robot", security=Psk(key=ROBOT.hex()),
+                        reconnect=False) as robot:
+        with pytest.raises(RemoteError, match="'robot' may not subscribe to /other") as info:
+            robot.subscribe("/other", F64)
+        assert info.value.code == ErrorCode.NOT_ALLOWED
+        assert len(info.value.reason) == 1024
+        assert info.value.reason.endswith("\u2026")
+        assert "/state/sensor_000/*" in info.value.reason
+        robot.subscribe("/state/sensor_079/x", F64)  # the session goes on

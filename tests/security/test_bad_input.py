@@ -42,7 +42,8 @@ def counters(srv: ServerThread) -> dict[str, int]:
 @pytest.mark.parametrize(("body", "phrase"), [
     (b"\xc1", "not a packet"),  # a byte MessagePack never uses
     (b"\x95\x08\x01\x00\x00" + b"\x91" * 5000 + b"\x01", "nested too deeply"),
-    (msgspec.msgpack.encode([11, 0, "r" * 5000]), "Expected `str` of length <= 1024"),
+    (msgspec.msgpack.encode([20, 1, "s" * 5000, "std_srvs/srv/Trigger", {}]),
+     "Expected `str` of length <= 256"),
     (msgspec.msgpack.encode([8, 1, 0]), "Expected `array` of at least length 5"),
     (msgspec.msgpack.encode([8, 1, 0, 2**64 - 1, 1.0]), "Expected `int` <= 9223372036854775807"),
     (b"", "not a packet"),

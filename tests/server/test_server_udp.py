@@ -6,18 +6,28 @@ import secrets
 from collections.abc import Callable
 from typing import Any
 
+import msgspec
+import pytest
+
 from rlbridge import ErrorCode
+from rlbridge.adapters.base import QoS
+from rlbridge.adapters.inproc import InProcessBus
 from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerThread
+from rlbridge.server.datagram_limit import too_large_answer
 from rlbridge.wire import (
     DATAGRAM_HEADER,
     MAGIC,
+    MAX_DATAGRAM,
     PROTOCOL_VERSION,
     ConnectAck,
     Disconnect,
     Error,
+    GoalResult,
     Heartbeat,
     Hello,
+    Packet,
+    ServiceResult,
     Stats,
     TopicAck,
     TopicConnect,
@@ -197,3 +207,52 @@ def test_malformed_datagram_with_a_live_token_is_answered(raw_udp: Callable[...,
     body = client.expect(Stats).body
     assert body["server"]["udp_malformed"] == 2
     assert body["session"]["malformed"] == 2
+
+
+def test_a_stats_answer_too_large_for_a_datagram_is_refused_and_counted(
+        server: ServerThread, raw_udp: Callable[..., Any], raw_tcp: Callable[..., Any],
+        caplog: pytest.LogCaptureFixture) -> None:
+    """The answer would be a datagram over 65 507 bytes, which no socket sends: it used to
+    vanish (the client waited out its patience); now a small TOO_LARGE Error says to ask over
+    TCP, the server counts it, and the session goes on."""
+    registry = server.server.registry
+    assert registry is not None
+    bus = registry.ctx.adapter
+    assert isinstance(bus, InProcessBus)
+    for n in range(300):  # other nodes' topics, 250-character names: about 80 kB of list
+        bus.create_publisher(f"/many/n{n:03d}/" + "t" * 240, F64, "data", QoS())
+    client = raw_udp()
+    client.hello("asks-over-udp")
+    client.send(Stats())
+    err = client.expect(Error)
+    assert (err.code, err.channel) == (ErrorCode.TOO_LARGE, None)
+    assert "ask over TCP" in err.reason
+    client.send(TopicConnect(1, "subscribe", "/still/here", F64, transport="udp"))
+    assert client.expect(TopicAck).channel == 1
+    over_tcp = raw_tcp()
+    over_tcp.hello()
+    over_tcp.send(Stats())
+    answer = over_tcp.expect(Stats)
+    assert len(msgspec.msgpack.encode(answer)) > MAX_DATAGRAM  # it really could not fit
+    assert answer.body["server"]["udp_too_large_out"] == 1
+    told = [r.getMessage() for r in caplog.records if "does not fit a datagram" in r.getMessage()]
+    assert len(told) == 1
+    assert "a Stats of" in told[0]
+
+
+@pytest.mark.parametrize(("packet", "answer"), [
+    (Stats({"big": 1}), Error(3, "")),
+    (ServiceResult(7, 0, {"big": 1}), ServiceResult(7, 3, None, "")),
+    (GoalResult(4, 4, {"big": 1}), GoalResult(4, 0, None, "")),
+    (TopicAck(4, F64), None),
+])
+def test_what_answers_in_place_of_a_packet_too_large(packet: Packet,
+                                                    answer: Packet | None) -> None:
+    got = too_large_answer(packet, 70_000)
+    if answer is None:
+        assert got is None
+        return
+    assert type(got) is type(answer)
+    fields = msgspec.structs.asdict(got)
+    assert "70000 bytes" in fields["reason"]
+    assert {**fields, "reason": ""} == msgspec.structs.asdict(answer)

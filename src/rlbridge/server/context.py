@@ -37,8 +37,10 @@ EVENT_COUNTERS = (
     # what arrived and could not be used
     "malformed", "errors_sent", "tcp_rejected_records", "dropped_unknown_channel",
     "rate_dropped",
-    # UDP: datagrams outside a session, and sealed datagrams that do not open
+    # UDP: datagrams outside a session, sealed datagrams that do not open, and control packets
+    # too large to send (server/datagram_limit.py)
     "udp_no_token", "udp_bad_token", "udp_malformed", "udp_too_large", "udp_not_allowed",
+    "udp_too_large_out",
     "udp_hello_refused", "udp_unexpected_proof", "udp_handshakes_evicted",
     "udp_unsealed", "udp_bad_mac", "udp_replayed",
     # services and actions

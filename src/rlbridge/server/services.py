@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING, Any
 from rlbridge.adapters.base import BindingError, ServiceReply, ServiceServer
 from rlbridge.server.sinks import PacketSink
 from rlbridge.server.worker_calls import (
-    MAX_REASON,
     MAX_TIMEOUT_S,
     Failure,
     channel_in_use,
@@ -131,8 +130,7 @@ class SessionServices:
         try:
             offer.server = s.ctx.adapter.serve_service(req.service, req.srv_type, handler)
         except BindingError as exc:
-            s.send_control(TopicError(ch, int(error_code(exc.code)), exc.reason[:MAX_REASON]),
-                           via)
+            s.send_control(TopicError(ch, int(error_code(exc.code)), exc.reason), via)
             return
         self.offers[ch] = offer
         log.info("session %d (%s): channel %d serves %s [%s]", s.id, s.name, ch, req.service,

@@ -15,12 +15,14 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 from rlbridge.adapters.base import BindingError
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.connect import ack_for, bind, refusal
 from rlbridge.server.context import ServerContext
+from rlbridge.server.datagram_limit import refuse_too_large
 from rlbridge.server.loss_reports import LossReporter
 from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
@@ -124,7 +126,8 @@ class Session:
         if self.udp is None:
             cfg = self.ctx.config
             self.udp = UdpSink(transport, self.codec, self.token, addr, cfg.udp_payload,
-                               self.ctx.loop)
+                               self.ctx.loop, partial(refuse_too_large, self.ctx,
+                                                      f"session {self.id} ({self.name})"))
             waiters, self.udp_waiters = self.udp_waiters, []
             for waiter in waiters:
                 waiter()

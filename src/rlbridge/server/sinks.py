@@ -21,6 +21,7 @@ would queue: on TCP, bytes waiting in the transport's buffer or in the kernel's 
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from typing import Protocol
 
 import msgspec
@@ -28,7 +29,7 @@ import msgspec
 from rlbridge.tcpstate import congested
 from rlbridge.wire import PROTOCOL_VERSION, Batch, Packet, PacketCodec, Value
 from rlbridge.wire.bundle import DatagramPacker
-from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC
+from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC, MAX_DATAGRAM
 
 #: PacketCodec's encoder settings (msgspec defaults); tests/server check the bytes match.
 _ENCODE = msgspec.msgpack.Encoder().encode
@@ -129,6 +130,10 @@ class UdpSink:
     round does), and with keys sealed once; the bytes are those the packer would have made.
     Only if that bundle would not fit one datagram do they go through the packer one by one,
     as any other value does.
+
+    A control packet no datagram can carry is not sent but handed to ``too_large`` (the
+    session's: server/datagram_limit.py), which counts it and may give a small answer to send
+    in its place.
     """
 
     def __init__(
@@ -139,8 +144,10 @@ class UdpSink:
         addr: tuple[str, int],
         max_payload: int,
         loop: asyncio.AbstractEventLoop | None = None,
+        too_large: Callable[[Packet, int], Packet | None] | None = None,
     ) -> None:
         self._transport = transport
+        self._too_large = too_large
         self._codec = codec
         self._token = token
         self._loop = loop
@@ -202,10 +209,11 @@ class UdpSink:
             self._spill()
             packer.flush()  # corked values first: the order of sends is the order on the wire
             header = self._header
-            if header is not None:
-                self._sendto(header + _ENCODE(packet))
-            else:
-                self._sendto(self._codec.encode_datagram(packet, self._token))
+            datagram = (header + _ENCODE(packet) if header is not None
+                        else self._codec.encode_datagram(packet, self._token))
+            if len(datagram) > MAX_DATAGRAM:
+                return self._refuse(packet, len(datagram))
+            self._sendto(datagram)
             return True
         if packer.bundles and self._loop is not None:
             if not self._corked:
@@ -220,6 +228,14 @@ class UdpSink:
             self._dropped += refused  # values larger than a datagram: refused, counted
             return False
         return True
+
+    def _refuse(self, packet: Packet, size: int) -> bool:
+        """``packet`` would be a datagram of ``size`` bytes, over the limit: its answer, if
+        any, goes instead (class doc)."""
+        answer = self._too_large(packet, size) if self._too_large is not None else None
+        if answer is not None:
+            self.send(answer)
+        return False
 
     def _cork(self) -> None:
         """Send what this loop iteration gathers at its end (once per iteration)."""

@@ -28,8 +28,6 @@ T = TypeVar("T")
 
 #: The longest a call or a goal's acceptance may hold a worker thread (a longer timeout is cut).
 MAX_TIMEOUT_S = 300.0
-#: Characters of a failure's reason that go on the wire.
-MAX_REASON = 1024
 
 
 def timeout_s(timeout_ms: int) -> float:
@@ -44,7 +42,8 @@ def error_code(name: str) -> ErrorCode:
 
 @dataclass(frozen=True)
 class Failure:
-    """Why blocking work failed, as the wire says it: a code and a bounded reason."""
+    """Why blocking work failed, as the wire says it: a code and a reason (the packet that
+    carries it cuts it, wire/packets.py)."""
 
     code: ErrorCode
     reason: str
@@ -65,10 +64,10 @@ def outcome(future: Future[T], what: str) -> T | Failure:
     try:
         return future.result()
     except BindingError as exc:
-        return Failure(error_code(exc.code), exc.reason[:MAX_REASON])
+        return Failure(error_code(exc.code), exc.reason)
     except Exception as exc:
         log.exception("%s failed", what)
-        return Failure(ErrorCode.INTERNAL, f"{type(exc).__name__}: {exc}"[:MAX_REASON])
+        return Failure(ErrorCode.INTERNAL, f"{type(exc).__name__}: {exc}")
 
 
 def channel_in_use(channel: int) -> TopicError:

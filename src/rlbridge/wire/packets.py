@@ -8,7 +8,7 @@ at the end with defaults, never reorder (docs/protocol.md is the normative descr
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Protocol, cast
 
 import msgspec
 
@@ -22,7 +22,12 @@ Name = Annotated[str, msgspec.Meta(max_length=128)]
 TopicName = Annotated[str, msgspec.Meta(min_length=1, max_length=256)]
 TypeName = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
 FieldPath = Annotated[str, msgspec.Meta(min_length=1, max_length=128)]
-Reason = Annotated[str, msgspec.Meta(max_length=1024)]
+#: The most characters a reason carries on the wire (docs/protocol.md, section 4).
+REASON_MAX = 1024
+#: A reason's type: any length on decode, because :class:`_Explained` cuts it to
+#: :data:`REASON_MAX` there as on construction: a reason is for people, so a peer's long one
+#: costs its tail, not the packet (a client waiting for a refusal still gets it).
+Reason = str
 Bytes32 = Annotated[bytes, msgspec.Meta(max_length=64)]
 
 Direction = Literal["subscribe", "publish"]
@@ -33,6 +38,30 @@ Durability = Literal["volatile", "transient_local", "match"]
 
 class _Packet(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=False):
     """Base: array-encoded, immutable. Unknown trailing fields are ignored (forward compat)."""
+
+
+def cut_reason(reason: str) -> str:
+    """``reason`` if it fits in :data:`REASON_MAX` characters, else its head and an ellipsis
+    that show it was cut (the head is what says what went wrong)."""
+    if len(reason) <= REASON_MAX:
+        return reason
+    return reason[: REASON_MAX - 1] + "\u2026"
+
+
+class _Explained(_Packet, frozen=True):
+    """Base of the packets with a ``reason``: it is cut (:func:`cut_reason`) wherever the
+    packet is made, by a constructor or by the decoder, so no sender needs to remember to."""
+
+    def __post_init__(self) -> None:
+        reason = cast("_HasReason", self).reason
+        if len(reason) > REASON_MAX:
+            msgspec.structs.force_setattr(self, "reason", cut_reason(reason))
+
+
+class _HasReason(Protocol):
+    """What every subclass of :class:`_Explained` has (each declares it in its wire order)."""
+
+    reason: str
 
 
 class Limits(_Packet, frozen=True):
@@ -64,7 +93,7 @@ class ConnectAck(_Packet, tag=2, frozen=True):
     datagram_key: Bytes32 = b""
 
 
-class ConnectError(_Packet, tag=3, frozen=True):
+class ConnectError(_Explained, tag=3, frozen=True):
     """Server -> client: no session (version, limit, auth); the server closes after sending it."""
 
     code: U16
@@ -111,7 +140,7 @@ class TopicAck(_Packet, tag=5, frozen=True):
     credit: U64 | None = None
 
 
-class TopicError(_Packet, tag=6, frozen=True):
+class TopicError(_Explained, tag=6, frozen=True):
     """Server -> client: the binding was refused; ``reason`` names the problem for a person."""
 
     channel: U32
@@ -162,14 +191,14 @@ class Heartbeat(_Packet, tag=10, frozen=True):
     echo_rx_wall_ns: I64 = 0
 
 
-class Disconnect(_Packet, tag=11, frozen=True):
+class Disconnect(_Explained, tag=11, frozen=True):
     """Either way: an orderly goodbye, so the peer need not wait for the watchdog."""
 
     code: U16 = 0
     reason: Reason = ""
 
 
-class Error(_Packet, tag=12, frozen=True):
+class Error(_Explained, tag=12, frozen=True):
     """Either way: a packet was refused; the session goes on unless a Disconnect follows."""
 
     code: U16
@@ -223,7 +252,7 @@ class ServiceCall(_Packet, tag=20, frozen=True):
     timeout_ms: U32 = 5000
 
 
-class ServiceResult(_Packet, tag=21, frozen=True):
+class ServiceResult(_Explained, tag=21, frozen=True):
     """Server -> client: the answer to ``ServiceCall`` ``call``: ``code`` 0 and ``response``,
     or an error code (``NO_SERVICE``, ``TIMEOUT``, ``BAD_VALUE``, ...) and ``reason``."""
 
@@ -251,7 +280,7 @@ class ServiceRequest(_Packet, tag=23, frozen=True):
     request: dict[str, Any]
 
 
-class ServiceReply(_Packet, tag=24, frozen=True):
+class ServiceReply(_Explained, tag=24, frozen=True):
     """Client -> server: the response to ``request_id`` (``code`` 0), or the provider's failure
     (``code`` ``SERVICE_FAILED`` and ``reason``)."""
 
@@ -280,7 +309,7 @@ class GoalCancel(_Packet, tag=26, frozen=True):
     channel: U32
 
 
-class GoalResult(_Packet, tag=27, frozen=True):
+class GoalResult(_Explained, tag=27, frozen=True):
     """Server -> client: the goal on ``channel`` ended: ``status`` as ROS 2's GoalStatus
     (4 succeeded, 5 canceled, 6 aborted; 0 with ``reason``: lost) and its ``result``."""
 

@@ -71,7 +71,7 @@ class IncomingRequest:
     def fail(self, reason: str) -> None:
         """Tell the caller this request failed (``ServiceFailed`` on an rlbridge caller)."""
         self._send(ServiceReply(self._channel, self.request_id, int(ErrorCode.SERVICE_FAILED),
-                                None, reason[:1024]))
+                                None, reason))
 
     def _send(self, packet: ServiceReply) -> None:
         if self._answered:
