@@ -6,6 +6,7 @@ in every phase of a reconnect.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import socket
@@ -231,6 +232,44 @@ def test_a_flow_controlled_channel_is_credited_afresh_after_a_reconnect(
     serve.start()
     wait_until(reconnected(sub, pub), "the reconnect", timeout=WAIT)
     assert stream(4 * ring) == list(range(4 * ring))
+    assert inbox.lost == 0
+
+
+@pytest.mark.parametrize("unread", [8, 5])
+def test_a_rebind_grants_only_the_free_room_of_a_ring_holding_unread_values(
+        serve: Serve, bridges: Callable[..., Bridge], unread: int) -> None:
+    """The link drops under a reader that has not read: its unread values stay in the ring,
+    so the new binding's first credit is the ring's free room (none when full), not its
+    size. What the publisher sends meanwhile waits in the server's backlog; nothing is
+    overwritten, and the reader gets every value in order."""
+    sub, pub = bridges(name="sub"), bridges(name="pub")
+    ring = 8
+    inbox = sub.subscribe("/credit/unread", I32, transport="tcp", blocking=True,
+                          buffer_size=ring)
+    out = pub.publish("/credit/unread", I32, transport="tcp", buffer_size=4 * ring)
+    total = unread + 2 * ring
+    out.write_many(list(range(unread)))
+    wait_until(lambda: len(inbox) == unread, "the values in the reader's ring", timeout=WAIT)
+    serve.kill()
+    wait_until(lost(sub, pub), "the link lost", timeout=WAIT)
+    serve.start()
+    wait_until(reconnected(sub, pub), "the reconnect", timeout=WAIT)
+    out.write_many(list(range(unread, total)))
+
+    def server_side() -> dict[str, int]:
+        channels: dict[str, dict[str, int]] = sub.server_stats()["session"]["channels"]
+        return channels[str(inbox.channel_id)]
+
+    wait_until(lambda: server_side()["values_out"] + server_side()["backlog"] == 2 * ring,
+               "the new values at the server", timeout=WAIT)
+    assert server_side()["credit_limit"] == ring - unread
+    assert server_side()["values_out"] == ring - unread  # the free room, no more
+    got: list[int] = []
+    with contextlib.suppress(TimeoutError):
+        while len(got) < total:
+            got.append(inbox.read(timeout=WAIT))
+    assert got == list(range(total))
+    assert inbox.statistics().overwritten == 0
     assert inbox.lost == 0
 
 

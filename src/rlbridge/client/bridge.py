@@ -25,6 +25,8 @@ from collections.abc import Callable
 from types import TracebackType
 from typing import Any
 
+import msgspec
+
 from rlbridge.adapters.base import QoS
 from rlbridge.client.channels.failsafe import GuardedChannel, fail_safe
 from rlbridge.client.channels.incoming import IncomingChannel, OutgoingChannel
@@ -540,12 +542,15 @@ class Bridge:
         A binding the server now refuses (a type clash with a newer publisher) closes that
         channel and says why in the log; a lost session raises and the supervisor tries again.
         """
-        for req in self._conn.bindings():
+        for bound in self._conn.bindings():
+            req = bound
             incoming = self._incoming.get(req.channel)
             outgoing = self._outgoing.get(req.channel)
             if incoming is not None:
-                incoming.restart_sequence()  # before the request: values may follow at once
+                room = incoming.restart_sequence()  # before the request: values may follow
                 incoming.relink(self._conn.link)
+                if incoming.flow and isinstance(req, TopicConnect):  # the first credit
+                    req = msgspec.structs.replace(req, buffer_size=room)
             elif outgoing is not None:
                 outgoing.relink(self._conn.link)
                 outgoing.restart_sequence()  # the new binding numbers (and credits) from 0

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from rlbridge.adapters.base import QoS, Reliability
 from rlbridge.server.bindings import Inbound, Outbound
 from rlbridge.server.flow import SOCKET_SHARE, InboundCredit, OutboundCredit, wants_flow
+from rlbridge.server.sinks import PacketSink
 from rlbridge.wire import Batch, ErrorCode, Packet, TopicAck, TopicConnect
 
 if TYPE_CHECKING:
@@ -91,14 +92,59 @@ def bind(session: SessionOwner, req: TopicConnect) -> Inbound | Outbound:
     if isinstance(sink, ChannelSink):  # what it held and could not send counts as dropped
         sink.lost = on_drop
 
-    out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
-                                         ctx.handoff.wrap(out.on_values, on_drop))
-    if flow is not None:
+    if flow is not None:  # before subscribing: a latched topic's values use the credit too
         out.credit = OutboundCredit(req.buffer_size, flow,
                                     lambda: getattr(session.tcp, "queued", 0),
                                     ctx.config.max_write_buffer // SOCKET_SHARE)
+    parked = out.sink = ParkedSink(sink)  # what subscribing delivers follows the TopicAck
+    out.subscription = adapter.subscribe(req.topic, spec.msg_type, req.field, qos,
+                                         ctx.handoff.wrap(out.on_values, on_drop))
+    if out.credit is not None and flow is not None:
         flow.outbound.add(out.credit)
+    if not parked.packets:  # nothing was delivered: no need to wait for the ack
+        out.sink = sink
     return out
+
+
+def acknowledge(session: SessionOwner, binding: Inbound | Outbound,
+                via: PacketSink | None) -> None:
+    """Send a new binding's TopicAck, then the values its subscription delivered as it was
+    made (a latched topic's, parked by :func:`bind`): on one stream the ack comes first."""
+    session.send_control(ack_for(binding), via)
+    if isinstance(binding, Outbound) and isinstance(binding.sink, ParkedSink):
+        parked = binding.sink
+        binding.sink = parked.sink
+        binding.dropped += parked.release()
+
+
+class ParkedSink:
+    """A subscribe channel's sink while it is being bound: keeps packets, in order, until
+    its TopicAck is out (:func:`acknowledge`). Holds at most what the middleware delivers
+    while subscribing: a latched topic's values, within the credit if flow-controlled."""
+
+    def __init__(self, sink: PacketSink) -> None:
+        self.sink = sink
+        self.packets: list[Packet] = []
+
+    @property
+    def dropped(self) -> int:
+        return 0
+
+    def congested(self) -> bool:
+        return False
+
+    def send(self, packet: Packet, *, data: bool = False) -> bool:
+        self.packets.append(packet)
+        return True
+
+    def release(self) -> int:
+        """Send what was kept through the real sink; returns the values it refused."""
+        refused = 0
+        packets, self.packets = self.packets, []
+        for packet in packets:
+            if not self.sink.send(packet, data=True):
+                refused += len(packet.values) if isinstance(packet, Batch) else 1
+        return refused
 
 
 class ChannelSink:

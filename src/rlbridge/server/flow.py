@@ -70,8 +70,9 @@ class OutboundCredit:
 
     def __init__(self, window: int, flow: TopicFlow, queued: Callable[[], int] = lambda: 0,
                  max_queued: int = 1 << 62) -> None:
-        #: Values numbered below this may be sent (initially the client's ring size).
-        self.limit = max(1, window)
+        #: Values numbered below this may be sent: initially the room in the client's ring
+        #: (its size; after a reconnect, what unread values leave free: 0 waits for a Credit).
+        self.limit = max(0, window)
         #: Waiting values in the batches they came in, ``(stamp, values)``: per batch, not
         #: per value, so a backlog costs list slices, not a tuple per value.
         self._chunks: deque[tuple[int, list[Any]]] = deque()

@@ -20,7 +20,7 @@ from typing import Any
 
 from rlbridge.adapters.base import BindingError
 from rlbridge.server.bindings import Inbound, Outbound
-from rlbridge.server.connect import ack_for, bind, refusal
+from rlbridge.server.connect import ack_for, acknowledge, bind, refusal
 from rlbridge.server.context import ServerContext
 from rlbridge.server.datagram_limit import refuse_too_large
 from rlbridge.server.loss_reports import LossReporter
@@ -258,7 +258,7 @@ class Session:
         spec = binding.spec
         log.info("session %d (%s): channel %d %s %s [%s, %s] over %s", self.id, self.name, ch,
                  req.direction, req.topic, spec.msg_type, req.field or "whole", req.transport)
-        self.send_control(ack_for(binding), via)
+        acknowledge(self, binding, via)
 
     def report_loss(self) -> None:
         """See :meth:`SessionReach.report_loss` (the watchdog's heartbeat calls it)."""

@@ -127,11 +127,15 @@ class IncomingChannel(Channel[Any]):
         """True for a flow-controlled channel (the server sends within its credit)."""
         return self._credit_bell is not None
 
-    def restart_sequence(self) -> None:
-        """The channel was bound again (reconnect): the server numbers from 0 again."""
+    def restart_sequence(self) -> int:
+        """The channel was bound again (reconnect): the server numbers from 0 again. Returns
+        the new binding's first credit, the ring's free room: values of the old binding
+        still unread keep their slots (the request's ``buffer_size``, protocol.md 10.5)."""
         self._tracker.restart()
         self._arrived = 0
-        self.credited = self._ring.capacity
+        room: int = self._ring.capacity - len(self._ring)
+        self.credited = room
+        return room
 
     def credit_limit(self) -> int:
         """The values the server may have sent: consumed ones plus a free ring.
