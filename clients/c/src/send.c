@@ -242,7 +242,7 @@ bool rlbi_send_topic_connect(rlb_conn *k, rlb_channel *ch) {
     if (!pub && ch->mode == RLB_QUEUE) { /* first credit: the ring's free room */
         uint64_t consumed = atomic_load_explicit(&ch->n_consumed, memory_order_relaxed);
         uint64_t occupied = ch->pushed - consumed;
-        buffer = ch->ring.cap > occupied ? ch->ring.cap - occupied : 1;
+        buffer = ch->ring.cap > occupied ? ch->ring.cap - occupied : 0; /* full: wait for a Credit */
         ch->credit_base = consumed - buffer; /* limit = consumed - base (mod 2^64) */
         ch->credit_sent = buffer;
     }
