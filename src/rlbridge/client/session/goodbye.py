@@ -57,20 +57,21 @@ class Goodbye:
             conn.send_control(GOODBYE)  # UDP-only: behind the datagrams already
             return
         within = f"within {bound:.3g} s"
+        # Counted before the goodbye on TCP, which may fail: a broken link counts them too.
         if not conn.receiving:  # closing from the receive thread, or it ended: no answer
-            conn.send_control(GOODBYE)
             self._count_unconfirmed("before the session ended")
+            conn.send_control(GOODBYE)
             return
         if self._waiting("tcp") and not self._reports_cover("tcp", conn, deadline):
-            conn.send_control(GOODBYE)  # behind the TCP values; the UDP ones are unconfirmed
             self._count_unconfirmed(within)
+            conn.send_control(GOODBYE)  # behind the TCP values, which it keeps
             return
         if not self._waiting("udp"):  # the reports that covered TCP covered UDP too
             conn.send_control(GOODBYE)
             return
         if not self._over_udp(conn, deadline):
-            conn.send_control(GOODBYE)
             self._count_unconfirmed(within)
+            conn.send_control(GOODBYE)
 
     def _waiting(self, transport: str) -> bool:
         """A channel on ``transport`` has values the server has not confirmed."""
