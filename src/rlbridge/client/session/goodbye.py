@@ -63,6 +63,8 @@ class Goodbye:
             conn.send_control(GOODBYE)
             return
         if self._waiting("tcp") and not self._reports_cover("tcp", conn, deadline):
+            log.info("closing: no loss report covered the TCP values %s; goodbye over TCP",
+                     within)
             self._count_unconfirmed(within)
             conn.send_control(GOODBYE)  # behind the TCP values, which it keeps
             return
@@ -70,6 +72,8 @@ class Goodbye:
             conn.send_control(GOODBYE)
             return
         if not self._over_udp(conn, deadline):
+            log.info("closing: the server did not end the session on the goodbye over UDP %s; "
+                     "goodbye over TCP", within)
             self._count_unconfirmed(within)
             conn.send_control(GOODBYE)
 
