@@ -9,7 +9,8 @@ binding beyond the ``next_seq`` of the server's last ``LossReport`` (every chann
 binds asks for reports).
 
 * Nothing in flight over UDP: ``Disconnect`` over TCP at once, as always. The server reads a
-  TCP connection in order, so it comes after the TCP values, and ``close()`` stays fast.
+  TCP connection in order, so it comes after the TCP values, and ``close()`` stays fast. (A
+  UDP-only session's goodbye is a datagram, behind the values anyway.)
 * UDP values in flight: ``Disconnect`` over UDP, behind them on the same socket, and wait
   for the server to close the TCP connection, which it does on handling it: every datagram
   that reached it before the goodbye was taken. Resent while waiting (every two round trips,
@@ -20,10 +21,12 @@ binds asks for reports).
 
 The bound: the session's link timeout (``ConnectAck.timeout_ms``, 600 ms by default, the
 silence after which either side gives the link up), at most the ``timeout`` given to
-``Bridge.connect``. At the bound the goodbye goes over TCP, and what is still unconfirmed on
-a UDP channel is not silent: it is counted in the channel's ``health().lost`` and a warning
-names the channel. A datagram the network dropped before a goodbye that was confirmed is a
-gap the server never sees (no later value): that is UDP, as at any other pause.
+``Bridge.connect``. At the bound the goodbye goes over TCP (an info line says so), and what
+is still unconfirmed on a UDP channel is not silent: it is counted in the channel's
+``health().lost`` and a warning names the channel. Closing from the receive thread (which
+cannot wait for itself) counts the same at once. A datagram the network dropped before a
+goodbye that was confirmed is a gap the server never sees (no later value): that is UDP, as
+at any other pause.
 """
 
 from __future__ import annotations
