@@ -106,7 +106,8 @@ INTERNAL: frozenset[str] = frozenset({
     "OutgoingChannel.bound", "OutgoingChannel.refused", "OutgoingChannel.relink",
     "OutgoingChannel.restart_sequence", "OutgoingChannel.ready", "OutgoingChannel.retry_in",
     "OutgoingChannel.on_credit", "OutgoingChannel.on_loss", "OutgoingChannel.holding",
-    "OutgoingChannel.take", "OutgoingChannel.take_parts",
+    "OutgoingChannel.take", "OutgoingChannel.take_parts", "OutgoingChannel.unconfirmed",
+    "OutgoingChannel.not_confirmed",
 })
 
 PREFACE = """\

@@ -38,6 +38,7 @@ from rlbridge.client.session.actions import Goal
 from rlbridge.client.session.auth import resolve_key
 from rlbridge.client.session.connection import Connection
 from rlbridge.client.session.feedback import Feedback
+from rlbridge.client.session.goodbye import Goodbye
 from rlbridge.client.session.io_priority import IoPriority
 from rlbridge.client.session.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
 from rlbridge.client.session.reconnect import Backoff, ClientState, ReconnectSupervisor
@@ -126,8 +127,9 @@ class Bridge:
         ``nodelay``: no Nagle on this client's TCP socket. ``send_rate_hz`` starts the SDK's
         send loop: buffered values (``through_buffer=True``) go out at that rate without anyone
         calling :meth:`send` (thesis figure 5.10). ``timeout``: seconds for the handshake and
-        each binding. ``tuning``: the rarely touched knobs (:class:`Tuning`). Options that
-        cannot take effect together raise ``ValueError`` before any socket is opened.
+        each binding, and at most for :meth:`close` to see its last values taken. ``tuning``:
+        the rarely touched knobs (:class:`Tuning`). Options that cannot take effect together
+        raise ``ValueError`` before any socket is opened.
         """
         check_connect(security, reconnect, tuning, nodelay=nodelay, timeout=timeout,
                       send_rate_hz=send_rate_hz)
@@ -579,12 +581,17 @@ class Bridge:
     def close(self) -> None:
         """Flush, say goodbye, stop every SDK thread, close every channel; idempotent.
 
-        Prompt in every phase: a reconnect backoff ends at once and a handshake is aborted.
+        The goodbye comes after the last values, which the server takes first: bounded by
+        the link's timeout, what it has not confirmed by then is counted in the channel's
+        ``health().lost`` and logged (:mod:`rlbridge.client.session.goodbye`). Prompt in
+        every other phase: a reconnect backoff ends at once and a handshake is aborted.
         """
         if self._supervisor is not None:
             self._supervisor.request_stop()
         self._sender.close()
-        self._conn.close()
+        with self._lock:
+            outgoing = list(self._outgoing.values())
+        self._conn.close(Goodbye(outgoing, self._feedback.reported))
         if self._supervisor is not None:
             self._supervisor.stop()
         self._close_channels()

@@ -57,7 +57,8 @@ class OutgoingChannel:
 
     __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
                  "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
-                 "_overtaken", "_refused", "_rejected", "_ring", "_space", "_within", "_writer",
+                 "_overtaken", "_refused", "_rejected", "_ring", "_space", "_unconfirmed",
+                 "_within", "_writer",
                  "channel_id", "deferred", "field", "flow", "immediate", "latest", "msg_type",
                  "on_close", "pacing", "plain", "redundancy", "ros_lost", "topic",
                  "transport")  # fmt: skip
@@ -108,6 +109,8 @@ class OutgoingChannel:
         #: The server's last loss report for this binding, and the totals of earlier ones.
         self._hop: ChannelLoss | None = None
         self._hop_base = (0, 0)
+        #: Values the server had not confirmed when the session was closed (goodbye.py).
+        self._unconfirmed = 0
         self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
         self._rejected = self._refused = 0  # refused at ``write``; by the server
         self.on_close: Callable[[OutgoingChannel], None] | None = None
@@ -257,6 +260,17 @@ class OutgoingChannel:
             self.pacing.on_report(received, lost)
         return lost
 
+    def unconfirmed(self) -> int:
+        """Values sent in this binding that the server's last loss report does not cover
+        (its ``next_seq``): in flight, or lost. Read by ``Bridge.close`` (goodbye.py)."""
+        hop = self._hop
+        return max(0, self._next_seq - (hop.next_seq if hop is not None else 0))
+
+    def not_confirmed(self, count: int) -> None:
+        """The session closed with ``count`` values unconfirmed: counted in ``health().lost``
+        (the client cannot tell whether they arrived)."""
+        self._unconfirmed += count
+
     @property
     def holding(self) -> bool:
         """Send thread: a latest value waits for the TCP connection to drain."""
@@ -351,18 +365,20 @@ class OutgoingChannel:
 
         One-way latency here is half the round trip. ``lost`` and ``arrived`` are the
         server's first-hop counts from its loss reports (every heartbeat period while they
-        move; -1 before the first), totalled over reconnects.
+        move; -1 before the first), totalled over reconnects; ``lost`` also counts the values
+        the server had not confirmed when ``Bridge.close`` gave up waiting (goodbye.py).
         """
         link = self._link
         rtt = link.rtt_ns if link is not None else -1
         ring = self._ring
         hop, (base_received, base_lost) = self._hop, self._hop_base
-        reported = hop is not None or base_received or base_lost
+        unconfirmed = self._unconfirmed
+        reported = hop is not None or base_received or base_lost or unconfirmed
         pacing = self.pacing
         rate = -1 if pacing is None or pacing.rate_hz is None else int(pacing.rate_hz)
         return ChannelHealth(
             rtt_ns=rtt, one_way_ns=rtt // 2 if rtt >= 0 else -1, jitter_ns=-1,
-            lost=base_lost + (hop.lost if hop else 0) if reported else -1,
+            lost=base_lost + (hop.lost if hop else 0) + unconfirmed if reported else -1,
             duplicates=0, overwritten=ring.overwritten, overtaken=self._overtaken,
             expired=self._expired, values=ring.written,
             clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns,

@@ -67,6 +67,9 @@ __all__ = ["Connection", "ConnectionClosed", "ConnectionFailed", "Control"]
 
 log = logging.getLogger("rlbridge.client")
 
+#: What a client says when it closes its session.
+GOODBYE = Disconnect(0, "client closed")
+
 
 class Connection:
     """Sockets, handshake, receive thread and watchdog of one session. See module docstring."""
@@ -364,17 +367,22 @@ class Connection:
         self.requests.session_ended()
         self.services.session_ended(final)
 
-    def close(self) -> None:
+    def close(self, goodbye: Callable[[Connection], None] | None = None) -> None:
         """Say goodbye, stop the receive thread, close the sockets; idempotent.
 
-        Also aborts a reconnect handshake running in another thread: the sockets are then
-        released by that thread when its handshake fails.
+        ``goodbye`` says it when a session is up (``Bridge.close``: after its last values,
+        :mod:`rlbridge.client.session.goodbye`); by default a ``Disconnect`` on the control
+        transport. Also aborts a reconnect handshake running in another thread: the sockets
+        are then released by that thread when its handshake fails.
         """
         with self._state_changed:
-            self._closing = True
+            self._closing = True  # first: the server's hang-up after a goodbye is no lost link
         if self.up and self.ack is not None:
             with contextlib.suppress(OSError, ConnectionClosed):
-                self.send_control(Disconnect(0, "client closed"))
+                if goodbye is None:
+                    self.send_control(GOODBYE)
+                else:
+                    goodbye(self)
         self.end_session("closed by the client", self._generation, final=True)
         with self._state_lock:
             handshaking = self._handshaking
@@ -388,6 +396,23 @@ class Connection:
             self._thread.join(5.0)
         if not handshaking:
             self._release()
+
+    def wait_hung_up(self, timeout: float) -> bool:
+        """While closing: wait (at most ``timeout``) for the receive thread to end, which it
+        does when the server closes the session's TCP connection; True if it has. False at
+        once when called from that thread (it cannot wait for itself)."""
+        thread = self._thread
+        if thread is None or thread is threading.current_thread():
+            return False
+        thread.join(timeout)
+        return not thread.is_alive()
+
+    @property
+    def receiving(self) -> bool:
+        """The receive thread runs, and it is not the caller (:meth:`wait_hung_up` can wait)."""
+        thread = self._thread
+        return (thread is not None and thread is not threading.current_thread()
+                and thread.is_alive())
 
     def _close_session_sockets(self) -> None:
         tcp, udp, self.tcp, self.udp = self.tcp, self.udp, None, None

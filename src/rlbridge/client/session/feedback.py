@@ -9,10 +9,14 @@ Two packets come back from the server for the channels a client publishes (recei
   (``health().arrived`` and ``lost``; an adaptive rate limit follows it) and new loss becomes
   a :class:`~rlbridge.client.session.link_events.LinkEvent` naming the channel, so a flood that
   loses
-  most of what it sends is visible to control code within a heartbeat period.
+  most of what it sends is visible to control code within a heartbeat period. ``Bridge.close``
+  waits on :attr:`Feedback.reported` for the reports that cover its last values
+  (:mod:`rlbridge.client.session.goodbye`).
 """
 
 from __future__ import annotations
+
+import threading
 
 from rlbridge.client.channels.outgoing import OutgoingChannel
 from rlbridge.client.session.link_events import LinkEvents
@@ -28,6 +32,8 @@ class Feedback:
         self._outgoing = outgoing
         self._events = events
         self._doorbell = doorbell
+        #: Notified after every loss report (the channels have taken it).
+        self.reported = threading.Condition()
 
     def on_credit(self, channel: int, limit: int) -> None:
         out = self._outgoing.get(channel)
@@ -47,3 +53,5 @@ class Feedback:
                     f"hop since the last report; {loss.lost:,} of {total:,} since bound"
                     + (f", {loss.refused:,} refused by the server's rate limit"
                        if loss.refused else "")))
+        with self.reported:
+            self.reported.notify_all()
