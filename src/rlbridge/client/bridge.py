@@ -389,7 +389,11 @@ class Bridge:
         return self._conn.local_ports()
 
     def server_stats(self) -> dict[str, Any]:
-        """The server's counters for this session, its totals, and the topics it knows."""
+        """The server's counters for this session, its totals, and the topics it knows.
+
+        A UDP-only session (``Tuning(control="udp")``) gets them in one datagram: when they do
+        not fit one, the server's refusal is raised at once (:class:`RemoteError`,
+        ``TOO_LARGE``, its reason says to ask over TCP)."""
         return dict(self._conn.request_stats())
 
     @property
