@@ -38,7 +38,7 @@ from rlbridge.client.session.actions import Goal
 from rlbridge.client.session.auth import resolve_key
 from rlbridge.client.session.connection import Connection
 from rlbridge.client.session.feedback import Feedback
-from rlbridge.client.session.goodbye import Goodbye
+from rlbridge.client.session.goodbye import Goodbye, deliver_last
 from rlbridge.client.session.io_priority import IoPriority
 from rlbridge.client.session.link_events import DEFAULT_EVENT_BUFFER, LinkEvent, LinkEvents
 from rlbridge.client.session.reconnect import Backoff, ClientState, ReconnectSupervisor
@@ -289,7 +289,15 @@ class Bridge:
     def _unbind(self, channel: IncomingChannel | OutgoingChannel) -> None:
         """A channel of this bridge was closed: stop serving it and unbind it on the server.
         Channels the bridge itself closes (its own close, a refused rebinding) are no longer
-        registered when they close, so nothing is sent for them."""
+        registered when they close, so nothing is sent for them. A publish channel's last
+        values go first, while it is registered: the loss reports confirming them reach it
+        (:func:`~rlbridge.client.session.goodbye.deliver_last`)."""
+        with self._lock:
+            last = self._outgoing.get(channel.channel_id)
+        if last is channel and self._conn.up:
+            with contextlib.suppress(OSError, ConnectionClosed):
+                deliver_last(last, self._conn, self._feedback.reported,
+                             lambda bound: self._sender.flush(wait=True, timeout=bound))
         with self._lock:
             incoming = self._incoming.pop(channel.channel_id, None)
             out = self._outgoing.pop(channel.channel_id, None)
@@ -389,7 +397,11 @@ class Bridge:
         return self._conn.local_ports()
 
     def server_stats(self) -> dict[str, Any]:
-        """The server's counters for this session, its totals, and the topics it knows."""
+        """The server's counters for this session, its totals, and the topics it knows.
+
+        A UDP-only session (``Tuning(control="udp")``) gets them in one datagram: when they do
+        not fit one, the server's refusal is raised at once (:class:`RemoteError`,
+        ``TOO_LARGE``, its reason says to ask over TCP)."""
         return dict(self._conn.request_stats())
 
     @property

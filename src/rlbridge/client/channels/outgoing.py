@@ -262,13 +262,14 @@ class OutgoingChannel:
 
     def unconfirmed(self) -> int:
         """Values sent in this binding that the server's last loss report does not cover
-        (its ``next_seq``): in flight, or lost. Read by ``Bridge.close`` (goodbye.py)."""
+        (its ``next_seq``): in flight, or lost. Read by the goodbyes of ``Bridge.close`` and
+        ``close()`` (goodbye.py)."""
         hop = self._hop
         return max(0, self._next_seq - (hop.next_seq if hop is not None else 0))
 
     def not_confirmed(self, count: int) -> None:
-        """The session closed with ``count`` values unconfirmed: counted in ``health().lost``
-        (the client cannot tell whether they arrived)."""
+        """The session or binding ended with ``count`` values unconfirmed: counted in
+        ``health().lost`` (the client cannot tell whether they arrived)."""
         self._unconfirmed += count
 
     @property
@@ -396,8 +397,13 @@ class OutgoingChannel:
         return f"{self.topic} out"
 
     def close(self) -> None:
-        """Refuse further writes and unbind the topic (as ``Bridge.unsubscribe``); idempotent.
-        A latest value still held back is discarded (``statistics().dropped``)."""
+        """Refuse further writes, deliver what was written, then unbind the topic (as
+        ``Bridge.unsubscribe``); idempotent. A latest value held back is discarded
+        (``statistics().dropped``).
+
+        Delivered: sent, and on UDP confirmed by the server's loss reports, bounded by the link
+        timeout; what is unconfirmed then counts in ``health().lost``, with a warning
+        (:mod:`rlbridge.client.session.goodbye`)."""
         self._closed = True
         self._space.ring()
         if self._held is not None:

@@ -27,6 +27,14 @@ is still unconfirmed on a UDP channel is not silent: it is counted in the channe
 cannot wait for itself) counts the same at once. A datagram the network dropped before a
 goodbye that was confirmed is a gap the server never sees (no later value): that is UDP, as
 at any other pause.
+
+A channel's ``close()`` races the same way: its ``TopicClose`` over TCP can overtake its last
+datagrams, which the server then drops (the channel is gone). Before it, :func:`deliver_last`
+sends the values still in the channel, then waits, with the same bound, for the loss reports
+to cover them (not a ``TopicClose`` over UDP: it has no answer, so one the link lost would
+leave the binding). What they never covered is counted and said the same way. Nothing in
+flight, a TCP channel or a UDP-only session (the ``TopicClose`` is behind the values): no
+wait.
 """
 
 from __future__ import annotations
@@ -34,7 +42,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from rlbridge.client.channels.outgoing import OutgoingChannel
 from rlbridge.client.session.connection import GOODBYE, Connection
@@ -52,23 +60,23 @@ class Goodbye:
         self._reported = reported
 
     def __call__(self, conn: Connection) -> None:
-        ack = conn.ack
-        assert ack is not None
-        bound = min(conn.timeout, ack.timeout_ms / 1000)
+        bound = _bound(conn)
         deadline = time.monotonic() + bound
         if conn.control != "tcp" or conn.udp is None or not self._waiting("udp"):
             conn.send_control(GOODBYE)  # UDP-only: behind the datagrams already
             return
         within = f"within {bound:.3g} s"
+        udp = [c for c in self._channels if c.transport == "udp"]
         # Counted before the goodbye on TCP, which may fail: a broken link counts them too.
         if not conn.receiving:  # closing from the receive thread, or it ended: no answer
-            self._count_unconfirmed("before the session ended")
+            _count_unconfirmed(udp, "before the session ended")
             conn.send_control(GOODBYE)
             return
-        if self._waiting("tcp") and not self._reports_cover("tcp", conn, deadline):
+        tcp = [c for c in self._channels if c.transport == "tcp"]
+        if self._waiting("tcp") and not _reports_cover(tcp, self._reported, conn, deadline):
             log.info("closing: no loss report covered the TCP values %s; goodbye over TCP",
                      within)
-            self._count_unconfirmed(within)
+            _count_unconfirmed(udp, within)
             conn.send_control(GOODBYE)  # behind the TCP values, which it keeps
             return
         if not self._waiting("udp"):  # the reports that covered TCP covered UDP too
@@ -77,26 +85,12 @@ class Goodbye:
         if not self._over_udp(conn, deadline):
             log.info("closing: the server did not end the session on the goodbye over UDP %s; "
                      "goodbye over TCP", within)
-            self._count_unconfirmed(within)
+            _count_unconfirmed(udp, within)
             conn.send_control(GOODBYE)
 
     def _waiting(self, transport: str) -> bool:
         """A channel on ``transport`` has values the server has not confirmed."""
         return any(c.transport == transport and c.unconfirmed() for c in self._channels)
-
-    def _reports_cover(self, transport: str, conn: Connection, deadline: float) -> bool:
-        """Wait for loss reports covering every channel on ``transport``, until ``deadline``
-        or the end of the session (checked every slice: a hang-up notifies nobody)."""
-        def covered() -> bool:
-            return not self._waiting(transport)
-
-        with self._reported:
-            while (left := deadline - time.monotonic()) > 0:
-                if self._reported.wait_for(covered, min(left, _slice(conn))):
-                    return True
-                if not conn.receiving:
-                    return False
-        return covered()
 
     def _over_udp(self, conn: Connection, deadline: float) -> bool:
         """``Disconnect`` over UDP (resent) until the server hangs up the TCP connection;
@@ -114,15 +108,58 @@ class Goodbye:
             if conn.wait_hung_up(min(resend, left)):
                 return True
 
-    def _count_unconfirmed(self, when: str) -> None:
-        """Every UDP value the server never confirmed: counted as lost, and said."""
-        for channel in self._channels:
-            count = channel.unconfirmed() if channel.transport == "udp" else 0
-            if count:
-                channel.not_confirmed(count)
-                log.warning("closing: the server did not confirm the last %d value(s) of "
-                            "channel %d (%s) %s; counted as lost (health().lost)",
-                            count, channel.channel_id, channel.topic, when)
+
+def deliver_last(channel: OutgoingChannel, conn: Connection, reported: threading.Condition,
+                 flush: Callable[[float], object]) -> None:
+    """Before ``channel.close()`` unbinds it on a live session: its last values reach the
+    server (module docstring). ``flush(timeout)`` hands the values still in the channel to the
+    sockets (the send thread's ``flush(wait=True)``); ``reported`` is notified after each loss
+    report, which must still be routed to the channel."""
+    bound = _bound(conn)
+    deadline = time.monotonic() + bound
+    if channel.pending():
+        flush(bound)
+    if (channel.transport != "udp" or conn.control != "tcp" or conn.udp is None
+            or not channel.unconfirmed()):
+        return
+    if not conn.receiving:  # closed from the receive thread, or it ended: no answer
+        _count_unconfirmed([channel], "before its channel was unbound")
+    elif not _reports_cover([channel], reported, conn, deadline):
+        _count_unconfirmed([channel], f"within {bound:.3g} s")
+
+
+def _bound(conn: Connection) -> float:
+    """How long the last values may take: the link timeout, at most ``connect``'s."""
+    ack = conn.ack
+    assert ack is not None
+    return min(conn.timeout, ack.timeout_ms / 1000)
+
+
+def _reports_cover(channels: Sequence[OutgoingChannel], reported: threading.Condition,
+                   conn: Connection, deadline: float) -> bool:
+    """Wait for loss reports covering every value sent on ``channels``, until ``deadline``
+    or the end of the session (checked every slice: a hang-up notifies nobody)."""
+    def covered() -> bool:
+        return not any(c.unconfirmed() for c in channels)
+
+    with reported:
+        while (left := deadline - time.monotonic()) > 0:
+            if reported.wait_for(covered, min(left, _slice(conn))):
+                return True
+            if not conn.receiving:
+                return False
+    return covered()
+
+
+def _count_unconfirmed(channels: Sequence[OutgoingChannel], when: str) -> None:
+    """Every value of ``channels`` the server never confirmed: counted as lost, and said."""
+    for channel in channels:
+        count = channel.unconfirmed()
+        if count:
+            channel.not_confirmed(count)
+            log.warning("closing: the server did not confirm the last %d value(s) of "
+                        "channel %d (%s) %s; counted as lost (health().lost)",
+                        count, channel.channel_id, channel.topic, when)
 
 
 def _slice(conn: Connection) -> float:

@@ -2,8 +2,11 @@
 
 The asking thread (a channel being bound, ``rlbridge stats``) sends the request and waits on an
 event; the receive thread (:mod:`rlbridge.client.session.receiver`) hands the answer over with
-:meth:`Requests.answer` and sets it. The acknowledged bindings are kept here too: they are what
-a new session binds again after a reconnect.
+:meth:`Requests.answer` and sets it. A refusal answers too, so the asker fails at once with the
+server's reason instead of waiting out its patience: a ``TopicError`` by its channel, and an
+``Error(TOO_LARGE)`` without one (:meth:`Requests.refused`) every stats request, whose answer
+did not fit a datagram (protocol.md 12.2). The acknowledged bindings are kept here too: they
+are what a new session binds again after a reconnect.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ import msgspec
 
 from rlbridge.errors import ConnectionClosed, ConnectionFailed
 from rlbridge.wire import (
+    Error,
+    ErrorCode,
     GoalSend,
     LocalProtocolError,
     Packet,
@@ -112,9 +117,13 @@ class Requests:
         with self._lock:
             self._stats_waiters.append(pending)
         conn.send_control(Stats(ask or {}))
-        if not pending.done.wait(conn.timeout) or not isinstance(pending.answer, Stats):
+        answered = pending.done.wait(conn.timeout)
+        answer = pending.answer
+        if isinstance(answer, Error):
+            raise error_from_code(answer.code, f"statistics refused: {answer.reason}")
+        if not answered or not isinstance(answer, Stats):
             raise ConnectionFailed(f"no statistics from the server within {conn.timeout} s")
-        return pending.answer.body
+        return answer.body
 
     def answer(self, packet: TopicAck | TopicError) -> None:
         """The receive thread got the answer to a topic-connect: wake its asker."""
@@ -124,13 +133,20 @@ class Requests:
             pending.answer = packet
             pending.done.set()
 
-    def answer_stats(self, packet: Stats) -> None:
-        """The receive thread got statistics: every waiting asker gets them."""
+    def answer_stats(self, packet: Stats | Error) -> None:
+        """The receive thread got statistics, or their refusal: every waiting asker gets it."""
         with self._lock:
             waiters, self._stats_waiters = self._stats_waiters, []
         for pending in waiters:
             pending.answer = packet
             pending.done.set()
+
+    def refused(self, error: Error) -> None:
+        """The receive thread got an ``Error``: fail the request it answers, if any. Only a
+        stats request is refused by an ``Error`` (its answer too large for a datagram, code
+        ``TOO_LARGE`` without a channel); other errors concern values or the session."""
+        if error.code == ErrorCode.TOO_LARGE and error.channel is None:
+            self.answer_stats(error)
 
     def session_ended(self) -> None:
         """Wake every topic-connect waiting, to ask again in the next session or give up."""

@@ -312,6 +312,7 @@ class Receiver:
                 link.on_receive(now)
                 log.warning("server reported: %s (code %d, channel %s)", packet.reason,
                             packet.code, packet.channel)
+                conn.requests.refused(packet)
                 if conn.on_error is not None:
                     conn.on_error(packet)
             case Stats():

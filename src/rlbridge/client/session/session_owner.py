@@ -66,6 +66,8 @@ class Answers(Protocol):
 
     def answer_stats(self, packet: Stats) -> None: ...
 
+    def refused(self, error: Error) -> None: ...
+
 
 class ServiceAnswers(Protocol):
     """Where the receive thread hands service results, requests and goal results."""
