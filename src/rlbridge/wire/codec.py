@@ -27,6 +27,7 @@ from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Packet, Value
 MAGIC = b"RB"
 FRAME_HEADER = struct.Struct(">2sBBI")
 DATAGRAM_HEADER = struct.Struct(">2sBBQ")
+_FRAME_HEAD: int = FRAME_HEADER.size
 #: Largest frame body a decoder accepts unless told otherwise (bounded memory per session).
 DEFAULT_MAX_PACKET = 1 << 20
 #: A UDP datagram cannot be larger than this on IPv4.
@@ -259,7 +260,15 @@ def encode_run_into(codec: PacketCodec, buf: bytearray, channel: int, first_seq:
     ``refused``, for the caller to count and say; the rest keep their sequence numbers.
     """
     n = len(values)
-    head = FRAME_HEADER.size
+    start = len(buf)
+    if n == 1:  # the common run (a value since the last round): one frame, one check
+        codec.encode_frame_into(Value(channel, first_seq, stamps[0], values[0]), buf)
+        body = len(buf) - start - _FRAME_HEAD
+        if body <= max_packet:
+            return 1
+        del buf[start:]
+        refused.append((first_seq, body))
+        return 0
     frames = 0
     step = max(1, max_batch)
     i = 0
@@ -273,7 +282,7 @@ def encode_run_into(codec: PacketCodec, buf: bytearray, channel: int, first_seq:
         else:
             codec.encode_frame_into(Batch(channel, first_seq + i, stamps[i : i + k],
                                           values[i : i + k]), buf)
-        body = len(buf) - start - head
+        body = len(buf) - start - _FRAME_HEAD
         if body <= max_packet:
             frames += 1
             i += k
