@@ -34,6 +34,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Literal
 
 KEYS = ("write", "send_call", "send_thread", "read_many", "recv_thread", "sdk", "send_side")
 F64 = "std_msgs/msg/Float64"
@@ -48,7 +49,7 @@ def _thread_clock(name: str) -> int:
 
 
 def client(port: int, channels: int, rate: float, seconds: float,
-           transport: str = "udp") -> None:
+           transport: Literal["udp", "tcp"] = "udp") -> None:
     """One SDK client (the tree on PYTHONPATH); prints one JSON line of CPU seconds."""
     from rlbridge.client.bridge import Bridge
 
