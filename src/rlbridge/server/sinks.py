@@ -47,6 +47,8 @@ log = logging.getLogger("rlbridge.server")
 #: ``FrameDecoder`` ends the session on a longer one; docs/protocol.md 2).
 CLIENT_MAX_PACKET = DEFAULT_MAX_PACKET
 _FRAME_HEAD: int = FRAME_HEADER.size
+#: A frame (header included) longer than this is over ``CLIENT_MAX_PACKET``.
+_FRAME_LIMIT: int = CLIENT_MAX_PACKET + _FRAME_HEAD
 
 #: PacketCodec's encoder settings (msgspec defaults); tests/server check the bytes match.
 _ENCODE = msgspec.msgpack.Encoder().encode
@@ -109,13 +111,25 @@ class TcpSink:
             return True
         if not corked:
             self._loop.call_soon(self.flush)
-        start = len(corked)
         self._codec.encode_frame_into(packet, corked)
-        if len(corked) - start - _FRAME_HEAD > CLIENT_MAX_PACKET:
-            del corked[start:]
-            return self._cut(packet)
+        if len(corked) > _FRAME_LIMIT:  # a MiB corked: this frame may be over the limit
+            return self._over(packet)
         self._corked_frames += 1
         return True
+
+    def _over(self, packet: Packet) -> bool:
+        """The corked frames passed the client's limit: one check per send found it (not a
+        frame's own length, which would cost every send). Encoded again alone, the last
+        frame is either over the limit (taken back and cut) or fine, and then what is corked
+        goes to the transport now, so the next frames start a fresh buffer."""
+        corked = self._corked
+        size = len(self._codec.encode_frame(packet))
+        if size <= _FRAME_LIMIT:
+            self._corked_frames += 1
+            self.flush()
+            return True
+        del corked[len(corked) - size:]
+        return self._cut(packet)
 
     def _cut(self, packet: Packet) -> bool:
         """A value frame over the client's limit, which would end its session: a ``Batch`` is
