@@ -2,9 +2,10 @@
 
     git worktree add /tmp/rlbridge-base <commit>    # or copy its src/ anywhere
     .venv/bin/python benchmarks/sdk_send_ab.py --a /tmp/rlbridge-base/src --b src \
-        [--repeats 6] [--channels 10] [--rate 1000] [--seconds 5]
+        [--repeats 6] [--channels 10] [--rate 1000] [--seconds 5] [--transport tcp]
 
-The shape of ``rlbridge bench cpu`` (one client, ``--channels`` UDP channels at ``--rate`` Hz,
+The shape of ``rlbridge bench cpu`` (one client, ``--channels`` channels at ``--rate`` Hz, UDP
+or ``--transport tcp`` (the send round's frames, cut by count and bytes),
 buffered writes and one ``Bridge.send()`` per tick, read back with ``read_many``), but the
 client runs with ``PYTHONPATH`` set to tree A or B, in turn (ABBA...), against one
 ``rlbridge serve`` of the installed tree, and it splits the SDK's CPU finer than the bench:
@@ -33,6 +34,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Literal
 
 KEYS = ("write", "send_call", "send_thread", "read_many", "recv_thread", "sdk", "send_side")
 F64 = "std_msgs/msg/Float64"
@@ -46,14 +48,15 @@ def _thread_clock(name: str) -> int:
     raise RuntimeError(f"no thread {name!r}")
 
 
-def client(port: int, channels: int, rate: float, seconds: float) -> None:
+def client(port: int, channels: int, rate: float, seconds: float,
+           transport: Literal["udp", "tcp"] = "udp") -> None:
     """One SDK client (the tree on PYTHONPATH); prints one JSON line of CPU seconds."""
     from rlbridge.client.bridge import Bridge
 
     b = Bridge.connect("127.0.0.1", port, name="sdk-ab", timeout=30)
     topics = [f"/ab/c{i}" for i in range(channels)]
-    inboxes = [b.subscribe(t, F64, transport="udp", buffer_size=256) for t in topics]
-    outs = [b.publish(t, F64, transport="udp", through_buffer=True) for t in topics]
+    inboxes = [b.subscribe(t, F64, transport=transport, buffer_size=256) for t in topics]
+    outs = [b.publish(t, F64, transport=transport, through_buffer=True) for t in topics]
     time.sleep(0.5)
     thread_time, monotonic, sleep = time.thread_time, time.monotonic, time.sleep
     recv_clock, send_clock = _thread_clock("rlbridge-recv"), _thread_clock("rlbridge-send")
@@ -110,7 +113,8 @@ def run_one(tree: str, port: int, args: argparse.Namespace) -> dict[str, float]:
     env = dict(os.environ, PYTHONPATH=str(Path(tree).resolve()))
     out = subprocess.run(
         [sys.executable, __file__, "client", "--port", str(port), "--channels",
-         str(args.channels), "--rate", str(args.rate), "--seconds", str(args.seconds)],
+         str(args.channels), "--rate", str(args.rate), "--seconds", str(args.seconds),
+         "--transport", args.transport],
         env=env, capture_output=True, text=True, timeout=args.seconds + 60, check=True)
     raw = json.loads(out.stdout.strip().splitlines()[-1])
     got = max(1, int(raw["received"]))
@@ -133,12 +137,13 @@ def main() -> None:
         a.add_argument("--channels", type=int, default=10)
         a.add_argument("--rate", type=float, default=1000.0)
         a.add_argument("--seconds", type=float, default=5.0)
+        a.add_argument("--transport", choices=("udp", "tcp"), default="udp")
     p.add_argument("--a", required=True, help="src/ of the baseline tree")
     p.add_argument("--b", required=True, help="src/ of the tree under test")
     p.add_argument("--repeats", type=int, default=6)
     if len(sys.argv) > 1 and sys.argv[1] == "client":
         ca = c.parse_args(sys.argv[2:])
-        client(ca.port, ca.channels, ca.rate, ca.seconds)
+        client(ca.port, ca.channels, ca.rate, ca.seconds, ca.transport)
         return
     args = p.parse_args()
     port = _free_port()
@@ -158,7 +163,7 @@ def main() -> None:
         server.terminate()
         server.wait(10)
     print(f"\nmedians, CPU us per value read back ({args.repeats} runs each, "
-          f"{args.channels} channels x {args.rate:g} Hz x {args.seconds:g} s):")
+          f"{args.channels} {args.transport} channels x {args.rate:g} Hz x {args.seconds:g} s):")
     print(f"{'':14}{'A':>8}{'B':>8}{'B/A':>7}")
     for k in KEYS:
         med_a = statistics.median(r[k] for r in runs["A"])

@@ -2,7 +2,9 @@
 
 A channel does not care whether it rides TCP or UDP; it hands packets to a sink. The TCP sink
 appends frames to the transport's buffer and refuses (counts) data once a slow client lets
-``max_write_buffer`` bytes pile up, so one stalled reader cannot grow the server's memory. The
+``max_write_buffer`` bytes pile up, so one stalled reader cannot grow the server's memory,
+and keeps value frames within what a client reads (``CLIENT_MAX_PACKET``: a longer frame ends
+its session), cutting a batch and leaving out a value alone over it. The
 UDP sink sends datagrams to the client's last seen address, splitting batches that would exceed
 the datagram budget; to a client that reads bundles it sends every channel's values of one loop
 iteration together (a ``Bundle`` per datagram budget), to any other one datagram per packet.
@@ -21,6 +23,7 @@ would queue: on TCP, bytes waiting in the transport's buffer or in the kernel's 
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 from typing import Protocol
 
@@ -29,7 +32,23 @@ import msgspec
 from rlbridge.tcpstate import congested
 from rlbridge.wire import PROTOCOL_VERSION, Batch, Packet, PacketCodec, Value
 from rlbridge.wire.bundle import DatagramPacker
-from rlbridge.wire.codec import DATAGRAM_HEADER, MAGIC, MAX_DATAGRAM
+from rlbridge.wire.codec import (
+    DATAGRAM_HEADER,
+    DEFAULT_MAX_PACKET,
+    FRAME_HEADER,
+    MAGIC,
+    MAX_DATAGRAM,
+    encode_run_into,
+)
+
+log = logging.getLogger("rlbridge.server")
+
+#: The largest frame body a client reads: not announced, so the reference client's (its
+#: ``FrameDecoder`` ends the session on a longer one; docs/protocol.md 2).
+CLIENT_MAX_PACKET = DEFAULT_MAX_PACKET
+_FRAME_HEAD: int = FRAME_HEADER.size
+#: A frame (header included) longer than this is over ``CLIENT_MAX_PACKET``.
+_FRAME_LIMIT: int = CLIENT_MAX_PACKET + _FRAME_HEAD
 
 #: PacketCodec's encoder settings (msgspec defaults); tests/server check the bytes match.
 _ENCODE = msgspec.msgpack.Encoder().encode
@@ -93,8 +112,44 @@ class TcpSink:
         if not corked:
             self._loop.call_soon(self.flush)
         self._codec.encode_frame_into(packet, corked)
+        if len(corked) > _FRAME_LIMIT:  # a MiB corked: this frame may be over the limit
+            return self._over(packet)
         self._corked_frames += 1
         return True
+
+    def _over(self, packet: Packet) -> bool:
+        """The corked frames passed the client's limit: one check per send found it (not a
+        frame's own length, which would cost every send). Encoded again alone, the last
+        frame is either over the limit (taken back and cut) or fine, and then what is corked
+        goes to the transport now, so the next frames start a fresh buffer."""
+        corked = self._corked
+        size = len(self._codec.encode_frame(packet))
+        if size <= _FRAME_LIMIT:
+            self._corked_frames += 1
+            self.flush()
+            return True
+        del corked[len(corked) - size:]
+        return self._cut(packet)
+
+    def _cut(self, packet: Packet) -> bool:
+        """A value frame over the client's limit, which would end its session: a ``Batch`` is
+        cut into frames that fit (:func:`~rlbridge.wire.codec.encode_run_into`); a value
+        alone over it is not sent. False: nothing was sent (the caller counts it dropped)."""
+        refused: list[tuple[int, int]] = []
+        frames = 0
+        if isinstance(packet, Batch):
+            frames = encode_run_into(self._codec, self._corked, packet.channel,
+                                     packet.first_seq, packet.stamps, packet.values,
+                                     len(packet.values), CLIENT_MAX_PACKET, refused)
+            self._corked_frames += frames
+        elif isinstance(packet, Value):
+            refused.append((packet.seq, len(self._codec.encode_frame(packet)) - _FRAME_HEAD))
+        for seq, size in refused:
+            log.warning("value %d is %d bytes encoded, over a client's limit of %d bytes; "
+                        "not sent", seq, size, CLIENT_MAX_PACKET)
+        if frames:
+            self._dropped += len(refused)  # the caller counts only a packet not sent at all
+        return frames > 0
 
     @property
     def queued(self) -> int:

@@ -27,6 +27,7 @@ from rlbridge.wire.packets import PROTOCOL_VERSION, Batch, Bundle, Packet, Value
 MAGIC = b"RB"
 FRAME_HEADER = struct.Struct(">2sBBI")
 DATAGRAM_HEADER = struct.Struct(">2sBBQ")
+_FRAME_HEAD: int = FRAME_HEADER.size
 #: Largest frame body a decoder accepts unless told otherwise (bounded memory per session).
 DEFAULT_MAX_PACKET = 1 << 20
 #: A UDP datagram cannot be larger than this on IPv4.
@@ -240,6 +241,61 @@ def sealed_flag_error(flags: int) -> RemoteProtocolError | None:
             fatal=True,
         )
     return None
+
+
+def encode_run_into(codec: PacketCodec, buf: bytearray, channel: int, first_seq: int,
+                    stamps: list[int], values: list[Any], max_batch: int, max_packet: int,
+                    refused: list[tuple[int, int]]) -> int:
+    """Append a channel's run of values to ``buf`` as TCP frames whose bodies are at most
+    ``max_packet`` bytes (the receiver's limit), each a ``Batch`` of at most ``max_batch``
+    values (a ``Value`` for one); return how many frames.
+
+    Why by bytes too: a receiver refuses a longer frame from its header and ends the whole
+    session (docs/protocol.md 2), so one burst of large values would end every channel.
+    Cheap for the common case: a frame is encoded once and its length read; only a frame
+    over the limit is taken back and its run cut at the share that fits by its average
+    value (then 90 % of that, so the next try mostly fits), and the cut grows again after
+    frames under half the limit (values of mixed sizes). A value whose ``Value`` frame is
+    alone over the limit cannot go: it is left out and ``(seq, body bytes)`` appended to
+    ``refused``, for the caller to count and say; the rest keep their sequence numbers.
+    """
+    n = len(values)
+    start = len(buf)
+    if n == 1:  # the common run (a value since the last round): one frame, one check
+        codec.encode_frame_into(Value(channel, first_seq, stamps[0], values[0]), buf)
+        body = len(buf) - start - _FRAME_HEAD
+        if body <= max_packet:
+            return 1
+        del buf[start:]
+        refused.append((first_seq, body))
+        return 0
+    frames = 0
+    step = max(1, max_batch)
+    i = 0
+    while i < n:
+        k = n - i if n - i < step else step
+        start = len(buf)
+        if k == 1:
+            codec.encode_frame_into(Value(channel, first_seq + i, stamps[i], values[i]), buf)
+        elif k == n:
+            codec.encode_frame_into(Batch(channel, first_seq, stamps, values), buf)
+        else:
+            codec.encode_frame_into(Batch(channel, first_seq + i, stamps[i : i + k],
+                                          values[i : i + k]), buf)
+        body = len(buf) - start - _FRAME_HEAD
+        if body <= max_packet:
+            frames += 1
+            i += k
+            if step < max_batch and 2 * body <= max_packet:
+                step = min(max_batch, 2 * step)
+            continue
+        del buf[start:]
+        if k == 1:
+            refused.append((first_seq + i, body))
+            i += 1
+        else:
+            step = max(1, k * max_packet * 9 // (body * 10))
+    return frames
 
 
 class FrameDecoder:

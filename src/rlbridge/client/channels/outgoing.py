@@ -123,8 +123,9 @@ class OutgoingChannel:
         if ack.credit is not None:
             self.on_credit(ack.credit)
 
-    def refused(self, count: int) -> None:  # receive thread: counted in health().rejected
-        """The server refused ``count`` values of this channel (``Error`` BAD_VALUE)."""
+    def refused(self, count: int) -> None:  # counted in health().rejected
+        """``count`` values refused: by the server (``Error`` BAD_VALUE), or by the send thread
+        as alone over the server's ``max_packet`` (never sent)."""
         self._refused += count
 
     def _wrong(self, exc: Mismatch) -> WrongValueType:

@@ -51,7 +51,8 @@ class OutgoingSource(Protocol):
         ...
 
     def refused(self, count: int) -> None:
-        """The server refused ``count`` values sent on this channel (receive thread)."""
+        """``count`` values of this channel were refused: by the server (receive thread), or
+        by the send thread as alone over the server's ``max_packet``."""
         ...
 
 

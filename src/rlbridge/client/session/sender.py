@@ -8,10 +8,12 @@ ticks at its configured rate (thesis 4.3, figure 5.10). The first two ring its b
 (:mod:`rlbridge.csp.bell`) only while it is parked: one futex wake, no lock; ``send()`` counts
 a request, and a round is due while the count differs from the one the last round saw.
 Every value waiting in a channel goes out in one packet per channel (a Batch when there are
-several); TCP frames of all channels are coalesced into one ``sendall``, and the packets of
-all UDP channels into one datagram (a ``Bundle``, split only at ``DATAGRAM_BUDGET`` bytes;
-:mod:`rlbridge.wire.bundle`). So the packet rate follows the send loop, not the control loop,
-and not the number of channels.
+several; on TCP cut at ``max_batch`` values and at the server's ``max_packet`` bytes, since
+one frame over that would end the session: :func:`~rlbridge.wire.codec.encode_run_into`,
+which leaves out, says and counts a value alone over it); TCP frames of all channels are
+coalesced into one ``sendall``, and the packets of all UDP channels into one datagram (a
+``Bundle``, split only at ``DATAGRAM_BUDGET`` bytes; :mod:`rlbridge.wire.bundle`). So the
+packet rate follows the send loop, not the control loop, and not the number of channels.
 
 A round costs Python per channel, so the common case takes the short way: a *plain* UDP
 channel (no policy between its ring and the wire: no rate limit, credit, latest, age limit or
@@ -87,7 +89,7 @@ from rlbridge.errors import RealTimeWarning
 from rlbridge.tcpstate import congested
 from rlbridge.wire import MAX_DATAGRAM, Batch, Credit, Error, ErrorCode, Value
 from rlbridge.wire.bundle import DatagramPacker, Part, as_packet
-from rlbridge.wire.codec import FLAG_BUNDLES
+from rlbridge.wire.codec import DEFAULT_MAX_PACKET, FLAG_BUNDLES, encode_run_into
 
 log = logging.getLogger("rlbridge.client")
 
@@ -344,6 +346,8 @@ class SendLoop:
         holding = False
         deferred = False
         retry: float | None = None
+        max_packet = -1  # the server's limit on a frame body, looked up once a TCP run needs it
+        refused: list[tuple[int, int]] = []
         for src in sources:
             if not (flush_all or src.immediate or src.holding or src.deferred):
                 continue
@@ -366,16 +370,30 @@ class SendLoop:
             self.values_sent += n - repeated
             self.values_repeated += repeated
             if tcp:
-                for packet in packets_for(src.channel_id, first_seq, stamps, values,
-                                          self._max_batch):
-                    self.packets_sent += 1
-                    codec.encode_frame_into(packet, frames)
+                if max_packet < 0:
+                    ack = conn.ack
+                    max_packet = ack.limits.max_packet if ack is not None else DEFAULT_MAX_PACKET
+                self.packets_sent += encode_run_into(codec, frames, src.channel_id, first_seq,
+                                                     stamps, values, self._max_batch,
+                                                     max_packet, refused)
+                if refused:
+                    self._too_large(src, refused, max_packet)
             elif packer is not None:
                 parts.extend(packets_for(src.channel_id, first_seq, stamps, values,
                                          self._max_batch))
         self._holding = holding
         self._retry = retry
         self._deferred = deferred
+
+    @staticmethod
+    def _too_large(src: OutgoingSource, refused: list[tuple[int, int]], limit: int) -> None:
+        """Values alone over the server's ``max_packet``: left out (a frame that long would end
+        the session), said and counted in ``health().rejected``."""
+        for seq, size in refused:
+            log.warning("value %d of channel %d is %d bytes encoded, over the server's limit "
+                        "of %d bytes (max_packet); not sent", seq, src.channel_id, size, limit)
+        src.refused(len(refused))
+        refused.clear()
 
     def _grant_credit(self, frames: bytearray) -> None:
         """Credit frames for the flow-controlled incoming channels whose reader caught up."""
