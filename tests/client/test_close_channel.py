@@ -12,18 +12,14 @@ close() waits for no answer at all.
 
 from __future__ import annotations
 
-import logging
-import os
-import signal
 import subprocess
-import time
 from collections.abc import Callable
 from typing import Any
 
 import pytest
+from link_helpers import read_all, time_while_frozen
 
 from rlbridge.client.bridge import Bridge
-from rlbridge.client.channels.incoming import IncomingChannel
 from waiting import WAIT, wait_until
 
 I32 = "std_msgs/msg/Int32"
@@ -34,17 +30,6 @@ RUNS = 5
 
 def _kilobyte(i: int) -> Any:
     return f"{i:06d}" + "x" * 1000
-
-
-def _read(inbox: IncomingChannel, n: int) -> list[Any]:
-    got: list[Any] = []
-
-    def all_came() -> bool:
-        got.extend(inbox.read_many())
-        return len(got) >= n
-
-    wait_until(all_came, lambda: f"{n} values on {inbox.topic} ({len(got)} came)")
-    return got
 
 
 @pytest.mark.parametrize("run", range(RUNS))
@@ -67,26 +52,12 @@ def test_burst_over_udp_then_channel_close_delivers_every_value(
     if shape != "immediate":
         pub.send(wait=shape == "flushed")
     out.close()
-    assert _read(inbox, BURST) == [_kilobyte(i) for i in range(BURST)]
+    assert read_all(inbox, BURST) == [_kilobyte(i) for i in range(BURST)]
     assert out.health().lost <= 0  # nothing left unconfirmed (-1: no report came)
     assert not pub.closed  # the session goes on: a new channel on it works
     again = pub.publish(topic, STRING, transport="udp")
     again.write("after")
-    assert _read(inbox, 1) == ["after"]
-
-
-def _frozen(proc: subprocess.Popen[str], caplog: pytest.LogCaptureFixture,
-            close: Callable[[], object]) -> float:
-    """Stop the server process (its sockets stay open, nobody answers), run ``close``: how
-    long it took. The server runs again afterwards."""
-    os.kill(proc.pid, signal.SIGSTOP)
-    try:
-        with caplog.at_level(logging.WARNING, logger="rlbridge.client"):
-            started = time.monotonic()
-            close()
-            return time.monotonic() - started
-    finally:
-        os.kill(proc.pid, signal.SIGCONT)
+    assert read_all(inbox, 1) == ["after"]
 
 
 def test_channel_close_with_nothing_in_flight_does_not_wait(
@@ -99,7 +70,7 @@ def test_channel_close_with_nothing_in_flight_does_not_wait(
         out = pub.publish("/unbind/idle", I32, transport="udp")
         out.write(1)
         wait_until(lambda: out.health().arrived == 1, "the server's report of the value")
-        elapsed = _frozen(proc, caplog, out.close)
+        elapsed = time_while_frozen(proc, caplog, out.close)
         assert elapsed < WAIT  # a close that waited for an answer would take the 60 s bound
         assert out.health().lost == 0
         assert not [r for r in caplog.records if "did not confirm" in r.getMessage()]
@@ -120,7 +91,7 @@ def test_channel_close_when_the_server_is_frozen_is_bounded_and_counts(
                 out.write(i)
             out.close()
 
-        elapsed = _frozen(proc, caplog, write_then_close)
+        elapsed = time_while_frozen(proc, caplog, write_then_close)
         assert elapsed < 1.0 + WAIT  # the bound, plus a loaded machine's worst
         assert out.health().lost == 100
         warned = [r.getMessage() for r in caplog.records if "did not confirm" in r.getMessage()]

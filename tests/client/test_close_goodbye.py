@@ -12,18 +12,14 @@ never confirmed is counted and said, not lost in silence.
 
 from __future__ import annotations
 
-import logging
-import os
-import signal
 import subprocess
-import time
 from collections.abc import Callable
 from typing import Any
 
 import pytest
+from link_helpers import read_all, time_while_frozen
 
 from rlbridge.client.bridge import Bridge
-from rlbridge.client.channels.incoming import IncomingChannel
 from rlbridge.client.options import Transport
 from waiting import WAIT, wait_until
 
@@ -50,32 +46,6 @@ SHAPES: dict[str, tuple[str, Callable[[int], Any], bool]] = {
 }
 
 
-def _close_frozen(pub: Bridge, proc: subprocess.Popen[str], caplog: pytest.LogCaptureFixture,
-                  then: Callable[[], object] = lambda: None) -> float:
-    """Stop the server process (its sockets stay open, nobody answers), run ``then``, and
-    close ``pub``: how long ``close()`` took. The server runs again afterwards."""
-    os.kill(proc.pid, signal.SIGSTOP)
-    try:
-        then()
-        with caplog.at_level(logging.WARNING, logger="rlbridge.client"):
-            started = time.monotonic()
-            pub.close()
-            return time.monotonic() - started
-    finally:
-        os.kill(proc.pid, signal.SIGCONT)
-
-
-def _read(inbox: IncomingChannel, n: int) -> list[Any]:
-    got: list[Any] = []
-
-    def all_came() -> bool:
-        got.extend(inbox.read_many())
-        return len(got) >= n
-
-    wait_until(all_came, lambda: f"{n} values on {inbox.topic} ({len(got)} came)")
-    return got
-
-
 @pytest.mark.parametrize("run", range(RUNS))
 @pytest.mark.parametrize("shape", sorted(SHAPES))
 def test_burst_over_udp_then_close_delivers_every_value(
@@ -92,7 +62,7 @@ def test_burst_over_udp_then_close_delivers_every_value(
         if inline:
             pub.send(inline=True)
     pub.close()
-    assert _read(inbox, BURST) == [value(i) for i in range(BURST)]
+    assert read_all(inbox, BURST) == [value(i) for i in range(BURST)]
     assert out.statistics().overwritten == 0
     assert out.health().lost <= 0  # nothing left unconfirmed (-1: no report came)
 
@@ -113,7 +83,7 @@ def test_burst_over_tcp_and_udp_then_close_delivers_both(
             outs[t].write(kinds[t][1](i))
     pub.close()
     for t, inbox in inboxes.items():
-        assert _read(inbox, BURST) == [kinds[t][1](i) for i in range(BURST)], t
+        assert read_all(inbox, BURST) == [kinds[t][1](i) for i in range(BURST)], t
 
 
 def test_close_with_nothing_in_flight_does_not_wait(
@@ -126,7 +96,7 @@ def test_close_with_nothing_in_flight_does_not_wait(
     out = pub.publish("/goodbye/idle", I32, transport="udp")
     out.write(1)
     wait_until(lambda: out.health().arrived == 1, "the server's report of the value")
-    elapsed = _close_frozen(pub, proc, caplog)
+    elapsed = time_while_frozen(proc, caplog, pub.close)
     assert elapsed < WAIT  # a close that waited for an answer would take the 60 s bound
     assert out.health().lost == 0
     assert not [r for r in caplog.records if "did not confirm" in r.getMessage()]
@@ -140,7 +110,7 @@ def test_close_when_the_server_is_frozen_is_bounded_and_counts(
     port, proc = cli_server("--timeout-ms", "1000")
     pub = Bridge.connect("127.0.0.1", port, name="goodbye-frozen", timeout=WAIT)
     out = pub.publish("/goodbye/frozen", I32, transport="udp")
-    elapsed = _close_frozen(pub, proc, caplog, lambda: [out.write(i) for i in range(100)])
+    elapsed = time_while_frozen(proc, caplog, pub.close, lambda: [out.write(i) for i in range(100)])
     assert elapsed < 1.0 + WAIT  # the bound, plus a loaded machine's worst
     assert out.health().lost == 100
     warned = [r.getMessage() for r in caplog.records if "did not confirm" in r.getMessage()]
