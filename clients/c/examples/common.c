@@ -30,6 +30,8 @@ void parse_args(int argc, char **argv, const char *usage, args *a) {
                 exit(2);
             }
             a->redundancy = (unsigned)k;
+        } else if (strcmp(argv[i], "--mixed") == 0 && strstr(usage, "--mixed")) {
+            a->mixed = true;
         } else if (strcmp(argv[i], "--udp-only") == 0 && strstr(usage, "--udp-only")) {
             a->udp_only = true;
         } else if (strcmp(argv[i], "--spin") == 0 && strstr(usage, "--spin")) {
@@ -92,6 +94,11 @@ void config_from(const args *a, const char *prog, const char *name, rlb_config *
     cfg->tls_key_file = a->tls_key;
     if (a->redundancy && a->tcp) {
         fprintf(stderr, "%s: --redundancy is for UDP: not with --tcp\n", prog);
+        exit(2);
+    }
+    if (a->mixed && (a->tcp || a->udp_only || a->channels < 2)) {
+        fprintf(stderr, "%s: --mixed takes --channels N (N >= 2), not --tcp or --udp-only\n",
+                prog);
         exit(2);
     }
     if (a->udp_only && a->tcp) {

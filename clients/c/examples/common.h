@@ -19,6 +19,7 @@ typedef struct args {
     bool tcp;
     bool spin; /* rlb_sub --spin: no I/O thread, rlb_spin_once from the reading thread */
     bool udp_only; /* --udp-only: a UDP-only session (for a server without TCP) */
+    bool mixed;    /* rlb_pub --mixed: with --channels N, odd channels over TCP, even over UDP */
     unsigned channels;
     unsigned redundancy; /* --redundancy K: UDP datagrams repeat the previous K values */ /* rlb_pub --channels N: TOPIC_0 .. TOPIC_{N-1}, default 1: TOPIC */
 } args;

@@ -8,7 +8,8 @@
  * carries them all). --udp-only: a UDP-only session (protocol.md 8.2), for a server without
  * TCP. --tls-ca FILE / --tls-fingerprint HEX: TLS, the server verified by that CA or pinned;
  * --tls-cert/--tls-key: a client certificate (a server with --tls-client-ca). --redundancy K:
- * each datagram repeats the previous K values (protocol.md 10.3).
+ * each datagram repeats the previous K values (protocol.md 10.3). --mixed (with --channels N):
+ * TOPIC_1, TOPIC_3, ... over TCP, the others over UDP.
  * The loop thread makes no system call but its sleep (clock_nanosleep) and clock reads.
  */
 #include <stdio.h>
@@ -51,8 +52,10 @@ static void *run(void *arg) {
     return NULL;
 }
 
-/* Keeps the server's last reason (a refused binding or session) for the one error line. */
+/* Keeps the server's last reason (a refused binding or session) for the one error line;
+ * says at once which values rlb_close could not get confirmed (counted as lost). */
 static void on_event(void *ctx, const rlb_event *ev) {
+    if (ev->kind == RLB_EV_UNCONFIRMED) fprintf(stderr, "rlb_pub: %s\n", ev->reason);
     if (ev->kind == RLB_EV_TOPIC_ERROR || ev->kind == RLB_EV_DISCONNECT || ev->kind == RLB_EV_ERROR)
         snprintf(ctx, 256, " (server: code %d, %s)", ev->code, ev->reason);
 }
@@ -61,7 +64,7 @@ int main(int argc, char **argv) {
     args a;
     parse_args(argc, argv,
                "HOST PORT TOPIC COUNT RATE_HZ [--tcp] [--psk-file FILE] [--channels N] [--udp-only] "
-               "[--redundancy K] "
+               "[--redundancy K] [--mixed] "
                "[--tls-ca FILE | --tls-fingerprint HEX] [--tls-cert FILE --tls-key FILE]",
                &a);
     rlb_config cfg;
@@ -87,9 +90,9 @@ int main(int argc, char **argv) {
         else snprintf(topic, sizeof topic, "%s_%u", a.topic, k);
         rlb_channel_opts o;
         rlb_channel_opts_init(&o, topic, "std_msgs/msg/Float64", "data");
-        o.transport = a.tcp ? RLB_TCP : RLB_UDP;
+        o.transport = a.tcp || (a.mixed && k % 2 == 1) ? RLB_TCP : RLB_UDP;
         o.capacity = 4096;
-        o.redundancy = (uint8_t)a.redundancy;
+        o.redundancy = o.transport == RLB_UDP ? (uint8_t)a.redundancy : 0;
         if ((rc = rlb_publish(c, &o, &l.ch[k])) != RLB_OK) {
             fprintf(stderr, "rlb_pub: bad channel %s: %s\n", topic, rlb_status_text(rc));
             rlb_close(c);
