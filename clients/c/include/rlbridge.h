@@ -77,7 +77,9 @@ typedef enum rlb_event_kind {
     RLB_EV_ERROR = 2,       /* the server's Error(code, reason, channel) */
     RLB_EV_TOPIC_ERROR = 3, /* a binding refused: TopicError(channel, code, reason) */
     RLB_EV_DISCONNECT = 4,  /* the server said goodbye (code, reason) */
-    RLB_EV_CONNECTED = 5    /* a session was opened (again) and every channel bound */
+    RLB_EV_CONNECTED = 5,   /* a session was opened (again) and every channel bound */
+    RLB_EV_UNCONFIRMED = 6  /* rlb_close: the server did not confirm a publish channel's last
+                               values (code: how many) within timeout_ms; added to its lost */
 } rlb_event_kind;
 
 typedef struct rlb_event {
@@ -144,7 +146,8 @@ typedef struct rlb_channel_opts {
 typedef struct rlb_channel_stats {
     uint64_t values;          /* publish: values sent; subscribe: values delivered to the ring */
     uint64_t lost;            /* subscribe: sequence gaps (protocol.md 10.2); publish: the
-                                 server's LossReport count of values lost on the first hop */
+                                 server's LossReport count of values lost on the first hop,
+                                 plus those rlb_close could not get confirmed */
     uint64_t duplicates;      /* subscribe: duplicates and stale values dropped */
     uint64_t dropped;         /* ring full: values the writer (or the I/O side) could not queue */
     uint64_t server_received; /* publish: LossReport.received */
@@ -187,7 +190,8 @@ rlb_status rlb_flush(rlb_client *c, uint32_t timeout_ms);
 /** Blocks until the channel has a new value or timeout_ms passed: 1 new, RLB_E_TIMEOUT.
  *  Not for the real-time thread (it sleeps on a condition variable). */
 int rlb_read_wait(rlb_channel *ch, uint32_t timeout_ms);
-/** Stops the I/O thread, says goodbye, closes the sockets and frees everything. */
+/** Stops the I/O thread, sends what the rings hold, says goodbye once the server has the
+ *  last values (bounded by timeout_ms; see docs/c-client.md), closes and frees everything. */
 void rlb_close(rlb_client *c);
 
 /** Whether this library was built with TLS (OpenSSL); cfg.tls is refused otherwise. */

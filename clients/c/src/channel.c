@@ -376,7 +376,8 @@ bool rlbi_chan_deliver(rlb_channel *ch, int64_t stamp, const uint8_t *value, siz
 void rlb_channel_stats_get(const rlb_channel *ch, rlb_channel_stats *o) {
     rlb_channel *m = (rlb_channel *)ch; /* atomics are read, never written */
     o->values = atomic_load_explicit(&m->n_values, memory_order_relaxed);
-    o->lost = atomic_load_explicit(&m->n_lost, memory_order_relaxed);
+    o->lost = atomic_load_explicit(&m->n_lost, memory_order_relaxed) +
+              atomic_load_explicit(&m->n_unconfirmed, memory_order_relaxed);
     o->duplicates = atomic_load_explicit(&m->n_duplicates, memory_order_relaxed);
     o->dropped = atomic_load_explicit(&m->n_dropped, memory_order_relaxed);
     o->server_received = atomic_load_explicit(&m->n_srv_received, memory_order_relaxed);

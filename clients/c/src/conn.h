@@ -1,6 +1,6 @@
 /* The I/O side's session state, shared by its modules: stream.c (TCP frames and sealed
  * records), datagram.c (UDP), send.c (what we send), receive.c (what we receive) and
- * session.c (handshake, life, reconnect). Not installed. */
+ * session.c (handshake, life, reconnect), goodbye.c (rlb_close's goodbye). Not installed. */
 #ifndef RLB_CONN_H
 #define RLB_CONN_H
 
@@ -47,6 +47,7 @@ struct rlb_conn {
     int64_t retry_at;
     uint32_t backoff_ms;
     bool closed;
+    bool bye; /* rlb_close's goodbye runs: the session's end is no lost link (goodbye.c) */
     size_t rr; /* round-robin start among UDP channels */
     uint64_t malformed;
 };

@@ -129,6 +129,7 @@ struct rlb_channel {
     int bind;
     uint64_t next_seq;     /* publish: number of the next value sent */
     uint64_t credit;       /* publish: send below this (UINT64_MAX: no limit) */
+    uint64_t confirmed;    /* publish: LossReport.next_seq, values the server has (8.4) */
     bool has_highest;      /* subscribe: the rule of protocol.md 10.2 */
     uint64_t highest;
     uint64_t pushed;       /* subscribe: values pushed into the ring, ever */
@@ -139,6 +140,7 @@ struct rlb_channel {
     /* counters, relaxed atomics */
     _Atomic uint64_t n_values, n_lost, n_duplicates, n_dropped, n_errors, n_srv_received;
     _Atomic uint64_t n_consumed; /* subscribe: values the reader took from the ring */
+    _Atomic uint64_t n_unconfirmed; /* publish: lost at rlb_close, never confirmed (goodbye.c) */
     _Atomic int last_error;
     _Atomic bool bound;
 };
@@ -183,7 +185,7 @@ void rlbi_conn_free(rlb_client *c);
 rlb_status rlbi_conn_open(rlb_client *c);          /* handshake + bindings, blocking */
 rlb_status rlbi_conn_spin(rlb_client *c, uint32_t timeout_ms);
 size_t rlbi_conn_unsent(rlb_client *c);
-void rlbi_conn_goodbye(rlb_client *c);
+void rlbi_conn_goodbye(rlb_client *c); /* goodbye.c */
 /* tls.c: the TLS context of cfg.tls (RLB_E_INVAL when built without OpenSSL) */
 rlb_status rlbi_tls_setup(rlb_client *c);
 void rlbi_tls_free(rlb_client *c);

@@ -163,19 +163,20 @@ static void dispatch(rlb_client *c, mp_cur *m, uint64_t tag, bool in_bundle) {
         uint32_t n, f;
         if (!rlbi_mp_array(m, &n)) { rlbi_conn_malformed(k); return; }
         for (uint32_t i = 0; i < n; i++) {
-            uint64_t id, received, lost;
+            uint64_t id, received, lost, next_seq;
             if (!rlbi_mp_array(m, &f) || f < 4 || !rlbi_mp_u64(m, &id) ||
-                !rlbi_mp_u64(m, &received) ||
-                !rlbi_mp_u64(m, &lost)) {
+                !rlbi_mp_u64(m, &received) || !rlbi_mp_u64(m, &lost) ||
+                !rlbi_mp_u64(m, &next_seq)) {
                 rlbi_conn_malformed(k);
                 return;
             }
-            for (uint32_t j = 3; j < f; j++)
+            for (uint32_t j = 4; j < f; j++)
                 if (!rlbi_mp_skip(m)) { rlbi_conn_malformed(k); return; }
             rlb_channel *ch = rlbi_conn_channel(c, id);
             if (ch && ch->dir == DIR_PUBLISH) {
                 atomic_store_explicit(&ch->n_srv_received, received, memory_order_relaxed);
                 atomic_store_explicit(&ch->n_lost, lost, memory_order_relaxed);
+                if (next_seq > ch->confirmed) ch->confirmed = next_seq; /* UDP: reordered */
             }
         }
         break;

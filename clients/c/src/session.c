@@ -1,9 +1,9 @@
 /*
  * The session's life: one session at a time over a TCP connection (the control transport) and
  * a connected UDP socket (protocol.md 8.1, 8.3): its buffers (allocated once by conn_new), the
- * handshake (16.1), the bindings, one spin (receive, send round, heartbeat, watchdog), the
- * reconnect with backoff and the goodbye. Everything here runs on the thread of rlb_connect /
- * rlb_start / rlb_spin_once, never on the real-time side.
+ * handshake (16.1), the bindings, one spin (receive, send round, heartbeat, watchdog) and the
+ * reconnect with backoff (the goodbye is goodbye.c's). Everything here runs on the thread of
+ * rlb_connect / rlb_start / rlb_spin_once, never on the real-time side.
  */
 #include <errno.h>
 #include <fcntl.h>
@@ -127,6 +127,7 @@ static void reset_bindings(rlb_client *c) {
         rlb_channel *ch = c->channels[i];
         ch->bind = BIND_NONE;
         ch->next_seq = 0; /* every binding numbers from 0 (protocol.md 10.5) */
+        ch->confirmed = 0;
         ch->credit = UINT64_MAX;
         ch->has_highest = false;
         ch->hist_n = ch->hist_at = 0; /* a new binding repeats nothing of the old one */
@@ -224,6 +225,7 @@ void rlbi_conn_lost(rlb_client *c, const char *why) {
     (void)why;
     if (!k->up) return;
     rlbi_conn_close_sockets(k);
+    if (k->bye) return; /* the goodbye's end (goodbye.c): its bindings are still counted */
     reset_bindings(c);
     rlb_set_link(c, RLB_LINK_LOST);
     if (!c->cfg.reconnect) {
@@ -305,7 +307,7 @@ rlb_status rlbi_conn_spin(rlb_client *c, uint32_t timeout_ms) {
         rlbi_send_udp_heartbeat(k, now);
     }
     int64_t silence = now - k->last_rx;
-    if (silence >= (int64_t)k->timeout_ms * 1000000) {
+    if (silence >= (int64_t)k->timeout_ms * 1000000 && !k->bye) { /* the goodbye has a bound */
         rlbi_conn_lost(c, "watchdog: the server is silent");
         return RLB_OK;
     }
@@ -313,41 +315,4 @@ rlb_status rlbi_conn_spin(rlb_client *c, uint32_t timeout_ms) {
                                                                : RLB_LINK_DEGRADED);
     if (!rlbi_tcp_flush(k)) rlbi_conn_lost(c, "send failed");
     return RLB_OK;
-}
-
-void rlbi_conn_goodbye(rlb_client *c) {
-    rlb_conn *k = c->conn;
-    if (k == NULL || !k->up) return;
-    /* A goodbye on UDP follows the session's value datagrams on their own path, so the
-     * server has read them all before it closes the session; then the same on TCP. */
-    wbuf w;
-    rlbi_wb_init(&w, k->dg_tx + rlbi_udp_body_at(k), rlbi_udp_body_cap(k));
-    rlbi_wb_array(&w, 3);
-    rlbi_wb_u64(&w, T_DISCONNECT);
-    rlbi_wb_u64(&w, 0);
-    rlbi_wb_str(&w, "bye", 3);
-    bool any_udp = false;
-    for (uint32_t i = 0; i < c->n_channels; i++)
-        any_udp |= c->channels[i]->dir == DIR_PUBLISH && c->channels[i]->transport == RLB_UDP;
-    if (any_udp || k->tcp < 0) {
-        rlbi_udp_send(k, w.len);
-        int64_t end = rlb_mono_ns() + 500000000; /* the server closes TCP once it read it */
-        for (; k->tcp >= 0;) {
-            int64_t left = (end - rlb_mono_ns()) / 1000000;
-            struct pollfd p = {k->tcp, POLLIN, 0};
-            if (left <= 0 || poll(&p, 1, (int)left) <= 0) break;
-            ssize_t n = recv(k->tcp, k->rec, RECORD_MAX, MSG_DONTWAIT);
-            if (n == 0 || (n < 0 && errno != EAGAIN && errno != EINTR)) break;
-        }
-    } else {
-        rlbi_tcp_frame_begin(k, &w);
-        rlbi_wb_array(&w, 3);
-        rlbi_wb_u64(&w, T_DISCONNECT);
-        rlbi_wb_u64(&w, 0);
-        rlbi_wb_str(&w, "bye", 3);
-        rlbi_tcp_frame_end(k, &w);
-        rlbi_tcp_flush_blocking(k, rlb_mono_ns() + 500000000);
-    }
-    if (k->tcp >= 0) shutdown(k->tcp, SHUT_WR);
-    rlbi_conn_close_sockets(k);
 }
