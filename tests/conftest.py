@@ -29,6 +29,7 @@ from typing import Any, Protocol, TypeVar
 import pytest
 
 from localhost import free_port, rlbridge_command
+from log_handlers import on_closed_streams
 from rlbridge.client.bridge import Bridge
 from rlbridge.server import ServerConfig, ServerThread
 from rlbridge.wire import (
@@ -54,6 +55,25 @@ P = TypeVar("P")
 #: changes show up quickly, a watchdog slow enough that a busy CI machine never trips it.
 TEST_HEARTBEAT_MS = 100
 TEST_TIMEOUT_MS = 5000
+
+
+# -- logging -------------------------------------------------------------------------------
+
+
+@pytest.fixture(autouse=True)
+def _no_log_handler_on_a_closed_stream() -> Iterator[None]:
+    """Fail the test that leaves a handler writing to a closed stream, and take it off.
+
+    Left there, it makes every later record of the process a ``--- Logging error ---``
+    traceback printed under some other test (tests/log_handlers.py); a few attribute reads.
+    """
+    yield
+    left = on_closed_streams()
+    for logger, handler in left:
+        logger.removeHandler(handler)
+    if left:
+        pytest.fail("a logging handler is left writing to a closed stream: "
+                    + "; ".join(f"{logger.name}: {handler!r}" for logger, handler in left))
 
 
 # -- servers -------------------------------------------------------------------------------

@@ -74,7 +74,7 @@ def main_options(
 ) -> None:
     """rlbridge: bridge hard-real-time control code to ROS 2 over TCP and UDP."""
     ctx.obj = {"log_level": log_level}
-    configure_logging(log_level or "warning")
+    configure_logging(ctx, log_level or "warning")
 
 
 @app.command()
@@ -136,7 +136,7 @@ def serve(
     It logs a line when it listens and when it stops, and, at most once per 10 s per kind,
     what clients got wrong. Exit status 0 after a clean stop, 1 if it cannot start.
     """
-    configure_logging(log_level or (ctx.obj or {}).get("log_level") or "info")
+    configure_logging(ctx, log_level or (ctx.obj or {}).get("log_level") or "info")
     from pydantic import ValidationError
 
     from rlbridge.cli.options import config_error

@@ -15,13 +15,14 @@ which the bench's worker processes call with the options' text).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import inspect
 import json
 import logging
 import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar, cast
@@ -72,9 +73,44 @@ def checked_transport(value: str) -> Literal["udp", "tcp"]:
     return cast(Literal["udp", "tcp"], value)
 
 
-def configure_logging(level: str) -> None:
-    """Log to stderr at ``level``; called again by ``serve`` with its own level (force)."""
-    logging.basicConfig(level=level.upper(), stream=sys.stderr, format=LOG_FORMAT, force=True)
+class _CommandLog(logging.StreamHandler):  # type: ignore[type-arg]
+    """The handler :func:`configure_logging` puts on the root logger (its type marks it ours)."""
+
+
+def configure_logging(ctx: typer.Context, level: str) -> None:
+    """Log to stderr at ``level`` until ``ctx`` closes; ``serve`` calls it again with its own.
+
+    Undone when the command returns, not left behind: run in-process (typer's ``CliRunner``,
+    a test), the handler would hold the runner's stderr, which it closes, and every later log
+    line of the process would be a ``--- Logging error ---``.
+    """
+    ctx.with_resource(_logging_to_stderr(level))
+
+
+@contextlib.contextmanager
+def _logging_to_stderr(level: str) -> Iterator[None]:
+    """Root logs to ``sys.stderr`` at ``level`` inside; after, its handlers and level as before.
+
+    Only a handler of ours is taken off for the time (``serve``'s own level replaces the
+    group's, one line per record); another one (an application's, pytest's) stays.
+    """
+    root = logging.getLogger()
+    level_before = root.level
+    ours = [h for h in root.handlers if isinstance(h, _CommandLog)]
+    for h in ours:
+        root.removeHandler(h)
+    handler = _CommandLog(sys.stderr)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    root.addHandler(handler)
+    root.setLevel(level.upper())
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
+        handler.close()
+        for h in ours:
+            root.addHandler(h)
+        root.setLevel(level_before)
 
 
 LOG_LEVEL_HELP = f"{', '.join(LOG_LEVELS)}."
