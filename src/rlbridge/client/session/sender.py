@@ -328,7 +328,9 @@ class SendLoop:
                     gathered = True
                     for part in parts:
                         packet = as_packet(part)
-                        self._refused(packer.add(packet), packet.channel)
+                        refused = packer.add(packet)
+                        if refused:
+                            self._over_datagram(refused, packet.channel)
             finally:  # a failed send loses this round's parts, never resends them later
                 parts.clear()
         if gathered and packer is not None:
@@ -392,7 +394,7 @@ class SendLoop:
         for seq, size in refused:
             log.warning("value %d of channel %d is %d bytes encoded, over the server's limit "
                         "of %d bytes (max_packet); not sent", seq, src.channel_id, size, limit)
-        src.refused(len(refused))
+        src.left_out(len(refused))
         refused.clear()
 
     def _grant_credit(self, frames: bytearray) -> None:
@@ -422,11 +424,13 @@ class SendLoop:
         """Value datagrams sent so far (a bundle of every UDP channel counts once)."""
         return self.datagrams_sent + (self._packer.datagrams if self._packer else 0)
 
-    @staticmethod
-    def _refused(n: int, channel: int) -> None:
-        if n:
-            log.warning("%d value(s) on channel %d too large for a datagram; dropped",
-                        n, channel)
+    def _over_datagram(self, n: int, channel: int) -> None:
+        """``n`` values of ``channel`` each too large for a datagram: not sent, said and
+        counted in its ``health().rejected`` (as a TCP value over ``max_packet`` is)."""
+        log.warning("%d value(s) on channel %d too large for a datagram; dropped", n, channel)
+        for source in self._sources:
+            if source.channel_id == channel:
+                source.left_out(n)
 
     # -- inline rounds (module docstring): a caller's thread runs the round ------------------
 
