@@ -107,7 +107,7 @@ INTERNAL: frozenset[str] = frozenset({
     "OutgoingChannel.restart_sequence", "OutgoingChannel.ready", "OutgoingChannel.retry_in",
     "OutgoingChannel.on_credit", "OutgoingChannel.on_loss", "OutgoingChannel.holding",
     "OutgoingChannel.take", "OutgoingChannel.take_parts", "OutgoingChannel.unconfirmed",
-    "OutgoingChannel.not_confirmed",
+    "OutgoingChannel.not_confirmed", "OutgoingChannel.left_out",
 })
 
 PREFACE = """\

@@ -64,6 +64,9 @@ class EndsTheSession:
     def refused(self, count: int) -> None:
         pass
 
+    def left_out(self, count: int) -> None:
+        pass
+
 
 def test_send_thread_survives_a_session_closed_under_its_round(server: ServerThread) -> None:
     with Bridge.connect("127.0.0.1", server.port, name="sender", reconnect=FAST) as pub, \
@@ -142,6 +145,9 @@ class FlushesDuringItsTake:
         return None
 
     def refused(self, count: int) -> None:
+        pass
+
+    def left_out(self, count: int) -> None:
         pass
 
 

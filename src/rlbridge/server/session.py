@@ -28,7 +28,7 @@ from rlbridge.server.notices import session_level
 from rlbridge.server.ratelimit import RateLimiter
 from rlbridge.server.reach import REACH_PACKETS, SessionReach
 from rlbridge.server.session_stats import ChannelTotals, stats_reply
-from rlbridge.server.sinks import PacketSink, UdpSink
+from rlbridge.server.sinks import PacketSink, TcpSink, UdpSink
 from rlbridge.server.values_in import bundle, value_packet
 from rlbridge.server.watchdog import SessionWatchdog
 from rlbridge.wire import (
@@ -117,6 +117,8 @@ class Session:
         """The session's TCP connection: its sink, and how to close it when the session ends."""
         self.tcp = sink
         self._close_tcp = close
+        if isinstance(sink, TcpSink):
+            sink.left_out = self.left_out
 
     def attach_udp(self, addr: tuple[str, int]) -> None:
         """Learn (or refresh) the client's UDP address from a datagram carrying our token."""
@@ -128,11 +130,19 @@ class Session:
             self.udp = UdpSink(transport, self.codec, self.token, addr, cfg.udp_payload,
                                self.ctx.loop, partial(refuse_too_large, self.ctx,
                                                       f"session {self.id} ({self.name})"))
+            self.udp.left_out = self.left_out
             waiters, self.udp_waiters = self.udp_waiters, []
             for waiter in waiters:
                 waiter()
         elif self.udp.addr != addr:
             self.udp.addr = addr
+
+    def left_out(self, channel: int, count: int) -> None:
+        """A sink sent a packet of ``channel`` without ``count`` values, each alone too large
+        for the client (a frame, a datagram): counted in the channel's ``dropped``."""
+        out = self.outbound.get(channel)
+        if out is not None:
+            out.dropped += count
 
     def acknowledged(self) -> None:
         """The ConnectAck is out: the first heartbeat follows it at once (protocol.md 8.1)."""

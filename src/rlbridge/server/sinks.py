@@ -4,7 +4,10 @@ A channel does not care whether it rides TCP or UDP; it hands packets to a sink.
 appends frames to the transport's buffer and refuses (counts) data once a slow client lets
 ``max_write_buffer`` bytes pile up, so one stalled reader cannot grow the server's memory,
 and keeps value frames within what a client reads (``CLIENT_MAX_PACKET``: a longer frame ends
-its session), cutting a batch and leaving out a value alone over it. The
+its session), cutting a batch and leaving out a value alone over it. A value left out of a
+packet that is otherwise sent is told to ``left_out`` (the session's: it counts in the
+channel's ``dropped``, what ``rlbridge stats`` shows); a packet not sent at all is counted by
+the caller, to which ``send`` returns False. The
 UDP sink sends datagrams to the client's last seen address, splitting batches that would exceed
 the datagram budget; to a client that reads bundles it sends every channel's values of one loop
 iteration together (a ``Bundle`` per datagram budget), to any other one datagram per packet.
@@ -57,6 +60,10 @@ _ENCODE = msgspec.msgpack.Encoder().encode
 _SCALARS = frozenset((float, int, bool))
 
 
+def _uncounted(channel: int, count: int) -> None:
+    """A sink's ``left_out`` until a session sets its own (a sink without one: tests)."""
+
+
 class PacketSink(Protocol):
     """Send a packet; ``data=True`` marks a value packet that may be dropped under pressure."""
 
@@ -80,6 +87,8 @@ class TcpSink:
         self._corked = bytearray()
         self._corked_frames = 0
         self._dropped = 0
+        #: Told ``(channel, count)`` of the values a sent packet left out (module doc).
+        self.left_out: Callable[[int, int], None] = _uncounted
         self._sock = transport.get_extra_info("socket")
         self.bytes_out = 0
 
@@ -142,13 +151,14 @@ class TcpSink:
                                      packet.first_seq, packet.stamps, packet.values,
                                      len(packet.values), CLIENT_MAX_PACKET, refused)
             self._corked_frames += frames
+            if frames and refused:  # the caller counts only a packet not sent at all
+                self._dropped += len(refused)
+                self.left_out(packet.channel, len(refused))
         elif isinstance(packet, Value):
             refused.append((packet.seq, len(self._codec.encode_frame(packet)) - _FRAME_HEAD))
         for seq, size in refused:
             log.warning("value %d is %d bytes encoded, over a client's limit of %d bytes; "
                         "not sent", seq, size, CLIENT_MAX_PACKET)
-        if frames:
-            self._dropped += len(refused)  # the caller counts only a packet not sent at all
         return frames > 0
 
     @property
@@ -222,6 +232,8 @@ class UdpSink:
         #: A value went to the packer this iteration: later numbers follow it there (order).
         self._packed = False
         self._dropped = 0
+        #: Told ``(channel, count)`` of the values a sent packet left out (module doc).
+        self.left_out: Callable[[int, int], None] = _uncounted
         self.bytes_out = 0
 
     @property
@@ -279,9 +291,11 @@ class UdpSink:
         else:
             refused = packer.add(packet)
             packer.flush()
-        if refused:
-            self._dropped += refused  # values larger than a datagram: refused, counted
-            return False
+        if refused:  # values larger than a datagram: refused, counted
+            self._dropped += refused
+            if isinstance(packet, Value) or refused == len(packet.values):
+                return False  # nothing sent: the caller counts it
+            self.left_out(packet.channel, refused)
         return True
 
     def _refuse(self, packet: Packet, size: int) -> bool:

@@ -49,7 +49,8 @@ class ChannelHealth(msgspec.Struct, frozen=True, gc=False):
     #: Outgoing with ``max_rate_hz``: the rate limit in force (adaptive: it moves). -1: none.
     rate_limit_hz: int = -1
     #: Values refused for not being of the channel's type: outgoing, at ``write`` (a
-    #: ``TypeError``) and by the server (an ``Error(BAD_VALUE)`` counting them); server side,
+    #: ``TypeError``) and by the server (an ``Error(BAD_VALUE)`` counting them), and values
+    #: too large to send (over the server's ``max_packet``, or a datagram); server side,
     #: the values of a publish channel it refused.
     rejected: int = 0
     #: Values lost on the middleware side of the server, as the server reports them

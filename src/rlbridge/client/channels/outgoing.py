@@ -56,9 +56,9 @@ class OutgoingChannel:
     the reading verbs raise ``ChannelMisuseError``; ``close()``/``with`` unbind the topic."""
 
     __slots__ = ("_accept", "_bell", "_check", "_clock", "_closed", "_discarded", "_expired",
-                 "_held", "_history", "_hop", "_hop_base", "_link", "_max_age_ns", "_next_seq",
-                 "_overtaken", "_refused", "_rejected", "_ring", "_space", "_unconfirmed",
-                 "_within", "_writer",
+                 "_held", "_history", "_hop", "_hop_base", "_left_out", "_link", "_max_age_ns",
+                 "_next_seq", "_overtaken", "_refused", "_rejected", "_ring", "_space",
+                 "_unconfirmed", "_within", "_writer",
                  "channel_id", "deferred", "field", "flow", "immediate", "latest", "msg_type",
                  "on_close", "pacing", "plain", "redundancy", "ros_lost", "topic",
                  "transport")  # fmt: skip
@@ -112,7 +112,10 @@ class OutgoingChannel:
         #: Values the server had not confirmed when the session was closed (goodbye.py).
         self._unconfirmed = 0
         self._accept, self._check, self._within = UNCHECKED[0], UNCHECKED[1], UNCHECKED.within
-        self._rejected = self._refused = 0  # refused at ``write``; by the server
+        # ``health().rejected`` sums three counters, each written by one thread only, so no
+        # update is lost without a lock: refused at ``write`` (the writer), by the server (the
+        # receive thread), left out by the send thread (too large to send).
+        self._rejected = self._refused = self._left_out = 0
         self.on_close: Callable[[OutgoingChannel], None] | None = None
 
     def bound(self, ack: TopicAck) -> None:
@@ -124,9 +127,14 @@ class OutgoingChannel:
             self.on_credit(ack.credit)
 
     def refused(self, count: int) -> None:  # counted in health().rejected
-        """``count`` values refused: by the server (``Error`` BAD_VALUE), or by the send thread
-        as alone over the server's ``max_packet`` (never sent)."""
+        """Receive thread only: the server refused ``count`` values (``Error`` BAD_VALUE)."""
         self._refused += count
+
+    def left_out(self, count: int) -> None:  # counted in health().rejected
+        """Send thread only: ``count`` values too large to send (one alone over the server's
+        ``max_packet``, or over a datagram), never sent. Its own counter, not ``_refused``,
+        which the receive thread writes meanwhile (``+=`` is no atomic update)."""
+        self._left_out += count
 
     def _wrong(self, exc: Mismatch) -> WrongValueType:
         self._rejected += 1
@@ -385,7 +393,8 @@ class OutgoingChannel:
             expired=self._expired, values=ring.written,
             clock_error_ns=self._clock.error_bound_ns, clock_offset_ns=self._clock.offset_ns,
             arrived=base_received + (hop.received if hop else 0) if reported else -1,
-            rate_limit_hz=rate, rejected=self._rejected + self._refused, ros_lost=self.ros_lost)
+            rate_limit_hz=rate, rejected=self._rejected + self._refused + self._left_out,
+            ros_lost=self.ros_lost)
 
     @property
     def closed(self) -> bool:

@@ -51,8 +51,12 @@ class OutgoingSource(Protocol):
         ...
 
     def refused(self, count: int) -> None:
-        """``count`` values of this channel were refused: by the server (receive thread), or
-        by the send thread as alone over the server's ``max_packet``."""
+        """Receive thread: the server refused ``count`` values of this channel."""
+        ...
+
+    def left_out(self, count: int) -> None:
+        """Send thread: ``count`` values too large to send (over the server's ``max_packet``,
+        or a datagram) were not sent. Two methods, two counters: one writer each."""
         ...
 
 

@@ -112,6 +112,8 @@ class SendLoop:
         self._conn = conn
         self.rate_hz = rate_hz
         self._period = 1.0 / rate_hz if rate_hz else None
+        #: The values per Batch until a session's ack says (the server's ``max_batch``, read
+        #: every round like its ``max_packet``: a reconnect may reach other limits).
         self._max_batch = max(1, max_batch)
         self._sources: tuple[OutgoingSource, ...] = ()
         #: Of ``_sources``: the plain ones (all; the immediate ones), and the others.
@@ -298,6 +300,7 @@ class SendLoop:
             return
         conn = self._conn
         packer = self._packer_for(conn)
+        max_batch = self._batch_limit(conn)
         frames = bytearray()  # TCP frames of the round: credit, then values
         if self._credits:
             self._grant_credit(frames)
@@ -311,13 +314,13 @@ class SendLoop:
             # The short way: plain channels append their values as parts, and the round's
             # parts are encoded by one call into one datagram (or, too large, packed below).
             self.values_sent += take_plain(self._plain if flush_all else self._plain_immediate,
-                                           parts, self._max_batch)
+                                           parts, max_batch)
             others = self._others
             gathered = False
         else:
             others = self._sources
         if others:
-            self._take_others(others, flush_all, conn, packer, frames, parts)
+            self._take_others(others, flush_all, conn, packer, frames, parts, max_batch)
         else:  # nothing that can hold, defer or wait for a rate
             self._holding, self._retry, self._deferred = False, None, False
         if parts:
@@ -328,7 +331,9 @@ class SendLoop:
                     gathered = True
                     for part in parts:
                         packet = as_packet(part)
-                        self._refused(packer.add(packet), packet.channel)
+                        refused = packer.add(packet)
+                        if refused:
+                            self._over_datagram(refused, packet.channel)
             finally:  # a failed send loses this round's parts, never resends them later
                 parts.clear()
         if gathered and packer is not None:
@@ -338,7 +343,7 @@ class SendLoop:
 
     def _take_others(self, sources: tuple[OutgoingSource, ...], flush_all: bool,
                      conn: Connection, packer: DatagramPacker | None, frames: bytearray,
-                     parts: list[Part]) -> None:
+                     parts: list[Part], max_batch: int) -> None:
         """The sources with policies (and every source when the round cannot bundle):
         ``take`` applies them; TCP packets become frames, UDP packets parts of the round."""
         codec = conn.codec
@@ -374,13 +379,12 @@ class SendLoop:
                     ack = conn.ack
                     max_packet = ack.limits.max_packet if ack is not None else DEFAULT_MAX_PACKET
                 self.packets_sent += encode_run_into(codec, frames, src.channel_id, first_seq,
-                                                     stamps, values, self._max_batch,
+                                                     stamps, values, max_batch,
                                                      max_packet, refused)
                 if refused:
                     self._too_large(src, refused, max_packet)
             elif packer is not None:
-                parts.extend(packets_for(src.channel_id, first_seq, stamps, values,
-                                         self._max_batch))
+                parts.extend(packets_for(src.channel_id, first_seq, stamps, values, max_batch))
         self._holding = holding
         self._retry = retry
         self._deferred = deferred
@@ -392,7 +396,7 @@ class SendLoop:
         for seq, size in refused:
             log.warning("value %d of channel %d is %d bytes encoded, over the server's limit "
                         "of %d bytes (max_packet); not sent", seq, src.channel_id, size, limit)
-        src.refused(len(refused))
+        src.left_out(len(refused))
         refused.clear()
 
     def _grant_credit(self, frames: bytearray) -> None:
@@ -417,16 +421,23 @@ class SendLoop:
                 bundles=bool(conn.udp_flags & FLAG_BUNDLES), flags=conn.udp_flags)
         return packer
 
+    def _batch_limit(self, conn: Connection) -> int:
+        """The current session's ``max_batch`` (its ack's), else the one given at start."""
+        ack = conn.ack
+        return max(1, ack.limits.max_batch) if ack is not None else self._max_batch
+
     @property
     def datagrams(self) -> int:
         """Value datagrams sent so far (a bundle of every UDP channel counts once)."""
         return self.datagrams_sent + (self._packer.datagrams if self._packer else 0)
 
-    @staticmethod
-    def _refused(n: int, channel: int) -> None:
-        if n:
-            log.warning("%d value(s) on channel %d too large for a datagram; dropped",
-                        n, channel)
+    def _over_datagram(self, n: int, channel: int) -> None:
+        """``n`` values of ``channel`` each too large for a datagram: not sent, said and
+        counted in its ``health().rejected`` (as a TCP value over ``max_packet`` is)."""
+        log.warning("%d value(s) on channel %d too large for a datagram; dropped", n, channel)
+        for source in self._sources:
+            if source.channel_id == channel:
+                source.left_out(n)
 
     # -- inline rounds (module docstring): a caller's thread runs the round ------------------
 
@@ -471,7 +482,7 @@ class SendLoop:
         parts = self._parts
         if parts:  # left by a round that failed before it sent them (as in _send_pending)
             parts.clear()
-        taken = take_plain(self._plain, parts, self._max_batch)
+        taken = take_plain(self._plain, parts, self._batch_limit(self._conn))
         if not parts:
             return not self._others_waiting()
         self.values_sent += taken
