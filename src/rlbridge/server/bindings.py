@@ -105,9 +105,9 @@ class Inbound:
             tracker.accepted += 1
         elif not tracker.accept(seq):
             return
-        credit = self.credit
-        if credit is not None:  # one comparison unless a grant may be due (server/flow.py)
-            credit.grant(self.tracker.highest + 1)
+        if self.credit is not None:  # publish first, then grant: as on_batch (server/flow.py)
+            self._publish_flow([packet.stamp_ns], [packet.value])
+            return
         stamp = packet.stamp_ns
         clock = self._clock
         now = ((time.time_ns() if wall_ns is None else wall_ns)
