@@ -12,6 +12,7 @@ import asyncio
 from typing import Any
 
 import pytest
+from test_value_path_parity import Told
 
 from rlbridge.adapters.inproc import InProcessBus
 from rlbridge.server.bindings import Inbound, Outbound
@@ -21,27 +22,10 @@ from rlbridge.server.context import ServerContext
 from rlbridge.server.flow import BACKLOG_SOFT
 from rlbridge.server.handoff import LoopHandoff
 from rlbridge.server.session import Session
-from rlbridge.wire import Batch, Credit, Packet, PacketCodec, TopicConnect, Value
+from rlbridge.wire import Batch, Credit, PacketCodec, TopicConnect, Value
 
 F64 = "std_msgs/msg/Float64"
 WINDOW = 4  # the subscriber's credit: it reads nothing
-
-
-class Wire:
-    """The client's side of the session's TCP connection (a sink that keeps everything)."""
-
-    def __init__(self) -> None:
-        self.packets: list[Packet] = []
-
-    def send(self, packet: Packet, *, data: bool = False) -> bool:
-        self.packets.append(packet)
-        return True
-
-    def dropped(self) -> int:
-        return 0
-
-    def congested(self) -> bool:
-        return False
 
 
 def _granted(single: bool) -> tuple[int, int]:
@@ -51,7 +35,7 @@ def _granted(single: bool) -> tuple[int, int]:
     try:
         ctx = ServerContext(ServerConfig(port=0), bus, PacketCodec(), loop, LoopHandoff(loop))
         session = Session(ctx, 1, 0x1234, "grant", lambda _s: None)
-        wire = Wire()
+        wire = Told()  # the client's side of the TCP connection: keeps every packet
         session.attach_tcp(wire, lambda: None)
         sub = bind(session, TopicConnect(2, "subscribe", "/grant", F64, transport="tcp",
                                          buffer_size=WINDOW, flow=True))
